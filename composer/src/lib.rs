@@ -1,0 +1,1 @@
+//! nephele-composer (being written)

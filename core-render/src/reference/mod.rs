@@ -1,0 +1,13 @@
+//! The reference renderer: a multi-threaded CPU path tracer over triangle meshes with a BVH.
+//! It is the ground truth for every metric and the teacher for every distillation.
+
+pub mod bvh;
+pub mod gltf_import;
+pub mod integrator;
+pub mod material;
+pub mod sampling;
+pub mod scene;
+
+// integrator exports follow once written
+pub use material::Material;
+pub use scene::{Environment, Mesh, Scene, SceneBuilder, Sun};

@@ -1,0 +1,1 @@
+//! nephele-master (being written)

@@ -1,0 +1,1 @@
+//! nephele-proto (being written)

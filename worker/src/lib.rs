@@ -1,0 +1,1 @@
+//! nephele-worker (being written)
