@@ -1,1 +1,55 @@
-//! Cross-process tests live in `tests/tests/`; this library is intentionally empty.
+//! Helpers for the cross-process tests in `tests/tests/`: they run the real `nephele` binary.
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+/// Path of the `nephele` binary of this build profile, built on first use (`cargo build` is a
+/// no-op when it is fresh). `NEPHELE_BIN` overrides, e.g. to test an installed binary.
+pub fn nephele_bin() -> PathBuf {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(|| {
+        if let Some(path) = std::env::var_os("NEPHELE_BIN") {
+            return PathBuf::from(path);
+        }
+        // The test executable lives in target/<profile>/deps/; the binary in target/<profile>/.
+        let exe = std::env::current_exe().expect("test executable path");
+        let profile_dir = exe.parent().and_then(|deps| deps.parent()).expect("target/<profile>").to_path_buf();
+        let profile = profile_dir.file_name().and_then(|n| n.to_str()).unwrap_or("debug").to_string();
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let mut build = Command::new(cargo);
+        build.args(["build", "--quiet", "-p", "nephele-cli", "--bin", "nephele"]);
+        if profile != "debug" {
+            build.args(["--profile", if profile == "release" { "release" } else { &profile }]);
+        }
+        build.current_dir(env!("CARGO_MANIFEST_DIR"));
+        let status = build.status().expect("running cargo build");
+        assert!(status.success(), "cargo build of the nephele binary failed");
+        profile_dir.join(format!("nephele{}", std::env::consts::EXE_SUFFIX))
+    })
+    .clone()
+}
+
+/// Runs `nephele ARGS` with progress bars off and returns its output.
+pub fn nephele(args: &[&str]) -> Output {
+    Command::new(nephele_bin()).arg("--quiet").args(args).output().expect("running nephele")
+}
+
+/// Like [`nephele`], but panics with the command's stderr unless it succeeded.
+pub fn nephele_ok(args: &[&str]) -> String {
+    let out = nephele(args);
+    assert!(out.status.success(), "nephele {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Runs a command that must fail, and returns its stderr for checking the message.
+pub fn nephele_err(args: &[&str]) -> String {
+    let out = nephele(args);
+    assert!(!out.status.success(), "nephele {args:?} should have failed");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// The shared data folder beside the checkout (`../shared/data`).
+pub fn shared_data() -> PathBuf {
+    PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))
+}

@@ -8,6 +8,6 @@ pub mod material;
 pub mod sampling;
 pub mod scene;
 
-// integrator exports follow once written
+pub use integrator::{Background, RenderError, RenderOptions, RenderOutput, RenderStats, Renderer};
 pub use material::Material;
 pub use scene::{Environment, Mesh, Scene, SceneBuilder, Sun};

@@ -1,0 +1,118 @@
+//! `nephele bench`: the figures recorded in BENCHMARKS.md.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use glam::Vec3;
+use nephele_render::camera::Camera;
+use nephele_render::metrics;
+use nephele_render::reference::integrator::Aov;
+use nephele_render::reference::{RenderOptions, Renderer};
+use nephele_render::scenes;
+use serde_json::json;
+
+use crate::progress::Progress;
+
+#[derive(Debug, clap::Subcommand)]
+pub enum Command {
+    /// Path tracer throughput on each built-in scene (samples/s, rays/s), the BVH's work per
+    /// ray, and the error reached: PSNR of the timed render against a render with many more
+    /// samples of the same view.
+    Reference(ReferenceArgs),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct ReferenceArgs {
+    /// Image size of the timed render.
+    #[arg(long, default_value = "128x128", value_parser = super::parse_size)]
+    size: (u32, u32),
+    /// Samples per pixel of the timed render.
+    #[arg(long, default_value_t = 16)]
+    spp: u32,
+    /// Samples per pixel of the converged image the error is measured against.
+    #[arg(long, default_value_t = 256)]
+    reference_spp: u32,
+    /// Scenes to run (default: all built-in scenes).
+    #[arg(long, value_delimiter = ',')]
+    scenes: Vec<String>,
+    /// Also write the results as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+pub fn run(command: Command, progress: &Progress) -> Result<()> {
+    match command {
+        Command::Reference(args) => reference(args, progress),
+    }
+}
+
+fn reference(args: ReferenceArgs, progress: &Progress) -> Result<()> {
+    let names: Vec<String> = if args.scenes.is_empty() { scenes::names().iter().map(|s| s.to_string()).collect() } else { args.scenes.clone() };
+    let (width, height) = args.size;
+    println!(
+        "reference path tracer, {width}x{height}, {} spp timed, error against {} spp, {} threads",
+        args.spp,
+        args.reference_spp,
+        rayon::current_num_threads()
+    );
+    println!(
+        "{:<11} {:>9} {:>9} {:>11} {:>11} {:>10} {:>10} {:>9}",
+        "scene", "triangles", "build ms", "samples/s", "rays/s", "tri/ray", "nodes/ray", "PSNR dB"
+    );
+    let mut rows = Vec::new();
+    for name in &names {
+        let builtin = super::load_scene(name)?;
+        let (eye, target, fov_y) = builtin.default_view();
+        let background = builtin.default_background();
+        let triangles = builtin.scene.triangle_count();
+        let camera = Camera::look_at(width, height, fov_y, eye, target, Vec3::Z)?;
+        let build_start = Instant::now();
+        let renderer = Renderer::new(builtin.scene)?;
+        let build_ms = build_start.elapsed().as_secs_f64() * 1e3;
+        let timed_options = RenderOptions { samples_per_pixel: args.spp, background, seed: 1, ..Default::default() };
+        let bar = progress.bar(u64::from(height), name, "rows");
+        let start = Instant::now();
+        let timed = renderer.render(&camera, &timed_options, &|r| bar.inc(u64::from(r)))?;
+        let seconds = start.elapsed().as_secs_f64();
+        bar.finish_and_clear();
+        let bar = progress.bar(u64::from(height), &format!("{name} reference"), "rows");
+        let converged = renderer.render(
+            &camera,
+            &RenderOptions { samples_per_pixel: args.reference_spp, seed: 2, ..timed_options },
+            &|r| bar.inc(u64::from(r)),
+        )?;
+        bar.finish_and_clear();
+        let psnr = metrics::psnr(&timed.to_rgba(Aov::Color), &converged.to_rgba(Aov::Color), [1.0; 3])
+            .context("measuring the error")?;
+        let stats = timed.stats;
+        let rays = stats.traversal.rays.max(1) as f64;
+        let row = json!({
+            "scene": name,
+            "triangles": triangles,
+            "bvh_build_ms": build_ms,
+            "samples_per_second": stats.samples as f64 / seconds,
+            "rays_per_second": rays / seconds,
+            "triangle_tests_per_ray": stats.traversal.triangle_tests as f64 / rays,
+            "node_visits_per_ray": stats.traversal.node_visits as f64 / rays,
+            "rays_per_sample": rays / stats.samples.max(1) as f64,
+            "psnr_vs_reference_db": psnr,
+        });
+        println!(
+            "{:<11} {:>9} {:>9.1} {:>11.0} {:>11.0} {:>10.1} {:>10.1} {:>9.2}",
+            name,
+            triangles,
+            build_ms,
+            stats.samples as f64 / seconds,
+            rays / seconds,
+            stats.traversal.triangle_tests as f64 / rays,
+            stats.traversal.node_visits as f64 / rays,
+            psnr
+        );
+        rows.push(row);
+    }
+    if let Some(path) = args.json {
+        std::fs::write(&path, serde_json::to_string_pretty(&rows)?).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}

@@ -1,0 +1,89 @@
+//! One module per subcommand; each parses its own arguments and calls into `nephele-render`.
+
+pub mod bench;
+pub mod dataset;
+pub mod eval;
+pub mod pathtrace;
+pub mod scenes;
+
+use anyhow::{Context, Result, bail};
+use glam::Vec3;
+
+/// Parses `WxH` (e.g. `800x800`).
+pub fn parse_size(text: &str) -> Result<(u32, u32), String> {
+    let (w, h) = text.split_once(['x', 'X']).ok_or_else(|| format!("expected WIDTHxHEIGHT, got '{text}'"))?;
+    let w: u32 = w.trim().parse().map_err(|_| format!("bad width in '{text}'"))?;
+    let h: u32 = h.trim().parse().map_err(|_| format!("bad height in '{text}'"))?;
+    if w == 0 || h == 0 {
+        return Err(format!("image size must be positive, got '{text}'"));
+    }
+    if w > 16384 || h > 16384 {
+        return Err(format!("image size '{text}' exceeds 16384 on a side"));
+    }
+    Ok((w, h))
+}
+
+/// Parses `x,y,z` into a finite vector.
+pub fn parse_vec3(text: &str) -> Result<Vec3, String> {
+    let parts: Vec<&str> = text.split(',').collect();
+    if parts.len() != 3 {
+        return Err(format!("expected x,y,z, got '{text}'"));
+    }
+    let mut v = [0.0f32; 3];
+    for (slot, part) in v.iter_mut().zip(parts) {
+        *slot = part.trim().parse().map_err(|_| format!("'{part}' is not a number"))?;
+        if !slot.is_finite() {
+            return Err(format!("'{part}' is not finite"));
+        }
+    }
+    Ok(Vec3::from(v))
+}
+
+/// Parses a background colour name or `r,g,b` in [0, 1].
+pub fn parse_background(text: &str) -> Result<[f32; 3], String> {
+    match text {
+        "white" => Ok([1.0; 3]),
+        "black" => Ok([0.0; 3]),
+        _ => {
+            let v = parse_vec3(text).map_err(|e| format!("{e} (or use 'white' / 'black')"))?;
+            if v.min_element() < 0.0 || v.max_element() > 1.0 {
+                return Err(format!("background '{text}' must lie in [0, 1]"));
+            }
+            Ok(v.to_array())
+        }
+    }
+}
+
+/// Loads a built-in scene by name, or a glTF file (path ending in .gltf/.glb).
+pub fn load_scene(name_or_path: &str) -> Result<nephele_render::scenes::BuiltinScene> {
+    use nephele_render::scenes;
+    let lower = name_or_path.to_ascii_lowercase();
+    if lower.ends_with(".gltf") || lower.ends_with(".glb") {
+        let path = std::path::Path::new(name_or_path);
+        let scene = nephele_render::reference::gltf_import::import_gltf(path)
+            .with_context(|| format!("importing {}", path.display()))?;
+        return scenes::BuiltinScene::from_imported(scene).context("framing the imported scene");
+    }
+    match scenes::builtin(name_or_path) {
+        Ok(scene) => Ok(scene),
+        Err(e) => bail!("{e}"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_vectors_and_backgrounds_parse_or_fail_clearly() {
+        assert_eq!(parse_size("800x600"), Ok((800, 600)));
+        assert!(parse_size("0x10").is_err());
+        assert!(parse_size("800").is_err());
+        assert!(parse_size("99999x10").is_err());
+        assert_eq!(parse_vec3("1, 2,3"), Ok(Vec3::new(1.0, 2.0, 3.0)));
+        assert!(parse_vec3("1,2").is_err());
+        assert!(parse_vec3("1,nan,2").is_err());
+        assert_eq!(parse_background("white"), Ok([1.0; 3]));
+        assert!(parse_background("2,0,0").is_err());
+    }
+}
