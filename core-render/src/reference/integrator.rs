@@ -217,6 +217,42 @@ impl Renderer {
         Ok(out)
     }
 
+    /// Renders only the listed pixels (`y * width + x`, each `< width * height`): the unit
+    /// of work the render farm ships. Returns `(colour premultiplied by alpha, alpha, view
+    /// depth)` per listed pixel, in the order given, and the work done. A pixel renders to
+    /// exactly the value the full-frame [`Renderer::render`] gives it.
+    ///
+    /// # Panics
+    /// Never on pixel indices: out-of-range indices are the caller's contract to check
+    /// ([`crate::kernel::validate_pixels`]); they are clamped to the last pixel here.
+    pub fn render_pixel_list(&self, camera: &Camera, options: &RenderOptions, pixels: &[u32]) -> Result<(Vec<(Vec3, f32, f32)>, RenderStats), RenderError> {
+        options.validate()?;
+        let width = camera.width();
+        let last = u64::from(width) * u64::from(camera.height()) - 1;
+        let results: Vec<((Vec3, f32, f32), RenderStats)> = pixels
+            .par_iter()
+            .with_min_len(64)
+            .map(|&index| {
+                let index = u64::from(index).min(last);
+                let (x, y) = ((index % u64::from(width)) as u32, (index / u64::from(width)) as u32);
+                let mut stats = RenderStats::default();
+                let px = self.render_pixel(camera, options, x, y, index, &mut stats);
+                ((px.color, px.alpha, px.depth), stats)
+            })
+            .collect();
+        let mut total = RenderStats::default();
+        let values = results
+            .into_iter()
+            .map(|(value, s)| {
+                total.samples += s.samples;
+                total.traversal += s.traversal;
+                total.dropped_non_finite += s.dropped_non_finite;
+                value
+            })
+            .collect();
+        Ok((values, total))
+    }
+
     fn render_pixel(&self, camera: &Camera, options: &RenderOptions, x: u32, y: u32, pixel_index: u64, stats: &mut RenderStats) -> PixelValue {
         let mut rng = Rng::new(options.seed, pixel_index);
         let mut acc = PixelValue::default();
