@@ -1,4 +1,7 @@
-//! `nephele-master`: HTTP API and signalling, sessions, the TaskAssigner and the ray-level
-//! scheduler (NEPHELE Algorithm 1).
-//!
-//! Empty for now: it arrives with the ray-level scheduling work (issue 4).
+//! `nephele-master`: the control plane. HTTP API and signalling (axum), sessions, and (with
+//! the scheduler work of issue 4) the live loop that drives the pure scheduler core over the
+//! workers' TCP links.
+
+pub mod client_files;
+pub mod http;
+pub mod sessions;
