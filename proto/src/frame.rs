@@ -57,9 +57,18 @@ impl FrameBuf for bytes::BytesMut {
 }
 
 pub(crate) fn encode_frame_into<B: FrameBuf>(message: &Message, out: &mut B, config: &FrameConfig) -> Result<(), ProtoError> {
+    encode_frame_with(message, out, config, codec::encode_payload)
+}
+
+fn encode_frame_with<B: FrameBuf>(
+    message: &Message,
+    out: &mut B,
+    config: &FrameConfig,
+    encode: fn(&Message, &mut B) -> Result<(), ProtoError>,
+) -> Result<(), ProtoError> {
     let start = out.as_mut().len();
     out.put_u32_le(0);
-    let result = codec::encode_payload(message, out);
+    let result = encode(message, out);
     let len = out.as_mut().len() - start - HEADER_LEN;
     let result = result.and_then(|()| {
         if len > config.limit() {
@@ -85,6 +94,13 @@ pub(crate) fn encode_frame_into<B: FrameBuf>(message: &Message, out: &mut B, con
 /// refuses payloads above `config.max_frame`; on error `out` is left as it was.
 pub fn encode_frame(message: &Message, out: &mut Vec<u8>, config: &FrameConfig) -> Result<(), ProtoError> {
     encode_frame_into(message, out, config)
+}
+
+/// [`encode_frame`] without validating the message: for tests and tools that play a broken
+/// or hostile peer (NaN cameras, pixels outside the image, …). Never use it to talk to a
+/// real peer.
+pub fn encode_frame_unchecked(message: &Message, out: &mut Vec<u8>, config: &FrameConfig) -> Result<(), ProtoError> {
+    encode_frame_with(message, out, config, codec::encode_payload_unchecked)
 }
 
 /// A frame's payload and the bytes after the frame.
@@ -118,7 +134,8 @@ pub fn decode_frame<'a>(bytes: &'a [u8], config: &FrameConfig) -> Result<(Incomi
     }
 }
 
-/// Reads frames from a blocking stream.
+/// Reads frames from a blocking stream. Wrap a socket in a `BufReader` to save a system
+/// call per frame header.
 #[derive(Debug)]
 pub struct FrameReader<R> {
     inner: R,
@@ -145,23 +162,27 @@ impl<R: Read> FrameReader<R> {
         if len > self.config.limit() {
             return Err(ProtoError::FrameTooLarge { len: len as u64, max: self.config.limit() });
         }
-        self.buf.clear();
-        // Grow with what arrives, never to what the header claims up front.
-        while self.buf.len() < len {
-            let filled = self.buf.len();
+        // Grow with what arrives, never to what the header claims up front. The buffer keeps
+        // its initialised length between frames so that it is not zeroed again.
+        let mut filled = 0;
+        while filled < len {
             let step = (len - filled).min(READ_STEP.max(filled));
-            self.buf.resize(filled + step, 0);
-            let got = read_full(&mut self.inner, &mut self.buf[filled..])?;
+            if self.buf.len() < filled + step {
+                self.buf.resize(filled + step, 0);
+            }
+            let got = read_full(&mut self.inner, &mut self.buf[filled..filled + step])?;
             if got < step {
                 return Err(ProtoError::Truncated {
                     expected: (HEADER_LEN + len) as u64,
                     received: (HEADER_LEN + filled + got) as u64,
                 });
             }
+            filled += step;
         }
         // Keep a big buffer only while frames are big.
-        if self.buf.capacity() > 4 * len.max(READ_STEP) {
-            self.buf.shrink_to(len.max(READ_STEP));
+        if self.buf.len() > 4 * len.max(READ_STEP) {
+            self.buf.truncate(len.max(READ_STEP));
+            self.buf.shrink_to_fit();
         }
         Ok(&self.buf[..len])
     }

@@ -32,7 +32,8 @@ use crate::messages::{Hello, Message, Role};
 /// First read reservation for a body; later ones double with the bytes received.
 const RESERVE_STEP: usize = 64 << 10;
 
-/// Length-prefixed frames of [`Message`]s. Items are [`Incoming`]: a rejected message does
+/// Length-prefixed frames of [`Message`]s, sent by reference (`conn.send(&message)`: a
+/// result is never cloned to be sent). Items are [`Incoming`]: a rejected message does
 /// not end the stream; an `Err` does (tokio-util stops a stream after a decoder error).
 #[derive(Debug, Clone, Default)]
 pub struct FrameCodec {
@@ -97,14 +98,6 @@ impl Encoder<&Message> for FrameCodec {
 
     fn encode(&mut self, item: &Message, dst: &mut BytesMut) -> Result<(), ProtoError> {
         encode_frame_into(item, dst, &self.config)
-    }
-}
-
-impl Encoder<Message> for FrameCodec {
-    type Error = ProtoError;
-
-    fn encode(&mut self, item: Message, dst: &mut BytesMut) -> Result<(), ProtoError> {
-        encode_frame_into(&item, dst, &self.config)
     }
 }
 

@@ -445,6 +445,9 @@ fn nan_and_infinite_cameras_are_rejected_with_the_batch_ids() {
         } else {
             batch.camera.projection[slot - 16] = value;
         }
+        let mut via_api = Vec::new();
+        encode_frame_unchecked(&Message::RayBatch(batch.clone()), &mut via_api, &cfg()).expect("unchecked");
+        assert_eq!(via_api, unchecked(MessageKind::RayBatch, &batch));
         let r = rejected(&unchecked(MessageKind::RayBatch, &batch));
         assert_eq!(r.kind, MessageKind::RayBatch);
         assert_eq!(r.ids, Some(batch.ids));
