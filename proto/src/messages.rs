@@ -259,6 +259,8 @@ pub enum ErrorCode {
     DeadlineExpired,
     Cancelled,
     ComposerUnreachable,
+    /// The worker's queue is full: send the batch elsewhere.
+    Overloaded,
     ShuttingDown,
     Internal,
 }

@@ -640,3 +640,28 @@ async fn async_handshake_refuses_wrong_roles_and_versions() {
     }
     server.await.expect("server");
 }
+
+/// Writes one valid frame of every message kind (and a few broken ones) as seeds for the
+/// fuzz target: `cargo test -p nephele-proto write_fuzz_seeds -- --ignored`.
+#[test]
+#[ignore = "writes files: run by hand to refresh proto/fuzz/seeds"]
+fn write_fuzz_seeds() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/decode");
+    std::fs::create_dir_all(&dir).expect("seed dir");
+    let mut runner = proptest::test_runner::TestRunner::deterministic();
+    let mut seen = std::collections::HashSet::new();
+    let mut count = 0;
+    while seen.len() < MessageKind::ALL.len() {
+        let message = proptest::strategy::ValueTree::current(&message().new_tree(&mut runner).expect("sample"));
+        if seen.insert(message.kind()) {
+            std::fs::write(dir.join(format!("{}.bin", message.kind())), frame_of(&message)).expect("write");
+            count += 1;
+        }
+    }
+    let mut bad = good_batch();
+    bad.camera.view[0] = f32::NAN;
+    std::fs::write(dir.join("RayBatch-nan.bin"), unchecked(MessageKind::RayBatch, &bad)).expect("write");
+    std::fs::write(dir.join("BatchResult-10.bin"), frame_of(&Message::BatchResult(good_result(10)))).expect("write");
+    std::fs::write(dir.join("huge-length.bin"), u32::MAX.to_le_bytes()).expect("write");
+    assert_eq!(count, MessageKind::ALL.len());
+}

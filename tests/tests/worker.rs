@@ -295,7 +295,7 @@ fn frame(width: u32, height: u32, spp: u32, bounces: u32) -> Frame {
             .expect("camera from view and projection");
     let kernel = PathTracedKernel::new(Renderer::new(scene.scene).expect("renderer"), spp, bounces).expect("kernel");
     let (expected, _) = kernel.render_pixels(&camera, &all_pixels(&camera)).expect("reference render");
-    assert!(expected.opacity.iter().any(|&a| a > 0.0) && expected.opacity.iter().any(|&a| a == 0.0));
+    assert!(expected.opacity.iter().any(|&a| a > 0.0) && expected.opacity.contains(&0.0));
     Frame { wire, expected }
 }
 
@@ -605,7 +605,12 @@ fn garbage_oversized_frames_and_wrong_versions_close_the_connection_without_a_cr
     let assets = assets();
     let composer = Composer::start();
     let mut master = Master::new();
-    let mut process = WorkerProcess::start(master.addr(), assets.path(), "target", &["--spp", "1", "--bounces", "1"]);
+    let mut process = WorkerProcess::start(
+        master.addr(),
+        assets.path(),
+        "target",
+        &["--spp", "1", "--bounces", "1", "--concurrent-batches", "1", "--max-queued", "2"],
+    );
 
     let expect_closed = |master: &mut Master, worker: usize, code: ErrorCode| {
         let mut told = false;
@@ -666,9 +671,26 @@ fn garbage_oversized_frames_and_wrong_versions_close_the_connection_without_a_cr
         deadline_unix_us: None,
         composer: composer.addr.to_string(),
     };
-    master.send(w, &Message::RayBatch(batch));
+    master.send(w, &Message::RayBatch(batch.clone()));
     assert!(matches!(master.next(), Event::Message(_, Message::BatchDone(_))));
     assert_eq!(composer.results.recv_timeout(WAIT).expect("result").pixels.len(), 32 * 24);
+
+    // A flood: one batch rendering, two queued (--max-queued 2), the fourth refused.
+    let big = RayBatch { camera: frame_camera(192, 144), pixels: (0..192 * 144).collect(), ..batch.clone() };
+    for id in 10..14 {
+        let b = if id == 10 { big.clone() } else { batch.clone() };
+        master.send(w, &Message::RayBatch(RayBatch { ids: BatchIds { batch_id: id, ..b.ids }, ..b }));
+    }
+    let mut outcome = HashMap::new();
+    while outcome.len() < 4 {
+        match master.next() {
+            Event::Message(_, Message::BatchDone(d)) => outcome.insert(d.ids.batch_id, None),
+            Event::Message(_, Message::BatchFailed(f)) => outcome.insert(f.ids.batch_id, Some(f.code)),
+            other => panic!("unexpected {other:?}"),
+        };
+    }
+    assert_eq!(outcome, HashMap::from([(10, None), (11, None), (12, None), (13, Some(ErrorCode::Overloaded))]));
+    process.assert_alive();
 }
 
 #[test]

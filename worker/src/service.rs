@@ -50,6 +50,8 @@ pub struct WorkerConfig {
     pub reconnect_for: Duration,
     /// How long in-flight batches may take to finish after a shutdown request.
     pub drain_timeout: Duration,
+    /// Most batches waiting; more are refused with `ErrorCode::Overloaded`.
+    pub max_queued_batches: usize,
     /// Asset rendered at start-up to measure throughput.
     pub calibration_asset: String,
     /// Image side of the calibration render.
@@ -67,6 +69,7 @@ impl WorkerConfig {
             io_timeout: Duration::from_secs(10),
             reconnect_for: Duration::from_secs(30),
             drain_timeout: Duration::from_secs(30),
+            max_queued_batches: 4096,
             calibration_asset: "diffuse".into(),
             calibration_size: 64,
         }
@@ -358,6 +361,10 @@ impl<'a> Session<'a> {
     fn handle(&mut self, message: Message) {
         match message {
             Message::RayBatch(batch) if self.draining => self.hand_back(batch.ids),
+            Message::RayBatch(batch) if self.queue.len() >= self.config.max_queued_batches => {
+                let message = format!("{} batches already queued", self.queue.len());
+                self.fail(batch.ids, ErrorCode::Overloaded, message);
+            }
             Message::RayBatch(batch) => {
                 tracing::debug!(batch = batch.ids.batch_id, pixels = batch.pixels.len(), asset = %batch.asset_id, "batch queued");
                 self.queue.push_back(batch);

@@ -130,6 +130,9 @@ pub fn run(args: WireArgs, progress: &Progress) -> Result<()> {
         let (decoded, _) = decode_frame(&frame, &cfg).expect("decodes");
         assert!(decoded.is_ok());
     }) / n as f64;
+    let validate_ns = median_ns(args.repeats, || {
+        nephele_proto::validate::message(&message).expect("valid");
+    }) / n as f64;
     let elementwise = ElementWise::from(&result);
     let plain = postcard::to_allocvec(&elementwise)?;
     let mut plain_buf = Vec::with_capacity(plain.len());
@@ -164,7 +167,9 @@ pub fn run(args: WireArgs, progress: &Progress) -> Result<()> {
         plain_decode_ns,
         plain.len() as f64 / n as f64
     );
-    println!("decode includes validation (finite colour, opacity in [0,1], indices in the image)");
+    println!(
+        "packed encode and decode include validation (finite colour, opacity in [0,1], indices in the image): {validate_ns:.2} ns/px of it"
+    );
     println!("ray batch (master -> worker): {batch_bytes_per_pixel:.2} bytes/px on the wire");
 
     let bar = progress.bar(2 * args.batches as u64, "loopback", "batches");
@@ -196,7 +201,7 @@ pub fn run(args: WireArgs, progress: &Progress) -> Result<()> {
         let out = json!({
             "pixels_per_batch": n,
             "batches": args.batches,
-            "packed": { "encode_ns_per_pixel": encode_ns, "decode_ns_per_pixel": decode_ns, "bytes_per_pixel": result_bytes_per_pixel },
+            "packed": { "encode_ns_per_pixel": encode_ns, "decode_ns_per_pixel": decode_ns, "validate_ns_per_pixel": validate_ns, "bytes_per_pixel": result_bytes_per_pixel },
             "elementwise": { "encode_ns_per_pixel": plain_encode_ns, "decode_ns_per_pixel": plain_decode_ns, "bytes_per_pixel": plain.len() as f64 / n as f64 },
             "ray_batch_bytes_per_pixel": batch_bytes_per_pixel,
             "loopback_two_processes": loopback(&process),

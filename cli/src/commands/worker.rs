@@ -37,6 +37,9 @@ pub struct Args {
     /// Batches rendering at once (each on all render threads).
     #[arg(long, default_value_t = 2)]
     concurrent_batches: usize,
+    /// Most batches waiting; more are refused as overloaded (the master sends them elsewhere).
+    #[arg(long, default_value_t = 4096)]
+    max_queued: usize,
     /// Largest frame accepted or sent, MiB.
     #[arg(long, default_value_t = 64)]
     max_frame_mib: usize,
@@ -59,6 +62,7 @@ pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
         .with_context(|| format!("opening the asset directory {}", args.assets.display()))?;
     let mut config = WorkerConfig::new(args.master, name, threads);
     config.max_concurrent_batches = args.concurrent_batches;
+    config.max_queued_batches = args.max_queued;
     config.frame = FrameConfig { max_frame: args.max_frame_mib.saturating_mul(1 << 20) };
     config.reconnect_for = Duration::from_secs(args.reconnect_secs);
     config.drain_timeout = Duration::from_secs(args.drain_secs);
