@@ -43,6 +43,8 @@ enum Command {
     /// Print performance figures (see BENCHMARKS.md).
     #[command(subcommand)]
     Bench(commands::bench::Command),
+    /// Run a render worker: connect to a master and render the ray batches it sends.
+    Worker(commands::worker::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -69,6 +71,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Dataset(cmd) => commands::dataset::run(cmd, &progress),
         Command::Eval(args) => commands::eval::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
+        Command::Worker(args) => commands::worker::run(args, cli.threads),
     }
 }
 

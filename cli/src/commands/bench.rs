@@ -20,6 +20,13 @@ pub enum Command {
     /// ray, and the error reached: PSNR of the timed render against a render with many more
     /// samples of the same view.
     Reference(ReferenceArgs),
+    /// Protocol cost: encode/decode ns per pixel (packed against element-by-element), bytes
+    /// on the wire per pixel, and loopback TCP throughput of batch results between two
+    /// processes and between two tokio tasks (batches/s, GB/s of pixel results).
+    Wire(super::bench_wire::WireArgs),
+    /// The receiving end of `bench wire` (started by it).
+    #[command(hide = true)]
+    WireSink(super::bench_wire::SinkArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -44,6 +51,8 @@ pub struct ReferenceArgs {
 pub fn run(command: Command, progress: &Progress) -> Result<()> {
     match command {
         Command::Reference(args) => reference(args, progress),
+        Command::Wire(args) => super::bench_wire::run(args, progress),
+        Command::WireSink(args) => super::bench_wire::sink(args),
     }
 }
 
