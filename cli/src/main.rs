@@ -2,6 +2,8 @@
 
 mod commands;
 mod progress;
+#[allow(dead_code)] // used by `nephele up`, which lands with the composer wiring
+mod supervise;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
