@@ -43,6 +43,9 @@ enum Command {
     /// Print performance figures (see BENCHMARKS.md).
     #[command(subcommand)]
     Bench(commands::bench::Command),
+    /// Simulate the farm: the scheduler core (NEPHELE Algorithm 1) against baselines on
+    /// simulated workers and users; prints a table and writes CSV.
+    Simulate(commands::simulate::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -69,6 +72,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Dataset(cmd) => commands::dataset::run(cmd, &progress),
         Command::Eval(args) => commands::eval::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
+        Command::Simulate(args) => commands::simulate::run(args, &progress),
     }
 }
 

@@ -172,9 +172,8 @@ pub fn estimate_coverage(camera: &Camera, bounds: &Bounds, occupancy: Option<&Oc
         Some(grid) => grid.occupied_cells(bounds),
         None => vec![*bounds],
     };
-    // Per band: (x0, x1, r0, r1) spans of each projected box, merged below.
-    let bands = h.div_ceil(band_rows) as usize;
-    let mut spans: Vec<Vec<(u32, u32, u32, u32)>> = vec![Vec::new(); bands];
+    // (band, x0, x1, r0, r1) spans of each projected box, merged below.
+    let mut spans: Vec<(u32, u32, u32, u32, u32)> = Vec::new();
     let mut depth_sum = 0.0f64;
     let mut depth_count = 0u32;
     for cell in &boxes {
@@ -186,23 +185,23 @@ pub fn estimate_coverage(camera: &Camera, bounds: &Bounds, occupancy: Option<&Oc
         }
         band_spans(&hull, w, h, band_rows, &mut spans);
     }
-    let mut rects = Vec::new();
-    for band in &mut spans {
-        band.sort_unstable();
-        let mut current: Option<(u32, u32, u32, u32)> = None;
-        for &(x0, x1, r0, r1) in band.iter() {
-            current = match current {
-                Some((cx0, cx1, cr0, cr1)) if x0 <= cx1 => Some((cx0, cx1.max(x1), cr0.min(r0), cr1.max(r1))),
-                Some((cx0, cx1, cr0, cr1)) => {
-                    rects.push(PixelRect { x0: cx0, y0: cr0, x1: cx1, y1: cr1 });
-                    Some((x0, x1, r0, r1))
-                }
-                None => Some((x0, x1, r0, r1)),
-            };
-        }
-        if let Some((x0, x1, r0, r1)) = current {
-            rects.push(PixelRect { x0, y0: r0, x1, y1: r1 });
-        }
+    if boxes.len() > 1 {
+        spans.sort_unstable();
+    }
+    let mut rects: Vec<PixelRect> = Vec::with_capacity(spans.len());
+    let mut current: Option<(u32, u32, u32, u32, u32)> = None;
+    for &(band, x0, x1, r0, r1) in &spans {
+        current = match current {
+            Some((cb, cx0, cx1, cr0, cr1)) if cb == band && x0 <= cx1 => Some((cb, cx0, cx1.max(x1), cr0.min(r0), cr1.max(r1))),
+            Some((_, cx0, cx1, cr0, cr1)) => {
+                rects.push(PixelRect { x0: cx0, y0: cr0, x1: cx1, y1: cr1 });
+                Some((band, x0, x1, r0, r1))
+            }
+            None => Some((band, x0, x1, r0, r1)),
+        };
+    }
+    if let Some((_, x0, x1, r0, r1)) = current {
+        rects.push(PixelRect { x0, y0: r0, x1, y1: r1 });
     }
     if rects.is_empty() {
         return None;
@@ -279,7 +278,7 @@ fn convex_hull(mut points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
 }
 
 /// Adds, per band of `band_rows` rows, the pixel span the convex polygon `hull` touches.
-fn band_spans(hull: &[[f64; 2]], w: u32, h: u32, band_rows: u32, spans: &mut [Vec<(u32, u32, u32, u32)>]) {
+fn band_spans(hull: &[[f64; 2]], w: u32, h: u32, band_rows: u32, spans: &mut Vec<(u32, u32, u32, u32, u32)>) {
     let (mut ymin, mut ymax, mut xmin, mut xmax) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
     for p in hull {
         xmin = xmin.min(p[0]);
@@ -307,7 +306,7 @@ fn band_spans(hull: &[[f64; 2]], w: u32, h: u32, band_rows: u32, spans: &mut [Ve
         let x0 = lo.max(0.0).floor() as u32;
         let x1 = (hi.min(wf - 1.0).floor() as u32 + 1).min(w);
         if x1 > x0 {
-            spans[band as usize].push((x0, x1, r0, r1));
+            spans.push((band, x0, x1, r0, r1));
         }
     }
 }
@@ -410,13 +409,30 @@ pub fn classify(estimated_seconds: f64, frame_budget_seconds: f64, heavy_fractio
 
 /// A camera quantised on the sharing grid of a [`ShareTolerance`]: views with equal keys ask
 /// for the same rays (within the tolerance) and are rendered once.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CameraKey {
     size: [u32; 2],
     position: [i64; 3],
     forward: [i32; 3],
     up: [i32; 3],
     intrinsics: [i64; 4],
+}
+
+impl std::hash::Hash for CameraKey {
+    /// One write of the packed fields: hashing field by field costs several times more.
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        let mut bytes = [0u8; 88];
+        let mut at = 0;
+        let mut put = |b: &[u8]| {
+            bytes[at..at + b.len()].copy_from_slice(b);
+            at += b.len();
+        };
+        self.size.iter().for_each(|v| put(&v.to_le_bytes()));
+        self.position.iter().for_each(|v| put(&v.to_le_bytes()));
+        self.forward.iter().chain(&self.up).for_each(|v| put(&v.to_le_bytes()));
+        self.intrinsics.iter().for_each(|v| put(&v.to_le_bytes()));
+        state.write(&bytes);
+    }
 }
 
 impl CameraKey {

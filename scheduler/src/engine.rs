@@ -22,10 +22,12 @@
 //!   starved, [`Scheduler::admission`] refuses new sessions.
 //! * **HeavyFarm / LightFarm**: a task is Heavy when its estimated time on the median worker
 //!   exceeds `heavy_fraction` of its user's frame budget. A Heavy task's batches go to workers
-//!   dedicated to its object (`heavy:oN` mode), claiming idle workers first and converting
-//!   light ones if needed, up to `ceil(estimate / (heavy_fraction * budget))` workers; light
-//!   tasks are packed onto the other workers, least backlog first with a bias towards the
-//!   worker that last rendered the same object (`object_switch_cost`).
+//!   dedicated to it (`heavy:oN:tM` mode: no light batch queues there until they drain),
+//!   `ceil(estimate / (heavy_fraction * budget))` of them (idle ones first, then light ones
+//!   converted), so that it takes about `heavy_fraction` of the budget. Light tasks are
+//!   packed onto the other workers, least backlog first, with a bias (`object_switch_cost`)
+//!   towards the worker that last rendered the same object. Workers still idle after that
+//!   round are lent to heavy tasks beyond their share (work conservation).
 //! * **Shared rays**: views whose quantised cameras ([`crate::CameraKey`]) agree, on the same
 //!   object, are one task; every frame that needs it subscribes and the result is fanned out.
 //!   Finished tasks stay in a bounded **history table** for `history_max_age`, so a view that
@@ -55,7 +57,7 @@ use crate::assign::{self, CameraKey, OccupancyGrid, PixelSet, TaskClass};
 use crate::config::{MAX_FPS, Policy, SchedulerConfig};
 use crate::history::{History, ResultKey};
 use crate::snapshot::{FarmSnapshot, QueueSnapshot, SessionSnapshot, Stats, WorkerSnapshot};
-use crate::{BatchId, FrameId, ObjectId, SchedError, SessionId, TaskId, Time, WorkerId};
+use crate::{BatchId, FrameId, IdMap, ObjectId, SchedError, SessionId, TaskId, Time, WorkerId};
 
 /// An object instance the farm can render.
 #[derive(Debug, Clone, PartialEq)]
@@ -172,7 +174,8 @@ pub enum Action {
 enum Mode {
     Idle,
     Light,
-    Heavy(ObjectId),
+    /// Dedicated to one heavy task (of this object) until its queue drains.
+    Heavy(TaskId, ObjectId),
 }
 
 #[derive(Debug)]
@@ -201,6 +204,8 @@ struct Frame {
     remaining: u32,
     /// Batches not yet dispatched, over its tasks.
     pending: u64,
+    /// Every part before this one has no batch waiting for dispatch (reset by a re-issue).
+    cursor: usize,
 }
 
 #[derive(Debug)]
@@ -275,8 +280,8 @@ pub struct Scheduler {
     objects: BTreeMap<ObjectId, ObjectInfo>,
     workers: BTreeMap<WorkerId, Worker>,
     sessions: BTreeMap<SessionId, Session>,
-    tasks: HashMap<TaskId, Task>,
-    batches: HashMap<BatchId, Batch>,
+    tasks: IdMap<TaskId, Task>,
+    batches: IdMap<BatchId, Batch>,
     live: HashMap<ResultKey, TaskId>,
     history: History,
     pending_all: BTreeSet<BatchId>,
@@ -289,6 +294,7 @@ pub struct Scheduler {
     rr_cursor: usize,
     bindings: BTreeMap<ObjectId, WorkerId>,
     starved_now: usize,
+    last_starved: Option<Time>,
     stats: Stats,
 }
 
@@ -310,8 +316,8 @@ impl Scheduler {
             objects: BTreeMap::new(),
             workers: BTreeMap::new(),
             sessions: BTreeMap::new(),
-            tasks: HashMap::new(),
-            batches: HashMap::new(),
+            tasks: IdMap::default(),
+            batches: IdMap::default(),
             live: HashMap::new(),
             pending_all: BTreeSet::new(),
             pending_work: 0.0,
@@ -323,6 +329,7 @@ impl Scheduler {
             rr_cursor: 0,
             bindings: BTreeMap::new(),
             starved_now: 0,
+            last_starved: None,
             stats: Stats::default(),
         })
     }
@@ -427,13 +434,15 @@ impl Scheduler {
         Ok(())
     }
 
-    /// NEPHELE's admission control: refuse while any user is starved.
+    /// NEPHELE's admission control: refuse while any user is starved (and for
+    /// `admission_hold` after the last starved round).
     pub fn admission(&self, now: Time) -> Admission {
         let now = self.now.max(now);
         if !self.config.admission_control {
             return Admission::Admit;
         }
-        if self.sessions.values().any(|s| self.is_starved(s, now)) {
+        let recently = self.last_starved.is_some_and(|t| now.since(t) < self.config.admission_hold);
+        if recently || self.sessions.values().any(|s| self.is_starved(s, now)) {
             return Admission::Refuse { retry_after: self.retry_after() };
         }
         Admission::Admit
@@ -792,6 +801,9 @@ impl Scheduler {
             s.loaded = s.loaded.saturating_add_signed(d_in_flight);
             if let Some(f) = s.frames.iter_mut().find(|f| f.id == *fid) {
                 f.pending = f.pending.saturating_add_signed(d_pending);
+                if d_pending > 0 {
+                    f.cursor = 0;
+                }
                 if let Some(at) = dispatched {
                     f.first_dispatch.get_or_insert(at);
                 }
@@ -1013,7 +1025,7 @@ impl Scheduler {
                 parts.push(FramePart { view: vi as u32, object: oid, task: tid, rays: task.rays, mean_depth: task.mean_depth, source });
             }
         }
-        let mut frame = Frame { id: fid, released: now, first_dispatch: None, parts, remaining: 0, pending: 0 };
+        let mut frame = Frame { id: fid, released: now, first_dispatch: None, parts, remaining: 0, pending: 0, cursor: 0 };
         let mut loaded = 0;
         for part in &frame.parts {
             if let Some(t) = self.tasks.get_mut(&part.task) {
@@ -1124,14 +1136,28 @@ impl Scheduler {
         self.starved_now = order.iter().filter(|o| !o.0).count();
         if self.starved_now > 0 {
             self.stats.starved_rounds += 1;
+            self.last_starved = Some(now);
         }
-        let mut room = self.workers.values().filter(|w| self.has_room(w)).count();
-        for (_, _, _, sid) in order {
+        let sessions: Vec<SessionId> = order.iter().map(|o| o.3).collect();
+        let room = self.workers.values().filter(|w| self.has_room(w)).count();
+        // First as Algorithm 1 has it; then, if workers are still idle, heavy tasks may spread
+        // over them beyond their share (nothing else could use them this round).
+        let room = self.fill(&sessions, false, room, now);
+        if room > 0 {
+            self.fill(&sessions, true, room, now);
+        }
+    }
+
+    /// Fills workers with room, user by user in `order`, shared tasks before dedicated ones.
+    /// With `spread`, only heavy tasks are placed, on any idle worker. Returns the workers
+    /// still with room.
+    fn fill(&mut self, order: &[SessionId], spread: bool, mut room: usize, now: Time) -> usize {
+        for &sid in order {
             if room == 0 {
                 break;
             }
             let tids: Vec<TaskId> = match self.sessions.get(&sid) {
-                Some(s) => s.frames.iter().flat_map(|f| f.parts.iter().map(|p| p.task)).collect(),
+                Some(s) => s.frames.iter().filter(|f| f.pending > 0).flat_map(|f| f.parts[f.cursor..].iter().map(|p| p.task)).collect(),
                 None => continue,
             };
             for shared_pass in [true, false] {
@@ -1140,31 +1166,39 @@ impl Scheduler {
                         break;
                     }
                     let Some(t) = self.tasks.get(&tid) else { continue };
-                    if t.done || t.pending.is_empty() || (t.subscribers.len() > 1) != shared_pass {
+                    if t.done || t.pending.is_empty() || (t.subscribers.len() > 1) != shared_pass || (spread && t.class == TaskClass::Light) {
                         continue;
                     }
-                    let (class, object, wanted) = (t.class, t.object, t.workers_wanted);
+                    let (class, object, wanted) = (t.class, t.object, if spread { usize::MAX } else { t.workers_wanted });
                     while room > 0 {
                         let Some(&batch) = self.tasks.get(&tid).and_then(|t| t.pending.first()) else { break };
                         let exclude = self.batches.get(&batch).map(|b| b.previous.clone()).unwrap_or_default();
                         let choice = match class {
                             TaskClass::Light => self.place_light(object, &exclude),
-                            TaskClass::Heavy => self.place_heavy(object, wanted, &exclude),
+                            TaskClass::Heavy => self.place_heavy(tid, object, wanted, !spread, &exclude),
                         };
                         let Some((worker, mode)) = choice else { break };
                         if let Some(w) = self.workers.get_mut(&worker) {
                             w.mode = mode;
                         }
                         self.dispatch(batch, worker, now);
-                        if let Some(w) = self.workers.get(&worker) {
-                            if !self.has_room(w) {
-                                room -= 1;
-                            }
+                        if self.workers.get(&worker).is_some_and(|w| !self.has_room(w)) {
+                            room -= 1;
                         }
                     }
                 }
             }
+            let tasks = &self.tasks;
+            let waiting = |tid: &TaskId| tasks.get(tid).is_some_and(|t| !t.done && !t.pending.is_empty());
+            if let Some(s) = self.sessions.get_mut(&sid) {
+                for f in s.frames.iter_mut() {
+                    while f.cursor < f.parts.len() && !waiting(&f.parts[f.cursor].task) {
+                        f.cursor += 1;
+                    }
+                }
+            }
         }
+        room
     }
 
     /// LightFarm: a non-dedicated worker with room, least backlog (plus the switch cost when it
@@ -1174,7 +1208,7 @@ impl Scheduler {
         let pick = |allow_excluded: bool| {
             self.workers
                 .iter()
-                .filter(|(id, w)| !matches!(w.mode, Mode::Heavy(_)) && self.has_room(w) && (allow_excluded || !exclude.contains(id)))
+                .filter(|(id, w)| !matches!(w.mode, Mode::Heavy(..)) && self.has_room(w) && (allow_excluded || !exclude.contains(id)))
                 .map(|(&id, w)| (w.backlog_s + if w.last_object == Some(object) { 0.0 } else { switch }, id))
                 .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
                 .map(|(_, id)| (id, Mode::Light))
@@ -1182,25 +1216,25 @@ impl Scheduler {
         pick(false).or_else(|| pick(true))
     }
 
-    /// HeavyFarm: a worker dedicated to this object with room; else claim an idle worker, else
-    /// convert the least-loaded light worker, while fewer than `wanted` are dedicated.
-    fn place_heavy(&self, object: ObjectId, wanted: usize, exclude: &[WorkerId]) -> Option<(WorkerId, Mode)> {
-        let mode = Mode::Heavy(object);
+    /// HeavyFarm: the least-loaded worker among those dedicated to this task and, while fewer
+    /// than `wanted` are, the idle ones; failing that (still under `wanted`), the least-loaded
+    /// light worker is converted (it finishes its light batches, then serves only this task)
+    /// if `convert`.
+    /// Workers that last rendered the same object are preferred by the switch cost.
+    fn place_heavy(&self, task: TaskId, object: ObjectId, wanted: usize, convert: bool, exclude: &[WorkerId]) -> Option<(WorkerId, Mode)> {
+        let mode = Mode::Heavy(task, object);
+        let switch = secs(self.config.object_switch_cost);
+        let under_cap = self.workers.values().filter(|w| w.mode == mode).count() < wanted.max(1);
         let least = |filter: &dyn Fn(&Worker) -> bool| {
             self.workers
                 .iter()
                 .filter(|(id, w)| filter(w) && self.has_room(w) && !exclude.contains(id))
-                .min_by(|a, b| a.1.backlog_s.total_cmp(&b.1.backlog_s).then(a.0.cmp(b.0)))
-                .map(|(&id, _)| (id, mode))
+                .map(|(&id, w)| (w.backlog_s + if w.last_object == Some(object) { 0.0 } else { switch }, id))
+                .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
+                .map(|(_, id)| (id, mode))
         };
-        if let Some(found) = least(&|w| w.mode == mode) {
-            return Some(found);
-        }
-        let dedicated = self.workers.values().filter(|w| w.mode == mode).count();
-        if dedicated >= wanted.max(1) {
-            return None;
-        }
-        least(&|w| w.mode == Mode::Idle).or_else(|| least(&|w| w.mode == Mode::Light))
+        least(&|w| w.mode == mode || (under_cap && w.mode == Mode::Idle))
+            .or_else(|| if under_cap && convert { least(&|w| w.mode == Mode::Light) } else { None })
     }
 
     fn plan_fifo(&mut self, now: Time) {
@@ -1338,7 +1372,7 @@ impl Scheduler {
                 mode: match w.mode {
                     Mode::Idle => "idle".to_string(),
                     Mode::Light => "light".to_string(),
-                    Mode::Heavy(o) => format!("heavy:{o}"),
+                    Mode::Heavy(t, o) => format!("heavy:{o}:{t}"),
                 },
                 draining: w.draining,
                 in_flight_batches: w.in_flight.len(),

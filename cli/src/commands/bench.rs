@@ -20,6 +20,9 @@ pub enum Command {
     /// ray, and the error reached: PSNR of the timed render against a render with many more
     /// samples of the same view.
     Reference(ReferenceArgs),
+    /// Scheduler core: microseconds per scheduling round at 10, 100 and 1000 users with
+    /// 10,000 pending tasks (NEPHELE against FIFO in the same run).
+    Scheduler(super::bench_scheduler::SchedulerArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -44,6 +47,7 @@ pub struct ReferenceArgs {
 pub fn run(command: Command, progress: &Progress) -> Result<()> {
     match command {
         Command::Reference(args) => reference(args, progress),
+        Command::Scheduler(args) => super::bench_scheduler::run(args, progress),
     }
 }
 

@@ -1,10 +1,12 @@
 //! One module per subcommand; each parses its own arguments and calls into `nephele-render`.
 
 pub mod bench;
+pub mod bench_scheduler;
 pub mod dataset;
 pub mod eval;
 pub mod pathtrace;
 pub mod scenes;
+pub mod simulate;
 
 use anyhow::{Context, Result, bail};
 use glam::Vec3;
