@@ -124,8 +124,7 @@ impl OccupancyGrid {
     /// count does not match.
     pub fn new(dims: [u32; 3], occupied: Vec<bool>) -> Option<OccupancyGrid> {
         let cells = dims.iter().try_fold(1usize, |acc, &d| acc.checked_mul(usize::try_from(d).ok()?))?;
-        (dims.iter().all(|&d| d > 0) && cells <= MAX_OCCUPANCY_CELLS && occupied.len() == cells)
-            .then_some(OccupancyGrid { dims, occupied })
+        (dims.iter().all(|&d| d > 0) && cells <= MAX_OCCUPANCY_CELLS && occupied.len() == cells).then_some(OccupancyGrid { dims, occupied })
     }
 
     pub fn dims(&self) -> [u32; 3] {
@@ -456,11 +455,7 @@ impl CameraKey {
 /// How far apart (pixels, largest over the box corners in front of both cameras) an object's
 /// box appears in two views: the error of showing `a`'s rendering to a viewer at `b`.
 pub fn reprojection_error_px(a: &Camera, b: &Camera, bounds: &Bounds) -> f32 {
-    bounds
-        .corners()
-        .iter()
-        .filter_map(|&c| Some((a.project(c)? - b.project(c)?).length()))
-        .fold(0.0f32, f32::max)
+    bounds.corners().iter().filter_map(|&c| Some((a.project(c)? - b.project(c)?).length())).fold(0.0f32, f32::max)
 }
 
 #[cfg(test)]
@@ -580,7 +575,8 @@ mod tests {
         let again = quilt_rig(&centre, 45, 0.7, 4.0).expect("quilt");
         assert!(quilt.iter().zip(&again).all(|(a, b)| CameraKey::new(a, &tol) == CameraKey::new(b, &tol)));
         // Moved by 0.1 mm, or a different image size.
-        let nudged = Camera::from_fov_y(320, 240, centre.fov_y(), Mat4::from_translation(Vec3::new(1e-4, 0.0, 0.0)) * centre.camera_to_world());
+        let nudged =
+            Camera::from_fov_y(320, 240, centre.fov_y(), Mat4::from_translation(Vec3::new(1e-4, 0.0, 0.0)) * centre.camera_to_world());
         let nudged = nudged.expect("valid");
         let err = reprojection_error_px(&centre, &nudged, &unit_box());
         assert!(err > 0.0 && err < 0.1, "{err}");
@@ -609,12 +605,11 @@ mod tests {
             let cov = estimate_coverage(&cam, &bounds, None, band);
             for s in samples {
                 let p = bounds.min + Vec3::from(s) * bounds.size();
-                if let Some(px) = cam.project(p) {
-                    if px.x >= 0.0 && px.y >= 0.0 && px.x < 97.0 && px.y < 61.0 {
+                if let Some(px) = cam.project(p)
+                    && px.x >= 0.0 && px.y >= 0.0 && px.x < 97.0 && px.y < 61.0 {
                         let cov = cov.as_ref().expect("a visible point means coverage");
                         prop_assert!(cov.pixels.contains(px.x as u32, px.y as u32), "{px} not covered");
                     }
-                }
             }
             if let Some(cov) = cov {
                 assert_partition(&cov.pixels);

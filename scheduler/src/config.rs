@@ -217,14 +217,12 @@ mod tests {
             assert_eq!(p.name().parse::<Policy>(), Ok(p));
             assert!(SchedulerConfig::for_policy(p).validate().is_ok());
         }
-        assert!("lottery".parse::<Policy>().unwrap_err().contains("round-robin"));
+        assert!("lottery".parse::<Policy>().expect_err("unknown").contains("round-robin"));
         let baseline = SchedulerConfig::for_policy(Policy::Fifo);
         assert!(baseline.sharing.is_none() && !baseline.admission_control && baseline.history_capacity == 0);
-        let mut bad = SchedulerConfig::default();
-        bad.smoothing = 0.0;
+        let bad = SchedulerConfig { smoothing: 0.0, ..Default::default() };
         assert!(bad.validate().is_err());
-        let mut bad = SchedulerConfig::default();
-        bad.sharing = Some(ShareTolerance { position_m: f32::NAN, ..Default::default() });
+        let bad = SchedulerConfig { sharing: Some(ShareTolerance { position_m: f32::NAN, ..Default::default() }), ..Default::default() };
         assert!(bad.validate().is_err());
     }
 }

@@ -93,7 +93,9 @@ pub struct ViewMatrices {
 pub enum Admission {
     Admit,
     /// HTTP 503 with `Retry-After: retry_after` (whole seconds).
-    Refuse { retry_after: Duration },
+    Refuse {
+        retry_after: Duration,
+    },
 }
 
 /// A batch to send to a worker.
@@ -151,9 +153,15 @@ pub enum DropReason {
 /// A decision of the scheduler, for the caller to carry out.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Action {
-    Dispatch { worker: WorkerId, batch: Box<BatchSpec> },
+    Dispatch {
+        worker: WorkerId,
+        batch: Box<BatchSpec>,
+    },
     /// Stop (or skip) a batch sent earlier: superseded frame, closed session, or re-issued.
-    Cancel { worker: WorkerId, batch: BatchId },
+    Cancel {
+        worker: WorkerId,
+        batch: BatchId,
+    },
     FrameComplete {
         session: SessionId,
         frame: FrameId,
@@ -163,11 +171,20 @@ pub enum Action {
         on_time: bool,
         parts: Vec<FramePart>,
     },
-    FrameDropped { session: SessionId, frame: FrameId, reason: DropReason },
+    FrameDropped {
+        session: SessionId,
+        frame: FrameId,
+        reason: DropReason,
+    },
     /// A worker missed its heartbeats; its batches were re-issued. The caller should close it.
-    WorkerLost { worker: WorkerId, reissued: u32 },
+    WorkerLost {
+        worker: WorkerId,
+        reissued: u32,
+    },
     /// No frame and no history entry needs this task's results any more.
-    ReleaseResult { task: TaskId },
+    ReleaseResult {
+        task: TaskId,
+    },
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -253,7 +270,12 @@ struct Task {
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum BatchState {
     Pending,
-    InFlight { worker: WorkerId, dispatched: Time, deadline: Time, est_s: f64 },
+    InFlight {
+        worker: WorkerId,
+        dispatched: Time,
+        deadline: Time,
+        est_s: f64,
+    },
     /// Its result is in; the record goes with its task.
     Done,
 }
@@ -668,11 +690,10 @@ impl Scheduler {
                 consider(t);
             }
         }
-        if let Some(timeout) = self.config.heartbeat_timeout {
-            if let Some(t) = self.workers.values().map(|w| w.last_seen + timeout).min() {
+        if let Some(timeout) = self.config.heartbeat_timeout
+            && let Some(t) = self.workers.values().map(|w| w.last_seen + timeout).min() {
                 consider(t + Duration::from_micros(1));
             }
-        }
         next
     }
 
@@ -756,11 +777,10 @@ impl Scheduler {
 
     /// Removes an in-flight batch from its worker's books (not from the task's).
     fn detach(&mut self, batch: BatchId, worker: WorkerId, est_s: f64) {
-        if let Some(b) = self.batches.get(&batch) {
-            if let BatchState::InFlight { deadline, .. } = b.state {
+        if let Some(b) = self.batches.get(&batch)
+            && let BatchState::InFlight { deadline, .. } = b.state {
                 self.deadlines.remove(&(deadline, batch));
             }
-        }
         if let Some(w) = self.workers.get_mut(&worker) {
             w.in_flight.retain(|&x| x != batch);
             w.backlog_s -= est_s;
@@ -877,7 +897,14 @@ impl Scheduler {
         let older: Vec<FrameId> = s.frames.iter().filter(|f| f.id < fid).map(|f| f.id).collect();
         self.stats.frames_completed += 1;
         self.stats.frames_on_time += u64::from(on_time);
-        self.outbox.push(Action::FrameComplete { session: sid, frame: fid, released: frame.released, latency, on_time, parts: frame.parts.clone() });
+        self.outbox.push(Action::FrameComplete {
+            session: sid,
+            frame: fid,
+            released: frame.released,
+            latency,
+            on_time,
+            parts: frame.parts.clone(),
+        });
         self.unsubscribe(sid, &frame);
         for old in older {
             self.drop_frame(sid, old, DropReason::Superseded);
@@ -923,11 +950,10 @@ impl Scheduler {
             self.outbox.push(Action::ReleaseResult { task: tid });
             return;
         }
-        if let Some(k) = t.key {
-            if self.live.get(&(t.object, k)) == Some(&tid) {
+        if let Some(k) = t.key
+            && self.live.get(&(t.object, k)) == Some(&tid) {
                 self.live.remove(&(t.object, k));
             }
-        }
         for batch in t.batches {
             let Some(b) = self.batches.get(&batch) else { continue };
             match b.state {
@@ -1052,7 +1078,14 @@ impl Scheduler {
     }
 
     /// The TaskAssigner: `nhit` estimate, batches, class. `None` if the object is not in view.
-    fn create_task(&mut self, camera: &Camera, oid: ObjectId, key: Option<ResultKey>, budget: f64, reference_rate: Option<f64>) -> Option<TaskId> {
+    fn create_task(
+        &mut self,
+        camera: &Camera,
+        oid: ObjectId,
+        key: Option<ResultKey>,
+        budget: f64,
+        reference_rate: Option<f64>,
+    ) -> Option<TaskId> {
         let info = self.objects.get(&oid)?;
         let coverage = assign::estimate_coverage(camera, &info.bounds, info.occupancy.as_ref(), self.config.band_rows)?;
         let cost = info.cost_per_ray;
@@ -1070,7 +1103,10 @@ impl Scheduler {
             let id = BatchId(self.next_batch);
             self.next_batch += 1;
             let rays = pixels.len();
-            self.batches.insert(id, Batch { task: tid, pixels, rays, state: BatchState::Pending, failures: 0, dispatches: 0, previous: Vec::new() });
+            self.batches.insert(
+                id,
+                Batch { task: tid, pixels, rays, state: BatchState::Pending, failures: 0, dispatches: 0, previous: Vec::new() },
+            );
             self.pending_all.insert(id);
             self.pending_work += rays as f64 * cost;
             batches.push(id);
@@ -1166,7 +1202,8 @@ impl Scheduler {
                         break;
                     }
                     let Some(t) = self.tasks.get(&tid) else { continue };
-                    if t.done || t.pending.is_empty() || (t.subscribers.len() > 1) != shared_pass || (spread && t.class == TaskClass::Light) {
+                    if t.done || t.pending.is_empty() || (t.subscribers.len() > 1) != shared_pass || (spread && t.class == TaskClass::Light)
+                    {
                         continue;
                     }
                     let (class, object, wanted) = (t.class, t.object, if spread { usize::MAX } else { t.workers_wanted });

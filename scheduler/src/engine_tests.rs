@@ -271,7 +271,7 @@ fn a_missed_deadline_reissues_the_batch_and_the_first_answer_wins() {
     s.add_worker(WorkerId(2), 1e8, ms(1)).expect("worker");
     // Worker 1 stalls past the timeout (at least min_batch_timeout = 20 ms).
     let actions = s.tick(ms(25));
-    assert!(actions.iter().any(|a| *a == Action::Cancel { worker: WorkerId(1), batch }));
+    assert!(actions.contains(&Action::Cancel { worker: WorkerId(1), batch }));
     let again = dispatches(&actions);
     assert_eq!(again.len(), 1);
     assert_eq!((again[0].0, again[0].1.id, again[0].1.attempt), (WorkerId(2), batch, 2));
@@ -279,7 +279,7 @@ fn a_missed_deadline_reissues_the_batch_and_the_first_answer_wins() {
     // The straggler answers first after all: accepted, the second copy is cancelled.
     s.batch_done(WorkerId(1), batch, ms(26)).expect("late answer counts");
     let actions = s.tick(ms(26));
-    assert!(actions.iter().any(|a| *a == Action::Cancel { worker: WorkerId(2), batch }));
+    assert!(actions.contains(&Action::Cancel { worker: WorkerId(2), batch }));
     assert_eq!(completions(&actions).len(), 1);
     assert!(matches!(s.batch_done(WorkerId(2), batch, ms(27)), Err(SchedError::UnknownBatch(_))));
 }
@@ -320,7 +320,7 @@ fn repeated_failures_drop_the_frame_and_cancel_its_work() {
     assert_ne!(w2, w, "not to the worker that failed");
     s.batch_failed(w2, b, ms(2)).expect("failure reported");
     let actions = s.tick(ms(2));
-    assert!(actions.iter().any(|a| *a == Action::FrameDropped { session: id, frame: FrameId(0), reason: DropReason::BatchFailed(b) }));
+    assert!(actions.contains(&Action::FrameDropped { session: id, frame: FrameId(0), reason: DropReason::BatchFailed(b) }));
     assert!(actions.iter().any(|a| matches!(a, Action::Cancel { .. })), "the frame's other batches are cancelled");
     assert_eq!(s.pending_batches(), 0);
     assert_eq!(s.live_tasks(), 0);
@@ -356,7 +356,7 @@ fn a_newer_frame_supersedes_an_older_one() {
         actions = s.tick(ms(12));
     }
     assert!(completions(&actions).iter().any(|c| c.1 == FrameId(1)));
-    assert!(actions.iter().any(|a| *a == Action::FrameDropped { session: id, frame: FrameId(0), reason: DropReason::Superseded }));
+    assert!(actions.contains(&Action::FrameDropped { session: id, frame: FrameId(0), reason: DropReason::Superseded }));
     assert!(old.iter().all(|(w, b)| actions.contains(&Action::Cancel { worker: *w, batch: b.id })));
 }
 
@@ -443,8 +443,7 @@ fn bad_input_is_rejected_with_clear_errors() {
     assert!(s.register_object(ObjectId(5), unit_object(Vec3::ZERO, 1.0, 0.0)).is_err());
     assert!(s.register_object(OBJ, unit_object(Vec3::ZERO, 0.5, 1.0)).is_ok(), "same description again");
     assert_eq!(s.register_object(OBJ, unit_object(Vec3::ONE, 0.5, 1.0)), Err(SchedError::DuplicateObject(OBJ)));
-    let mut cfg = SchedulerConfig::default();
-    cfg.max_frames_in_flight = 0;
+    let cfg = SchedulerConfig { max_frames_in_flight: 0, ..Default::default() };
     assert!(matches!(Scheduler::new(cfg), Err(SchedError::InvalidConfig(_))));
     // The state is still consistent: the session renders.
     let all = run_to_quiet(&mut s, sent.into_iter().map(|(w, b)| Action::Dispatch { worker: w, batch: Box::new(b) }).collect(), ms(3));

@@ -103,7 +103,8 @@ fn parse_object(text: &str) -> Result<SimObject, String> {
     if !(5..=6).contains(&parts.len()) || parts[0].is_empty() {
         return Err(format!("object '{text}' must be name:x:y:z:half_size[:cost_per_ray]"));
     }
-    let center = Vec3::new(number(parts[1], "object x")? as f32, number(parts[2], "object y")? as f32, number(parts[3], "object z")? as f32);
+    let center =
+        Vec3::new(number(parts[1], "object x")? as f32, number(parts[2], "object y")? as f32, number(parts[3], "object z")? as f32);
     let half_size = positive(parts[4], "object half_size")? as f32;
     let cost_per_ray = match parts.get(5) {
         Some(c) => positive(c, "object cost_per_ray")?,
@@ -120,7 +121,10 @@ pub fn parse_trace(text: &str, file: &str) -> Result<(Vec<SimObject>, Vec<SimUse
     for (line, fields) in records(text, "user") {
         let fail = |message: String| CsvError { file: file.to_string(), line, message };
         if !(13..=14).contains(&fields.len()) {
-            return Err(fail(format!("expected 13 or 14 fields (user,arrive_s,depart_s,fps,width,height,fov_deg,views,objects,radius_m,height_m,speed_deg_s,start_deg[,target]), got {}", fields.len())));
+            return Err(fail(format!(
+                "expected 13 or 14 fields (user,arrive_s,depart_s,fps,width,height,fov_deg,views,objects,radius_m,height_m,speed_deg_s,start_deg[,target]), got {}",
+                fields.len()
+            )));
         }
         let user = (|| -> Result<SimUser, String> {
             let arrive_s = number(fields[1], "arrive_s")?;
@@ -133,14 +137,18 @@ pub fn parse_trace(text: &str, file: &str) -> Result<(Vec<SimObject>, Vec<SimUse
                 return Err(format!("fps {fps} exceeds 240"));
             }
             let size = |text: &str, what: &str| -> Result<u32, String> {
-                text.parse::<u32>().ok().filter(|v| (1..=8192).contains(v)).ok_or_else(|| format!("{what} '{text}' must be an integer in 1..=8192"))
+                text.parse::<u32>()
+                    .ok()
+                    .filter(|v| (1..=8192).contains(v))
+                    .ok_or_else(|| format!("{what} '{text}' must be an integer in 1..=8192"))
             };
             let (width, height) = (size(fields[4], "width")?, size(fields[5], "height")?);
             let fov_deg = positive(fields[6], "fov_deg")?;
             if fov_deg >= 180.0 {
                 return Err(format!("fov_deg {fov_deg} must be below 180"));
             }
-            let views = ViewMode::parse(fields[7]).ok_or_else(|| format!("views '{}' must be mono, stereo, quilt or quiltN (N in 1..=64)", fields[7]))?;
+            let views = ViewMode::parse(fields[7])
+                .ok_or_else(|| format!("views '{}' must be mono, stereo, quilt or quiltN (N in 1..=64)", fields[7]))?;
             let mut indices = Vec::new();
             for spec in fields[8].split(';').map(str::trim).filter(|s| !s.is_empty()) {
                 let object = parse_object(spec)?;
@@ -167,7 +175,18 @@ pub fn parse_trace(text: &str, file: &str) -> Result<(Vec<SimObject>, Vec<SimUse
                 speed_deg_s: number(fields[11], "speed_deg_s")? as f32,
                 start_deg: number(fields[12], "start_deg")? as f32,
             };
-            Ok(SimUser { name: fields[0].to_string(), arrive_s, depart_s, fps, width, height, fov_deg: fov_deg as f32, views, objects: indices, path })
+            Ok(SimUser {
+                name: fields[0].to_string(),
+                arrive_s,
+                depart_s,
+                fps,
+                width,
+                height,
+                fov_deg: fov_deg as f32,
+                views,
+                objects: indices,
+                path,
+            })
         })()
         .map_err(fail)?;
         users.push(user);
@@ -184,7 +203,10 @@ pub fn parse_workers(text: &str, file: &str) -> Result<Vec<SimWorker>, CsvError>
     for (line, fields) in records(text, "worker") {
         let fail = |message: String| CsvError { file: file.to_string(), line, message };
         if !(2..=9).contains(&fields.len()) {
-            return Err(fail(format!("expected 2 to 9 fields (worker,rays_per_s[,jitter,join_s,fail_s,detect,slow_from_s,slow_to_s,slow_factor]), got {}", fields.len())));
+            return Err(fail(format!(
+                "expected 2 to 9 fields (worker,rays_per_s[,jitter,join_s,fail_s,detect,slow_from_s,slow_to_s,slow_factor]), got {}",
+                fields.len()
+            )));
         }
         let worker = (|| -> Result<SimWorker, String> {
             let mut w = SimWorker::new(fields[0], positive(fields[1], "rays_per_s")?);
@@ -243,7 +265,8 @@ mod tests {
 
     #[test]
     fn the_documented_examples_parse() {
-        let example = |format: &str| format.lines().skip_while(|l| !l.starts_with("example")).skip(1).map(str::trim).collect::<Vec<_>>().join("\n");
+        let example =
+            |format: &str| format.lines().skip_while(|l| !l.starts_with("example")).skip(1).map(str::trim).collect::<Vec<_>>().join("\n");
         let (objects, users) = parse_trace(&example(TRACE_FORMAT), "trace.csv").expect("example trace");
         assert_eq!(users.len(), 2);
         assert_eq!(objects.len(), 2, "lego shared by both users");

@@ -19,7 +19,12 @@ pub use sim::{SimError, Variant, run};
 
 /// A scenario from CSV files: `trace` (user sessions, see [`csv::TRACE_FORMAT`]) and
 /// optionally `workers` (the farm, [`csv::WORKERS_FORMAT`]; default: 8 workers of 1e8 rays/s).
-pub fn scenario_from_csv(name: &str, trace: (&str, &str), workers: Option<(&str, &str)>, params: SimParams) -> Result<Scenario, csv::CsvError> {
+pub fn scenario_from_csv(
+    name: &str,
+    trace: (&str, &str),
+    workers: Option<(&str, &str)>,
+    params: SimParams,
+) -> Result<Scenario, csv::CsvError> {
     let (objects, users) = csv::parse_trace(trace.0, trace.1)?;
     let workers = match workers {
         Some((text, file)) => csv::parse_workers(text, file)?,

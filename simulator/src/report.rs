@@ -76,7 +76,21 @@ pub struct Report {
 pub fn table_header() -> String {
     format!(
         "{:<13} {:<17} {:>7} {:>7} {:>7} {:>6} {:>7} {:>7} {:>5} {:>9} {:>9} {:>6} {:>6} {:>6} {:>5}",
-        "scenario", "policy", "users", "refused", "attain%", "min%", "p50 ms", "p99 ms", "util%", "req Mray", "rend Mray", "saved%", "err px", "reiss", "jain"
+        "scenario",
+        "policy",
+        "users",
+        "refused",
+        "attain%",
+        "min%",
+        "p50 ms",
+        "p99 ms",
+        "util%",
+        "req Mray",
+        "rend Mray",
+        "saved%",
+        "err px",
+        "reiss",
+        "jain"
     )
 }
 

@@ -15,7 +15,10 @@ pub const SCENARIOS: [(&str, &str); 6] = [
     ("many-users", "24 users on one object from 6 adjacent angles (4 users at each spot), 60 FPS, 4 workers"),
     ("quilt", "four 45-view quilt displays (420x560 per view), two pairs showing the same rig, 20 FPS, 8 workers"),
     ("overload", "20 users arriving every 0.5 s at 60 FPS on a farm that holds about 9: starvation and admission control"),
-    ("worker-death", "6 stereo users at 60 FPS, 5 workers; one dies mid-frame at 3 s (its connection drops), another hangs silently at 6 s"),
+    (
+        "worker-death",
+        "6 stereo users at 60 FPS, 5 workers; one dies mid-frame at 3 s (its connection drops), another hangs silently at 6 s",
+    ),
     ("straggler", "6 users at 30 FPS; one of 4 workers runs 10x slower from 2 s to 7 s"),
 ];
 
@@ -28,7 +31,17 @@ fn object(name: &str, center: Vec3, half_size: f32, cost_per_ray: f64) -> SimObj
 }
 
 #[allow(clippy::too_many_arguments)]
-fn user(name: String, arrive_s: f64, depart_s: f64, fps: f64, size: (u32, u32), fov_deg: f32, views: ViewMode, objects: Vec<usize>, path: CameraPath) -> SimUser {
+fn user(
+    name: String,
+    arrive_s: f64,
+    depart_s: f64,
+    fps: f64,
+    size: (u32, u32),
+    fov_deg: f32,
+    views: ViewMode,
+    objects: Vec<usize>,
+    path: CameraPath,
+) -> SimUser {
     SimUser { name, arrive_s, depart_s, fps, width: size.0, height: size.1, fov_deg, views, objects, path }
 }
 
@@ -52,7 +65,17 @@ pub fn builtin(name: &str, seed: u64) -> Option<Scenario> {
                 let a = (36.0 * i as f32).to_radians();
                 objects.push(object(&format!("prop{i}"), Vec3::new(3.5 * a.cos(), 3.5 * a.sin(), -0.3), 0.08, 1.0));
             }
-            let users = vec![user("viewer".into(), 0.0, d, 60.0, (1920, 1080), 50.0, ViewMode::Mono, (0..12).collect(), orbit(1.8, 0.4, 12.0, 0.0))];
+            let users = vec![user(
+                "viewer".into(),
+                0.0,
+                d,
+                60.0,
+                (1920, 1080),
+                50.0,
+                ViewMode::Mono,
+                (0..12).collect(),
+                orbit(1.8, 0.4, 12.0, 0.0),
+            )];
             (objects, users, farm(8, 1e8), params)
         }
         "many-users" => {
@@ -109,7 +132,9 @@ pub fn builtin(name: &str, seed: u64) -> Option<Scenario> {
         "straggler" => {
             let objects = vec![object("lego", Vec3::ZERO, 0.6, 1.0)];
             let users = (0..6)
-                .map(|i| user(format!("u{i}"), 0.0, d, 30.0, (1280, 720), 50.0, ViewMode::Mono, vec![0], orbit(3.0, 0.8, 10.0, 60.0 * i as f32)))
+                .map(|i| {
+                    user(format!("u{i}"), 0.0, d, 30.0, (1280, 720), 50.0, ViewMode::Mono, vec![0], orbit(3.0, 0.8, 10.0, 60.0 * i as f32))
+                })
                 .collect();
             let mut workers = farm(4, 3e7);
             workers[0].slow = Some((2.0, 7.0, 10.0));

@@ -506,7 +506,7 @@ impl Engine<'_> {
             admitted: users.iter().filter(|u| u.admitted).count(),
             refusals: stats.sessions_refused,
             attainment_mean: mean(&attainment),
-            attainment_min: attainment.iter().copied().fold(f64::INFINITY, f64::min).min(1.0).max(0.0),
+            attainment_min: if attainment.is_empty() { 0.0 } else { attainment.iter().copied().fold(1.0, f64::min) },
             latency_p50_ms: percentile_sorted(&latencies, 0.5),
             latency_p99_ms: percentile_sorted(&latencies, 0.99),
             utilisation: if online > 0.0 { busy / online } else { 0.0 },

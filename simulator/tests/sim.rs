@@ -1,8 +1,8 @@
 //! The properties the paper claims, checked on the simulator (short runs: a few simulated
 //! seconds each).
 
-use nephele_sim::{Report, Scenario, SimParams, Variant, csv, run, scenarios, scenario_from_csv};
 use nephele_scheduler::Policy;
+use nephele_sim::{Report, Scenario, SimParams, Variant, csv, run, scenario_from_csv, scenarios};
 
 fn scenario(name: &str, seconds: f64) -> Scenario {
     let mut s = scenarios::builtin(name, 7).expect("built-in scenario");
@@ -120,7 +120,12 @@ fn a_csv_trace_and_farm_replay() {
     let r = simulate(&s, Variant::of(Policy::Nephele)).summary;
     assert_eq!(r.admitted, 2);
     assert!(r.frames_completed > 50, "{r:?}");
-    let bad = scenario_from_csv("mine", ("a,0,2,30,320,240,50,mono,cube:0:0:0:0.5,3,0.5,10,0\nb,0,2,oops,320,240,50,mono,c:0:0:0:1,3,0,0,0", "t.csv"), None, SimParams::default());
+    let bad = scenario_from_csv(
+        "mine",
+        ("a,0,2,30,320,240,50,mono,cube:0:0:0:0.5,3,0.5,10,0\nb,0,2,oops,320,240,50,mono,c:0:0:0:1,3,0,0,0", "t.csv"),
+        None,
+        SimParams::default(),
+    );
     let err = bad.expect_err("malformed");
     assert_eq!(err.line, 2);
     assert!(err.to_string().contains("t.csv line 2: fps 'oops' is not a number"), "{err}");

@@ -58,10 +58,8 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         }
         return Ok(());
     }
-    if let Some(d) = args.duration {
-        if !(d.is_finite() && d > 0.0 && d <= 3600.0) {
-            bail!("--duration must be a number of seconds in (0, 3600], got {d}");
-        }
+    if let Some(d) = args.duration.filter(|d| !(d.is_finite() && *d > 0.0 && *d <= 3600.0)) {
+        bail!("--duration must be a number of seconds in (0, 3600], got {d}");
     }
     let variants: Vec<Variant> = if args.policy.is_empty() {
         Variant::defaults()
@@ -108,12 +106,15 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     }
     let bar = progress.bar((list.len() * variants.len()) as u64, "simulating", "runs");
     let mut rows: Vec<Summary> = Vec::new();
-    let mut user_rows = String::from("scenario,policy,user,admitted,refusals,target_fps,active_s,frames_completed,frames_on_time,frames_dropped,achieved_fps,attainment,latency_p50_ms\n");
+    let mut user_rows = String::from(
+        "scenario,policy,user,admitted,refusals,target_fps,active_s,frames_completed,frames_on_time,frames_dropped,achieved_fps,attainment,latency_p50_ms\n",
+    );
     let mut timings = Vec::new();
     for scenario in &list {
         for variant in &variants {
             let start = Instant::now();
-            let result = nephele_sim::run(scenario, variant).with_context(|| format!("simulating {} under {}", scenario.name, variant.label))?;
+            let result =
+                nephele_sim::run(scenario, variant).with_context(|| format!("simulating {} under {}", scenario.name, variant.label))?;
             timings.push((scenario.name.clone(), variant.label.clone(), scenario.params.duration_s, start.elapsed().as_secs_f64()));
             for u in &result.users {
                 user_rows.push_str(&format!(
@@ -140,14 +141,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     bar.finish_and_clear();
     println!("seed {}", args.seed);
     for s in &list {
-        println!(
-            "{}: {} ({} s, {} users, {} workers)",
-            s.name,
-            s.description,
-            s.params.duration_s,
-            s.users.len(),
-            s.workers.len()
-        );
+        println!("{}: {} ({} s, {} users, {} workers)", s.name, s.description, s.params.duration_s, s.users.len(), s.workers.len());
     }
     println!();
     print!("{}", report::table(&rows));
