@@ -763,7 +763,7 @@ impl Scheduler {
             b.state = BatchState::Pending;
         }
         if let Some(t) = self.tasks.get_mut(&tid) {
-            t.in_flight -= 1;
+            t.in_flight = t.in_flight.saturating_sub(1);
             t.pending.insert(batch);
         }
         self.pending_all.insert(batch);
@@ -800,8 +800,8 @@ impl Scheduler {
         self.stats.batches_completed += 1;
         self.stats.rays_completed += rays;
         let Some(t) = self.tasks.get_mut(&tid) else { return };
-        t.in_flight -= 1;
-        t.remaining -= 1;
+        t.in_flight = t.in_flight.saturating_sub(1);
+        t.remaining = t.remaining.saturating_sub(1);
         let finished = t.remaining == 0;
         self.adjust(tid, 0, -1, None);
         if let Some(b) = self.batches.get_mut(&batch) {

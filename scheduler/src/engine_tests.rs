@@ -513,3 +513,20 @@ fn snapshot_serialises_for_the_farm_endpoint() {
     assert_eq!(snapshot.workers[0].mode, "light");
     assert!(snapshot.queues.in_flight_batches > 0);
 }
+
+#[test]
+fn views_within_the_tolerance_share_and_the_error_is_measured() {
+    let mut s = scheduler(config(Policy::Nephele));
+    s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+    let at = |x: f32| Camera::look_at(64, 64, 0.8, Vec3::new(x, -4.0, 0.0), Vec3::ZERO, Vec3::Z).expect("camera");
+    // 0.2 mm apart, inside one 1 mm cell: one task, and a tiny but non-zero error.
+    open(&mut s, 30.0, &[at(0.0001)], ms(0));
+    open(&mut s, 30.0, &[at(0.0003)], ms(0));
+    // 5 cm away: other rays.
+    open(&mut s, 30.0, &[at(0.05)], ms(0));
+    s.tick(ms(0));
+    let stats = s.stats();
+    assert_eq!((stats.tasks_created, stats.shared_joins), (2, 1));
+    assert!(stats.share_error_px_max > 0.0 && stats.share_error_px_max < 0.05, "{}", stats.share_error_px_max);
+    assert!(stats.share_error_px_mean() > 0.0);
+}

@@ -16,6 +16,45 @@
 //! it may sleep and a simulator knows when to schedule its next tick.
 //! [`Scheduler::snapshot`] returns the serde-serialisable state behind `GET /v1/farm`.
 //!
+//! ```
+//! use std::time::Duration;
+//! use glam::Vec3;
+//! use nephele_render::{camera::Camera, kernel::Bounds};
+//! use nephele_scheduler::*;
+//!
+//! let mut s = Scheduler::new(SchedulerConfig::default())?;
+//! let bounds = Bounds { min: Vec3::splat(-0.5), max: Vec3::splat(0.5) };
+//! s.register_object(ObjectId(1), ObjectInfo { bounds, occupancy: None, cost_per_ray: 1.0 })?;
+//! let t0 = Time::ZERO;
+//! s.add_worker(WorkerId(1), 1e8, t0)?; // registration: measured rays/s
+//! let user = match s.admission(t0) {
+//!     Admission::Admit => s.open_session(SessionSpec { target_fps: 60.0, objects: vec![ObjectId(1)] }, t0)?,
+//!     Admission::Refuse { retry_after } => panic!("HTTP 503, Retry-After: {}", retry_after.as_secs()),
+//! };
+//! let eye = Camera::look_at(640, 480, 0.8, Vec3::new(0.0, -3.0, 0.5), Vec3::ZERO, Vec3::Z)?;
+//! s.pose(user, &[eye], t0)?; // every 20 ms from the client
+//! let mut now = t0;
+//! let mut shown = 0;
+//! while shown == 0 {
+//!     for action in s.tick(now) {
+//!         match action {
+//!             // Send the batch to the worker; here it answers 1 ms later.
+//!             Action::Dispatch { worker, batch } => s.batch_done(worker, batch.id, now + Duration::from_millis(1))?,
+//!             Action::FrameComplete { session, latency, .. } => {
+//!                 assert_eq!(session, user);
+//!                 assert!(latency <= Duration::from_millis(2));
+//!                 shown += 1;
+//!             }
+//!             _ => {}
+//!         }
+//!     }
+//!     now = now + Duration::from_millis(1);
+//! }
+//! let farm = s.snapshot(now); // GET /v1/farm
+//! assert_eq!(farm.sessions[0].frames_completed, 1);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+//!
 //! # Modules
 //!
 //! * [`assign`]: the TaskAssigner: occupancy-proxy projection (`nhit`: covered pixels, mean
