@@ -16,7 +16,8 @@ user,arrive_s,depart_s,fps,width,height,fov_deg,views,objects,radius_m,height_m,
   fps          target frame rate, in (0, 240]
   width,height pixels per view, 1..=8192
   fov_deg      vertical field of view, in (0, 180)
-  views        mono | stereo (two eyes, 64 mm) | quilt (45 views, 40 deg cone) | quiltN (N in 1..=64)
+  views        mono | stereo (two eyes, 64 mm) | quilt (45 views, 40 deg cone) |
+               quiltN (N views, N in 1..=64)
   objects      ';'-separated name:x:y:z:half_size[:cost_per_ray] (a cube; the same name is the
                same object, and must be described identically wherever it appears)
   camera path  the eye orbits the target: target + (r cos a, r sin a, height_m) with
@@ -31,12 +32,14 @@ pub const WORKERS_FORMAT: &str = "\
 worker,rays_per_s[,jitter,join_s,fail_s,detect,slow_from_s,slow_to_s,slow_factor]
   worker       a label (ids follow line order)
   rays_per_s   throughput for cost-1 rays (e.g. 1.5e8)
-  jitter       each batch takes (1 + jitter*u) x its time, u uniform in [-1, 1]; in [0, 1), default 0.1
+  jitter       each batch takes (1 + jitter*u) x its time, u uniform in [-1, 1];
+               jitter in [0, 1), default 0.1
   join_s       when it registers (default 0)
   fail_s       when it dies (empty: never)
   detect       drop (its connection closes: noticed at once, the default) | silent (a hang:
                only missed heartbeats and deadlines tell)
-  slow_*       a straggler: batches started in [slow_from_s, slow_to_s) take slow_factor (>= 1) x longer
+  slow_*       a straggler: batches started in [slow_from_s, slow_to_s) take
+               slow_factor (>= 1) times longer
 example:
   w1,1.5e8
   w2,1.5e8,0.1,0,3.0,drop
