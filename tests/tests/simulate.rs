@@ -65,5 +65,5 @@ fn help_documents_the_formats_and_the_bench() {
         assert!(list.contains(name), "{list}");
     }
     let bench = nephele_ok(&["bench", "scheduler", "--users", "5", "--pending", "200", "--rounds", "5", "--workers", "4", "--policy", "nephele"]);
-    assert!(bench.contains("round us") && bench.contains("nephele"), "{bench}");
+    assert!(bench.contains("p50 us") && bench.contains("nephele"), "{bench}");
 }
