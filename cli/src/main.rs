@@ -50,6 +50,9 @@ enum Command {
     /// Simulate the farm: the scheduler core (NEPHELE Algorithm 1) against baselines on
     /// simulated workers and users; prints a table and writes CSV.
     Simulate(commands::simulate::Args),
+    /// Headless users over WebRTC against a running master: poses every 20 ms, frames parsed,
+    /// per-user frame rate and pose-to-frame latency.
+    Loadgen(commands::loadgen::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -78,6 +81,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
         Command::Worker(args) => commands::worker::run(args, cli.threads),
         Command::Simulate(args) => commands::simulate::run(args, &progress),
+        Command::Loadgen(args) => commands::loadgen::run(args, &progress),
     }
 }
 

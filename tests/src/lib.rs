@@ -1,4 +1,10 @@
-//! Helpers for the cross-process tests in `tests/tests/`: they run the real `nephele` binary.
+//! Helpers for the cross-process tests in `tests/tests/` (they run the real `nephele` binary)
+//! and the browser end-to-end tests: [`browser`] (headless Chromium over WebDriver),
+//! [`client`] (the client page's state), [`farm`] (an in-process farm with a real WebRTC peer).
+
+pub mod browser;
+pub mod client;
+pub mod farm;
 
 use std::path::PathBuf;
 use std::process::{Command, Output};

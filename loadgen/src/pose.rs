@@ -1,0 +1,110 @@
+//! Pose messages as the browser client sends them (`client/PROTOCOL.md`), and the scripted
+//! camera the load generator flies.
+
+use glam::{Mat4, Vec3};
+
+pub const MAGIC: u8 = 0x50;
+pub const VERSION: u8 = 1;
+pub const MODE_FLAT: u8 = 0;
+pub const HEADER_BYTES: usize = 20;
+pub const VIEW_BYTES: usize = 128;
+
+/// Encodes one pose: `views` are (world-to-camera, projection) pairs, column-major.
+pub fn encode(sequence: u32, client_time_ms: f64, width: u16, height: u16, mode: u8, views: &[(Mat4, Mat4)]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER_BYTES + VIEW_BYTES * views.len());
+    out.extend_from_slice(&[MAGIC, VERSION, views.len().min(255) as u8, mode]);
+    out.extend_from_slice(&sequence.to_le_bytes());
+    out.extend_from_slice(&client_time_ms.to_le_bytes());
+    out.extend_from_slice(&width.to_le_bytes());
+    out.extend_from_slice(&height.to_le_bytes());
+    for (view, projection) in views {
+        for x in view.to_cols_array().iter().chain(projection.to_cols_array().iter()) {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// A camera orbiting the scene target at a constant angular speed, as a user dragging would:
+/// the first view the master suggests, turned by `speed` radians per second around +Z.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScriptedOrbit {
+    pub eye: Vec3,
+    pub target: Vec3,
+    pub fov_y_deg: f32,
+    /// Radians per second.
+    pub speed: f32,
+}
+
+impl ScriptedOrbit {
+    /// The camera `t` seconds in, for one view of aspect `aspect` (world +Z up, OpenGL camera).
+    pub fn view_at(&self, t: f32, aspect: f32) -> (Mat4, Mat4) {
+        let offset = self.eye - self.target;
+        let turned = glam::Quat::from_rotation_z(self.speed * t) * offset;
+        (look_at(self.target + turned, self.target, Vec3::Z), perspective(self.fov_y_deg.to_radians(), aspect, 0.05, 1000.0))
+    }
+}
+
+/// World-to-camera matrix of an OpenGL camera at `eye` looking at `target` (as the browser
+/// client's `mat4.lookAt`).
+pub fn look_at(eye: Vec3, target: Vec3, up: Vec3) -> Mat4 {
+    let f = (target - eye).normalize();
+    let r = f.cross(up).normalize();
+    let u = r.cross(f);
+    Mat4::from_cols_array(&[r.x, u.x, -f.x, 0.0, r.y, u.y, -f.y, 0.0, r.z, u.z, -f.z, 0.0, -r.dot(eye), -u.dot(eye), f.dot(eye), 1.0])
+}
+
+/// OpenGL perspective projection (clip z in [-1, 1]), as WebXR and the browser client give.
+pub fn perspective(fov_y: f32, aspect: f32, near: f32, far: f32) -> Mat4 {
+    let f = 1.0 / (fov_y / 2.0).tan();
+    Mat4::from_cols_array(&[
+        f / aspect,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        f,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        (far + near) / (near - far),
+        -1.0,
+        0.0,
+        0.0,
+        2.0 * far * near / (near - far),
+        0.0,
+    ])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn encodes_the_documented_layout() {
+        let orbit = ScriptedOrbit { eye: Vec3::new(0.0, -4.0, 2.0), target: Vec3::ZERO, fov_y_deg: 40.0, speed: 0.5 };
+        let v = orbit.view_at(0.0, 4.0 / 3.0);
+        let data = encode(9, 1234.5, 640, 480, MODE_FLAT, &[v, v]);
+        assert_eq!(data.len(), 20 + 2 * 128);
+        assert_eq!(&data[..4], &[0x50, 1, 2, 0]);
+        assert_eq!(u32::from_le_bytes([data[4], data[5], data[6], data[7]]), 9);
+        assert_eq!(f64::from_le_bytes(data[8..16].try_into().expect("8 bytes")), 1234.5);
+        assert_eq!((u16::from_le_bytes([data[16], data[17]]), u16::from_le_bytes([data[18], data[19]])), (640, 480));
+        // The view matrix maps the eye to the camera origin and the target down -Z.
+        let eye = v.0.transform_point3(Vec3::new(0.0, -4.0, 2.0));
+        assert!(eye.length() < 1e-5);
+        let target = v.0.transform_point3(Vec3::ZERO);
+        assert!(target.x.abs() < 1e-5 && target.y.abs() < 1e-5 && target.z < 0.0);
+        let m0 = f32::from_le_bytes(data[20..24].try_into().expect("4 bytes"));
+        assert_eq!(m0, v.0.to_cols_array()[0]);
+    }
+
+    #[test]
+    fn the_orbit_turns_at_its_speed_and_keeps_its_radius() {
+        let orbit = ScriptedOrbit { eye: Vec3::new(4.0, 0.0, 1.0), target: Vec3::ZERO, fov_y_deg: 40.0, speed: 0.5 };
+        let (view, _) = orbit.view_at(std::f32::consts::PI, 1.0); // a quarter turn
+        let eye = view.inverse().transform_point3(Vec3::ZERO);
+        assert!((eye - Vec3::new(0.0, 4.0, 1.0)).length() < 1e-4, "{eye}");
+    }
+}

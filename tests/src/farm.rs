@@ -1,0 +1,560 @@
+//! An in-process stand-in for the farm behind the master's HTTP API, for the browser tests
+//! (and the load generator's): [`TestFarm`] implements [`FarmBackend`] with a real WebRTC
+//! peer (webrtc-rs) per session that answers the client's offer, accepts its `control` data
+//! channel, records every pose and control message, answers pings, and streams real H.264
+//! (OpenH264) whose picture is a function of the client's latest pose: a flat grey whose
+//! level encodes the camera's azimuth around the scene target ([`grey_for_azimuth`]). So a
+//! test can check end to end that a scripted pose change changes the picture, and by how much.
+//!
+//! The full-service test replaces this backend by the real master, composer and workers; the
+//! browser side of the tests stays the same.
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use nephele_master::http::{Admission, AppState, BoxFuture, FarmBackend, OpenError, SceneView};
+use nephele_master::sessions::SessionRequest;
+use openh264::OpenH264API;
+use openh264::encoder::{Encoder, EncoderConfig, FrameRate, IntraFramePeriod, Profile, RateControlMode, UsageType};
+use openh264::formats::YUVBuffer;
+use serde_json::json;
+use webrtc::api::interceptor_registry::register_default_interceptors;
+use webrtc::api::media_engine::{MIME_TYPE_H264, MediaEngine};
+use webrtc::api::setting_engine::SettingEngine;
+use webrtc::api::{API, APIBuilder};
+use webrtc::data_channel::RTCDataChannel;
+use webrtc::data_channel::data_channel_message::DataChannelMessage;
+use webrtc::ice::mdns::MulticastDnsMode;
+use webrtc::ice::network_type::NetworkType;
+use webrtc::interceptor::registry::Registry;
+use webrtc::media::Sample;
+use webrtc::peer_connection::RTCPeerConnection;
+use webrtc::peer_connection::configuration::RTCConfiguration;
+use webrtc::peer_connection::peer_connection_state::RTCPeerConnectionState;
+use webrtc::peer_connection::sdp::session_description::RTCSessionDescription;
+use webrtc::rtp_transceiver::RTCPFeedback;
+use webrtc::rtp_transceiver::rtp_codec::{RTCRtpCodecCapability, RTCRtpCodecParameters, RTPCodecType};
+use webrtc::track::track_local::TrackLocal;
+use webrtc::track::track_local::track_local_static_sample::TrackLocalStaticSample;
+
+/// The scene every test session asks for, and its first view (as `POST /v1/sessions` returns).
+pub const SCENE: &str = "default";
+pub const FIRST_VIEW: SceneView = SceneView { eye: [0.0, -4.0, 2.0], target: [0.0, 0.0, 0.5], fov_y_deg: 40.0 };
+/// H.264 constrained baseline 3.1, packetization mode 1: what Chromium decodes.
+pub const H264_FMTP: &str = "level-asymmetry-allowed=1;packetization-mode=1;profile-level-id=42e01f";
+/// Frame rate of the test stream.
+pub const FPS: u32 = 30;
+
+/// Grey level (0..=255, as the browser shows it) that encodes a camera azimuth (radians,
+/// around the scene target, from +X towards +Y): 0.15..0.85 of full scale over one turn, so
+/// that neither end clips.
+pub fn grey_for_azimuth(azimuth: f64) -> f64 {
+    let turn = azimuth.rem_euclid(std::f64::consts::TAU) / std::f64::consts::TAU;
+    255.0 * (0.15 + 0.7 * turn)
+}
+
+/// A pose message as `client/PROTOCOL.md` defines it, parsed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Pose {
+    pub views: u8,
+    pub mode: u8,
+    pub sequence: u32,
+    pub client_time_ms: f64,
+    pub width: u16,
+    pub height: u16,
+    /// Per view: (view matrix, projection matrix), column-major.
+    pub matrices: Vec<([f32; 16], [f32; 16])>,
+}
+
+pub const POSE_MAGIC: u8 = 0x50;
+pub const POSE_HEADER_BYTES: usize = 20;
+pub const POSE_VIEW_BYTES: usize = 128;
+
+impl Pose {
+    /// Parses a binary pose; `None` for anything that is not exactly one (wrong magic,
+    /// version, length).
+    pub fn parse(data: &[u8]) -> Option<Pose> {
+        if data.len() < POSE_HEADER_BYTES || data[0] != POSE_MAGIC || data[1] != 1 {
+            return None;
+        }
+        let views = data[2];
+        if views == 0 || data.len() != POSE_HEADER_BYTES + POSE_VIEW_BYTES * usize::from(views) {
+            return None;
+        }
+        let u16_at = |o: usize| u16::from_le_bytes([data[o], data[o + 1]]);
+        let f32_at = |o: usize| f32::from_le_bytes([data[o], data[o + 1], data[o + 2], data[o + 3]]);
+        let matrix = |o: usize| std::array::from_fn::<f32, 16, _>(|i| f32_at(o + 4 * i));
+        let matrices = (0..usize::from(views))
+            .map(|v| {
+                let o = POSE_HEADER_BYTES + POSE_VIEW_BYTES * v;
+                (matrix(o), matrix(o + 64))
+            })
+            .collect();
+        Some(Pose {
+            views,
+            mode: data[3],
+            sequence: u32::from_le_bytes([data[4], data[5], data[6], data[7]]),
+            client_time_ms: f64::from_le_bytes(std::array::from_fn(|i| data[8 + i])),
+            width: u16_at(16),
+            height: u16_at(18),
+            matrices,
+        })
+    }
+
+    /// Camera position of view `v` in world coordinates: `-R^T t` of the world-to-camera matrix.
+    pub fn eye(&self, v: usize) -> [f64; 3] {
+        let m = &self.matrices[v].0;
+        let t = [m[12], m[13], m[14]].map(f64::from);
+        std::array::from_fn(|i| -(f64::from(m[i * 4]) * t[0] + f64::from(m[i * 4 + 1]) * t[1] + f64::from(m[i * 4 + 2]) * t[2]))
+    }
+
+    /// Azimuth of view `v`'s camera around `target` (radians, from +X towards +Y).
+    pub fn azimuth(&self, v: usize, target: [f32; 3]) -> f64 {
+        let eye = self.eye(v);
+        (eye[1] - f64::from(target[1])).atan2(eye[0] - f64::from(target[0]))
+    }
+}
+
+/// An offer as the farm received it.
+#[derive(Debug, Clone)]
+pub struct Offer {
+    pub session_id: String,
+    pub request: SessionRequest,
+    pub sdp: String,
+}
+
+/// What one session's peer saw.
+#[derive(Debug, Default)]
+pub struct PeerLog {
+    /// Every binary message with its arrival time.
+    pub binary: Vec<(Instant, Bytes)>,
+    /// Every text message.
+    pub text: Vec<String>,
+}
+
+struct Peer {
+    pc: Arc<RTCPeerConnection>,
+    log: Arc<Mutex<PeerLog>>,
+    connected: Arc<AtomicBool>,
+    frames_sent: Arc<AtomicU64>,
+    stop: Arc<AtomicBool>,
+}
+
+#[derive(Default)]
+struct State {
+    offers: Vec<Offer>,
+    closed: Vec<String>,
+    peers: BTreeMap<String, Peer>,
+}
+
+struct Shared {
+    api: API,
+    state: Mutex<State>,
+    refuse_next: AtomicUsize,
+    refused: AtomicUsize,
+    stream_video: bool,
+}
+
+impl Shared {
+    fn state(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|poison| poison.into_inner())
+    }
+}
+
+/// The in-process farm. Cheap to clone (shared state).
+#[derive(Clone)]
+pub struct TestFarm {
+    shared: Arc<Shared>,
+}
+
+impl std::fmt::Debug for TestFarm {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TestFarm").field("sessions", &self.shared.state().peers.len()).finish_non_exhaustive()
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum FarmError {
+    #[error("WebRTC: {0}")]
+    Rtc(#[from] webrtc::Error),
+    #[error("I/O: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+fn h264_codec() -> RTCRtpCodecParameters {
+    let feedback = |typ: &str, parameter: &str| RTCPFeedback { typ: typ.into(), parameter: parameter.into() };
+    RTCRtpCodecParameters {
+        capability: RTCRtpCodecCapability {
+            mime_type: MIME_TYPE_H264.to_owned(),
+            clock_rate: 90_000,
+            channels: 0,
+            sdp_fmtp_line: H264_FMTP.to_owned(),
+            rtcp_feedback: vec![feedback("ccm", "fir"), feedback("nack", ""), feedback("nack", "pli")],
+        },
+        payload_type: 102,
+        ..Default::default()
+    }
+}
+
+/// A webrtc-rs API for H.264 video and data channels over IPv4 UDP host candidates (loopback
+/// included), without multicast DNS.
+pub fn rtc_api() -> Result<API, webrtc::Error> {
+    let mut media = MediaEngine::default();
+    media.register_codec(h264_codec(), RTPCodecType::Video)?;
+    let registry = register_default_interceptors(Registry::new(), &mut media)?;
+    let mut settings = SettingEngine::default();
+    settings.set_include_loopback_candidate(true);
+    settings.set_network_types(vec![NetworkType::Udp4]);
+    settings.set_ice_multicast_dns_mode(MulticastDnsMode::Disabled);
+    Ok(APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build())
+}
+
+impl TestFarm {
+    /// A farm that answers offers with a real peer; `stream_video` also sends the H.264 stream.
+    pub fn new(stream_video: bool) -> Result<TestFarm, FarmError> {
+        Ok(TestFarm {
+            shared: Arc::new(Shared {
+                api: rtc_api()?,
+                state: Mutex::default(),
+                refuse_next: AtomicUsize::new(0),
+                refused: AtomicUsize::new(0),
+                stream_video,
+            }),
+        })
+    }
+
+    /// Serves `nephele_master::http::router` over this farm on a loopback port (on the current
+    /// tokio runtime); returns the address.
+    pub async fn serve(&self) -> Result<SocketAddr, FarmError> {
+        let start = Instant::now();
+        let state = AppState::new(Arc::new(self.clone()), Box::new(move || start.elapsed().as_secs_f64()));
+        let listener = tokio::net::TcpListener::bind(("127.0.0.1", 0)).await?;
+        let addr = listener.local_addr()?;
+        tokio::spawn(async move {
+            if let Err(e) = axum::serve(listener, nephele_master::http::router(state)).await {
+                tracing::error!("test master stopped: {e}");
+            }
+        });
+        Ok(addr)
+    }
+
+    /// Refuse the next `n` session requests (admission control: 503 + Retry-After: 1).
+    pub fn refuse_next(&self, n: usize) {
+        self.shared.refuse_next.store(n, Ordering::SeqCst);
+    }
+
+    /// Session requests refused so far.
+    pub fn refused(&self) -> usize {
+        self.shared.refused.load(Ordering::SeqCst)
+    }
+
+    pub fn offers(&self) -> Vec<Offer> {
+        self.shared.state().offers.clone()
+    }
+
+    /// Sessions the master closed (DELETE from the client), in order.
+    pub fn closed(&self) -> Vec<String> {
+        self.shared.state().closed.clone()
+    }
+
+    /// The binary messages a session's peer received since `since`.
+    pub fn binary_since(&self, session: &str, since: Instant) -> Vec<(Instant, Bytes)> {
+        let state = self.shared.state();
+        let Some(peer) = state.peers.get(session) else { return Vec::new() };
+        let log = peer.log.lock().unwrap_or_else(|p| p.into_inner());
+        log.binary.iter().filter(|(t, _)| *t >= since).cloned().collect()
+    }
+
+    /// The text messages a session's peer received.
+    pub fn texts(&self, session: &str) -> Vec<String> {
+        let state = self.shared.state();
+        let Some(peer) = state.peers.get(session) else { return Vec::new() };
+        peer.log.lock().unwrap_or_else(|p| p.into_inner()).text.clone()
+    }
+
+    /// The latest pose a session sent, parsed.
+    pub fn latest_pose(&self, session: &str) -> Option<Pose> {
+        let state = self.shared.state();
+        let peer = state.peers.get(session)?;
+        let log = peer.log.lock().unwrap_or_else(|p| p.into_inner());
+        log.binary.iter().rev().find_map(|(_, data)| Pose::parse(data))
+    }
+
+    pub fn is_connected(&self, session: &str) -> bool {
+        self.shared.state().peers.get(session).is_some_and(|p| p.connected.load(Ordering::SeqCst))
+    }
+
+    pub fn frames_sent(&self, session: &str) -> u64 {
+        self.shared.state().peers.get(session).map_or(0, |p| p.frames_sent.load(Ordering::SeqCst))
+    }
+
+    async fn answer(shared: Arc<Shared>, session_id: String, offer_sdp: String) -> Result<String, OpenError> {
+        let offer = RTCSessionDescription::offer(offer_sdp).map_err(|e| OpenError::BadOffer(e.to_string()))?;
+        let unavailable = |e: webrtc::Error| OpenError::Unavailable(e.to_string());
+        let pc = Arc::new(shared.api.new_peer_connection(RTCConfiguration::default()).await.map_err(unavailable)?);
+        let track = Arc::new(TrackLocalStaticSample::new(h264_codec().capability, "video".into(), format!("nephele-{session_id}")));
+        let sender = pc.add_track(Arc::clone(&track) as Arc<dyn TrackLocal + Send + Sync>).await.map_err(unavailable)?;
+        // RTCP must be read for the interceptors (NACK, reports) to work.
+        tokio::spawn(async move { while sender.read_rtcp().await.is_ok() {} });
+
+        let log: Arc<Mutex<PeerLog>> = Arc::default();
+        let channel: Arc<Mutex<Option<Arc<RTCDataChannel>>>> = Arc::default();
+        let dc_log = Arc::clone(&log);
+        let dc_slot = Arc::clone(&channel);
+        pc.on_data_channel(Box::new(move |dc: Arc<RTCDataChannel>| {
+            let log = Arc::clone(&dc_log);
+            *dc_slot.lock().unwrap_or_else(|p| p.into_inner()) = Some(Arc::clone(&dc));
+            let reply = Arc::clone(&dc);
+            dc.on_message(Box::new(move |msg: DataChannelMessage| {
+                let log = Arc::clone(&log);
+                let reply = Arc::clone(&reply);
+                Box::pin(async move {
+                    if msg.is_string {
+                        let text = String::from_utf8_lossy(&msg.data).into_owned();
+                        let ping = serde_json::from_str::<serde_json::Value>(&text).ok().filter(|v| v["type"] == "ping");
+                        log.lock().unwrap_or_else(|p| p.into_inner()).text.push(text);
+                        if let Some(ping) = ping {
+                            let pong = json!({ "type": "pong", "id": ping["id"], "t": ping["t"] });
+                            let _ = reply.send_text(pong.to_string()).await;
+                        }
+                    } else {
+                        log.lock().unwrap_or_else(|p| p.into_inner()).binary.push((Instant::now(), msg.data));
+                    }
+                })
+            }));
+            Box::pin(async {})
+        }));
+
+        let connected = Arc::new(AtomicBool::new(false));
+        let frames_sent = Arc::new(AtomicU64::new(0));
+        let stop = Arc::new(AtomicBool::new(false));
+        let started = Arc::new(AtomicBool::new(false));
+        {
+            let (connected, frames_sent, stop, log, track, channel) = (
+                Arc::clone(&connected),
+                Arc::clone(&frames_sent),
+                Arc::clone(&stop),
+                Arc::clone(&log),
+                Arc::clone(&track),
+                Arc::clone(&channel),
+            );
+            let (stream_video, session) = (shared.stream_video, session_id.clone());
+            pc.on_peer_connection_state_change(Box::new(move |state: RTCPeerConnectionState| {
+                tracing::debug!(session, %state, "test peer");
+                connected.store(state == RTCPeerConnectionState::Connected, Ordering::SeqCst);
+                if state == RTCPeerConnectionState::Connected && stream_video && !started.swap(true, Ordering::SeqCst) {
+                    let video = VideoLoop {
+                        track: Arc::clone(&track),
+                        log: Arc::clone(&log),
+                        channel: Arc::clone(&channel),
+                        frames_sent: Arc::clone(&frames_sent),
+                        stop: Arc::clone(&stop),
+                        runtime: tokio::runtime::Handle::current(),
+                    };
+                    std::thread::spawn(move || video.run());
+                }
+                if matches!(state, RTCPeerConnectionState::Failed | RTCPeerConnectionState::Closed) {
+                    stop.store(true, Ordering::SeqCst);
+                }
+                Box::pin(async {})
+            }));
+        }
+
+        pc.set_remote_description(offer).await.map_err(|e| OpenError::BadOffer(e.to_string()))?;
+        let answer = pc.create_answer(None).await.map_err(|e| OpenError::BadOffer(e.to_string()))?;
+        let mut gathered = pc.gathering_complete_promise().await;
+        pc.set_local_description(answer).await.map_err(unavailable)?;
+        if tokio::time::timeout(Duration::from_secs(5), gathered.recv()).await.is_err() {
+            return Err(OpenError::Unavailable("ICE gathering did not finish in 5 s".into()));
+        }
+        let local = pc.local_description().await.ok_or_else(|| OpenError::Unavailable("no local description".into()))?;
+        shared.state().peers.insert(session_id, Peer { pc, log, connected, frames_sent, stop });
+        Ok(local.sdp)
+    }
+}
+
+/// The per-session video source: one flat frame per 1/FPS s whose grey encodes the latest
+/// pose's azimuth, each followed by a `{"type": "frame", "seq", "t"}` note naming that pose;
+/// on its own thread (the encoder is synchronous), writing through the runtime.
+struct VideoLoop {
+    track: Arc<TrackLocalStaticSample>,
+    log: Arc<Mutex<PeerLog>>,
+    channel: Arc<Mutex<Option<Arc<RTCDataChannel>>>>,
+    frames_sent: Arc<AtomicU64>,
+    stop: Arc<AtomicBool>,
+    runtime: tokio::runtime::Handle,
+}
+
+impl VideoLoop {
+    fn run(self) {
+        let mut encoder: Option<(Encoder, usize, usize)> = None;
+        let period = Duration::from_secs(1) / FPS;
+        let mut next = Instant::now();
+        while !self.stop.load(Ordering::SeqCst) {
+            let pose = {
+                let log = self.log.lock().unwrap_or_else(|p| p.into_inner());
+                log.binary.iter().rev().find_map(|(_, d)| Pose::parse(d))
+            };
+            if let Some(pose) = pose {
+                let (w, h) = (usize::from(pose.width) * usize::from(pose.views), usize::from(pose.height));
+                if encoder.as_ref().is_none_or(|(_, ew, eh)| (*ew, *eh) != (w, h)) {
+                    encoder = match new_encoder() {
+                        Ok(e) => Some((e, w, h)),
+                        Err(e) => {
+                            tracing::error!("test farm: no encoder: {e}");
+                            return;
+                        }
+                    };
+                }
+                if let Some((enc, w, h)) = encoder.as_mut() {
+                    let grey = grey_for_azimuth(pose.azimuth(0, FIRST_VIEW.target));
+                    // Limited-range luma (BT.601/709 video levels): what the browser shows as `grey`.
+                    let luma = (16.0 + grey * 219.0 / 255.0).round() as u8;
+                    let (w, h) = (*w, *h);
+                    let mut yuv = vec![luma; w * h];
+                    yuv.resize(w * h * 3 / 2, 128);
+                    match enc.encode(&YUVBuffer::from_vec(yuv, w, h)) {
+                        Ok(stream) => {
+                            let data = Bytes::from(stream.to_vec());
+                            if !data.is_empty() {
+                                let sample = Sample { data, duration: period, ..Default::default() };
+                                if self.runtime.block_on(self.track.write_sample(&sample)).is_ok() {
+                                    self.frames_sent.fetch_add(1, Ordering::SeqCst);
+                                    let dc = self.channel.lock().unwrap_or_else(|p| p.into_inner()).clone();
+                                    if let Some(dc) = dc {
+                                        let note = json!({ "type": "frame", "seq": pose.sequence, "t": pose.client_time_ms });
+                                        let _ = self.runtime.block_on(dc.send_text(note.to_string()));
+                                    }
+                                }
+                            }
+                        }
+                        Err(e) => tracing::warn!("test farm: encode: {e}"),
+                    }
+                }
+            }
+            next += period;
+            let now = Instant::now();
+            if next > now {
+                std::thread::sleep(next - now);
+            } else {
+                next = now;
+            }
+        }
+    }
+}
+
+fn new_encoder() -> Result<Encoder, openh264::Error> {
+    let config = EncoderConfig::new()
+        .usage_type(UsageType::CameraVideoRealTime)
+        .profile(Profile::Baseline)
+        // Flat test pictures need no rate control (and OpenH264 warns about bitrate control
+        // without frame skipping).
+        .rate_control_mode(RateControlMode::Off)
+        .max_frame_rate(FrameRate::from_hz(FPS as f32))
+        .skip_frames(false)
+        .intra_frame_period(IntraFramePeriod::from_num_frames(FPS));
+    Encoder::with_api_config(OpenH264API::from_source(), config)
+}
+
+impl FarmBackend for TestFarm {
+    fn scenes(&self) -> Vec<(String, SceneView)> {
+        vec![(SCENE.to_string(), FIRST_VIEW)]
+    }
+
+    fn ice_servers(&self) -> serde_json::Value {
+        json!([])
+    }
+
+    fn admission(&self) -> Admission {
+        let refuse = self.shared.refuse_next.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1)).is_ok();
+        if refuse {
+            self.shared.refused.fetch_add(1, Ordering::SeqCst);
+            Admission::Refuse { retry_after: Duration::from_secs(1) }
+        } else {
+            Admission::Admit
+        }
+    }
+
+    fn open(&self, session_id: String, request: SessionRequest, offer_sdp: String) -> BoxFuture<Result<String, OpenError>> {
+        self.shared.state().offers.push(Offer { session_id: session_id.clone(), request, sdp: offer_sdp.clone() });
+        let shared = Arc::clone(&self.shared);
+        Box::pin(TestFarm::answer(shared, session_id, offer_sdp))
+    }
+
+    fn close(&self, session_id: String) -> BoxFuture<()> {
+        let pc = {
+            let mut state = self.shared.state();
+            state.closed.push(session_id.clone());
+            state.peers.get(&session_id).map(|peer| {
+                peer.stop.store(true, Ordering::SeqCst);
+                Arc::clone(&peer.pc)
+            })
+        };
+        Box::pin(async move {
+            if let Some(pc) = pc {
+                let _ = pc.close().await;
+            }
+        })
+    }
+
+    fn farm_state(&self) -> serde_json::Value {
+        let state = self.shared.state();
+        let sessions: Vec<serde_json::Value> = state
+            .peers
+            .iter()
+            .map(|(id, p)| {
+                let poses = p.log.lock().unwrap_or_else(|e| e.into_inner()).binary.len();
+                json!({ "id": id, "connected": p.connected.load(Ordering::SeqCst), "poses": poses, "frames_sent": p.frames_sent.load(Ordering::SeqCst) })
+            })
+            .collect();
+        json!({ "workers": [], "test_farm": sessions })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose_bytes(view: [f32; 16]) -> Vec<u8> {
+        let mut out = vec![POSE_MAGIC, 1, 1, 0];
+        out.extend_from_slice(&7u32.to_le_bytes());
+        out.extend_from_slice(&123.5f64.to_le_bytes());
+        out.extend_from_slice(&640u16.to_le_bytes());
+        out.extend_from_slice(&480u16.to_le_bytes());
+        for x in view.iter().chain([0.5f32; 16].iter()) {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+        out
+    }
+
+    #[test]
+    fn poses_parse_and_give_the_camera_position() {
+        // A camera at (1, 2, 3) with identity rotation: view = translate(-eye).
+        let mut view = [0f32; 16];
+        for i in 0..4 {
+            view[i * 5] = 1.0;
+        }
+        view[12..15].copy_from_slice(&[-1.0, -2.0, -3.0]);
+        let data = pose_bytes(view);
+        assert_eq!(data.len(), 148);
+        let pose = Pose::parse(&data).expect("a pose");
+        assert_eq!((pose.views, pose.sequence, pose.client_time_ms, pose.width, pose.height), (1, 7, 123.5, 640, 480));
+        assert_eq!(pose.eye(0), [1.0, 2.0, 3.0]);
+        assert!((pose.azimuth(0, [0.0; 3]) - 2f64.atan2(1.0)).abs() < 1e-12);
+        assert_eq!(Pose::parse(&data[..147]), None);
+        let mut bad = data.clone();
+        bad[0] = 0x51;
+        assert_eq!(Pose::parse(&bad), None);
+    }
+
+    #[test]
+    fn grey_levels_span_one_turn_without_clipping() {
+        assert!((grey_for_azimuth(0.0) - 38.25).abs() < 1e-9);
+        assert!((grey_for_azimuth(-0.5) - grey_for_azimuth(std::f64::consts::TAU - 0.5)).abs() < 1e-9);
+        assert!(grey_for_azimuth(std::f64::consts::TAU - 1e-9) < 255.0 * 0.85 + 1e-6);
+    }
+}

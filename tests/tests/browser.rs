@@ -1,0 +1,189 @@
+//! Browser end-to-end tests: the real client page (`client/`), served by the real master HTTP
+//! shell (`nephele_master::http::router`), in headless Chromium driven over WebDriver, against
+//! an in-process farm whose WebRTC peer is real (webrtc-rs) and streams real H.264
+//! (`nephele_tests::farm`). Needs Debian's `chromium` and `chromium-driver`: `scripts/test`
+//! installs them; without them these tests fail and say so.
+//!
+//! The full-service test swaps [`Service::start`] for one that runs `nephele up`; the
+//! browser-side checks (`nephele_tests::client`) stay.
+
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use nephele_tests::browser::Browser;
+use nephele_tests::client;
+use nephele_tests::farm::{FIRST_VIEW, Pose, TestFarm, grey_for_azimuth};
+
+/// One browser at a time: two Chromiums decoding video on a 2-core box would make the timing
+/// checks flaky.
+static ONE_BROWSER: Mutex<()> = Mutex::new(());
+
+/// The size each view asks for (`?width=&height=`): small, so the test stream is cheap.
+const WIDTH: u16 = 160;
+const HEIGHT: u16 = 120;
+
+struct Service {
+    farm: TestFarm,
+    url: String,
+    // Serves the master and runs the WebRTC peers until the test ends.
+    _runtime: tokio::runtime::Runtime,
+}
+
+impl Service {
+    fn start(stream_video: bool) -> Service {
+        let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime");
+        let farm = TestFarm::new(stream_video).expect("test farm");
+        let addr = runtime.block_on(farm.serve()).expect("serving the master");
+        Service { farm, url: format!("http://{addr}/?width={WIDTH}&height={HEIGHT}"), _runtime: runtime }
+    }
+}
+
+fn wait_for<T>(what: &str, limit: Duration, mut probe: impl FnMut() -> Option<T>) -> T {
+    let start = Instant::now();
+    loop {
+        if let Some(value) = probe() {
+            return value;
+        }
+        assert!(start.elapsed() < limit, "timed out after {limit:?} waiting for {what}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn orbit_eye(azimuth: f64, elevation: f64, radius: f64) -> [f64; 3] {
+    let t = FIRST_VIEW.target.map(f64::from);
+    [
+        t[0] + radius * elevation.cos() * azimuth.cos(),
+        t[1] + radius * elevation.cos() * azimuth.sin(),
+        t[2] + radius * elevation.sin(),
+    ]
+}
+
+fn close(a: [f64; 3], b: [f64; 3], tolerance: f64) -> bool {
+    a.iter().zip(b).all(|(x, y)| (x - y).abs() < tolerance)
+}
+
+#[test]
+fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_session() {
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let service = Service::start(true);
+    let farm = &service.farm;
+    let browser = Browser::start().expect("headless Chromium");
+
+    browser.goto(&service.url).expect("open the client");
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("the data channel opens");
+    let errors: Vec<_> = browser.console_log().expect("console log");
+    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
+
+    // The offer: H.264 in packetization mode 1, a data channel, the size the page asked for.
+    let offers = farm.offers();
+    assert_eq!(offers.len(), 1, "one POST /v1/sessions");
+    let offer = &offers[0];
+    assert!(!client::h264_mode1_payload_types(&offer.sdp).is_empty(), "no H.264 packetization-mode=1 in the offer:\n{}", offer.sdp);
+    assert!(offer.sdp.lines().any(|l| l.starts_with("m=application ")), "no data channel in the offer:\n{}", offer.sdp);
+    assert!(!offer.sdp.contains(".local"), "mDNS host candidates despite --disable-features=WebRtcHideLocalIpsWithMdns");
+    assert_eq!((offer.request.views, offer.request.width, offer.request.height), (1, u32::from(WIDTH), u32::from(HEIGHT)));
+    let first = offer.session_id.clone();
+    assert_eq!(client::session_id(&browser).expect("session id").as_deref(), Some(first.as_str()));
+
+    // Poses: exactly 20 + 128 n bytes, magic 0x50, every ~20 ms, from the scene's first view.
+    wait_for("the first poses", Duration::from_secs(5), || farm.latest_pose(&first));
+    let since = Instant::now();
+    std::thread::sleep(Duration::from_secs(1));
+    let window: Vec<_> = farm.binary_since(&first, since).into_iter().filter(|(t, _)| *t < since + Duration::from_secs(1)).collect();
+    assert!((25..=60).contains(&window.len()), "{} poses in one second (every 20 ms expected)", window.len());
+    let mut last_sequence = None;
+    for (_, data) in &window {
+        assert_eq!((data.len(), data[0]), (20 + 128, 0x50), "pose message {data:?}");
+        let pose = Pose::parse(data).expect("a valid pose");
+        assert_eq!((pose.views, pose.mode, pose.width, pose.height), (1, 0, WIDTH, HEIGHT));
+        assert!(last_sequence.is_none_or(|s: u32| pose.sequence > s), "sequence numbers increase");
+        last_sequence = Some(pose.sequence);
+    }
+    let pose = farm.latest_pose(&first).expect("a pose");
+    assert!(close(pose.eye(0), FIRST_VIEW.eye.map(f64::from), 1e-4), "first camera at {:?}, expected {:?}", pose.eye(0), FIRST_VIEW.eye);
+
+    // A scripted orbit moves the camera in the very next poses...
+    client::set_orbit(&browser, 1.0, 0.3, 5.0).expect("setOrbit");
+    let moved = Instant::now();
+    let expected = orbit_eye(1.0, 0.3, 5.0);
+    wait_for("poses from the new orbit", Duration::from_secs(2), || {
+        farm.latest_pose(&first).filter(|p| close(p.eye(0), expected, 1e-4)).map(|_| ())
+    });
+    let lag = moved.elapsed();
+    assert!(lag < Duration::from_millis(500), "the pose followed setOrbit after {lag:?}");
+
+    // ...and the picture: frames are decoded and show the grey the farm renders for that azimuth.
+    wait_for("decoded frames", Duration::from_secs(10), || client::frames_decoded(&browser).ok().filter(|&n| n >= 5));
+    let centre = [0.25, 0.25, 0.75, 0.75];
+    for azimuth in [1.0, 4.0] {
+        client::set_orbit(&browser, azimuth, 0.3, 5.0).expect("setOrbit");
+        let want = grey_for_azimuth(azimuth);
+        let start = Instant::now();
+        loop {
+            let seen = client::mean_grey(&browser, centre).expect("reading the picture back");
+            if seen.is_some_and(|g| (g - want).abs() < 12.0) {
+                break;
+            }
+            assert!(start.elapsed() < Duration::from_secs(5), "azimuth {azimuth}: the picture shows grey {seen:?}, the pose asks for {want:.0}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+    let stats = client::inbound_video_stats(&browser).expect("getStats");
+    assert_eq!((stats["frameWidth"].as_u64(), stats["frameHeight"].as_u64()), (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))), "{stats}");
+    assert!(farm.frames_sent(&first) > 0);
+    // Pings go out and pongs come back (the client measures the round trip).
+    browser.wait_until("window.nephele.rttMs !== null", Duration::from_secs(3)).expect("a round-trip time");
+    assert!(farm.texts(&first).iter().any(|t| t.contains("\"ping\"")));
+
+    // A second tab is a second session, streaming alongside the first.
+    let first_tab = browser.window().expect("tab");
+    browser.new_tab().expect("second tab");
+    browser.goto(&service.url).expect("open the client again");
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("second tab streams");
+    let offers = farm.offers();
+    assert_eq!(offers.len(), 2, "a second POST /v1/sessions");
+    let second = offers[1].session_id.clone();
+    assert_ne!(first, second);
+    assert_eq!(client::session_id(&browser).expect("session id").as_deref(), Some(second.as_str()));
+    wait_for("poses from the second tab", Duration::from_secs(5), || farm.latest_pose(&second));
+    let both = Instant::now();
+    std::thread::sleep(Duration::from_millis(500));
+    let (a, b) = (farm.binary_since(&first, both).len(), farm.binary_since(&second, both).len());
+    assert!(a >= 10 && b >= 10, "both tabs send poses: {a} and {b} in 0.5 s");
+
+    // Closing the tab ends its session (DELETE on pagehide); the first one streams on.
+    browser.close_tab().expect("close the second tab");
+    browser.switch_to(&first_tab).expect("back to the first tab");
+    wait_for("DELETE of the closed tab's session", Duration::from_secs(5), || farm.closed().contains(&second).then_some(()));
+    assert!(!farm.closed().contains(&first));
+    let after = Instant::now();
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(farm.binary_since(&first, after).len() >= 5, "the first tab still sends poses");
+    assert_eq!(client::state(&browser).expect("state"), "streaming");
+    let errors = browser.console_log().expect("console log");
+    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
+}
+
+#[test]
+fn a_busy_farm_makes_the_client_wait_and_retry() {
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let service = Service::start(false);
+    let farm = &service.farm;
+    // Admission control refuses the first request: 503 with Retry-After: 1.
+    farm.refuse_next(1);
+    let browser = Browser::start().expect("headless Chromium");
+    browser.goto(&service.url).expect("open the client");
+    let busy = browser.wait_until("window.nephele && window.nephele.state.startsWith('farm busy')", Duration::from_secs(10)).expect("busy state");
+    assert_eq!(busy.as_bool(), Some(true));
+    assert_eq!(client::state(&browser).expect("state"), "farm busy, retrying in 1 s");
+    assert_eq!(farm.refused(), 1);
+    assert!(farm.offers().is_empty(), "a refused request never reaches the farm");
+    // It retries by itself after Retry-After and gets in.
+    client::wait_streaming(&browser, Duration::from_secs(10)).expect("streams after the retry");
+    assert_eq!(farm.offers().len(), 1);
+    assert_eq!(farm.refused(), 1);
+    let errors = browser.console_log().expect("console log");
+    // The refused POST is logged by Chromium as a failed resource load (503): expected here.
+    let unexpected: Vec<_> = client::page_errors(&errors).into_iter().filter(|e| !e.message.contains("503")).collect();
+    assert!(unexpected.is_empty(), "JavaScript errors: {errors:?}");
+}

@@ -1,0 +1,71 @@
+//! `nephele loadgen` (library and command) against the in-process test farm: real WebRTC
+//! peers, real H.264, the real master HTTP shell.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use nephele_loadgen::{Live, LoadConfig};
+use nephele_tests::farm::{FPS, TestFarm};
+
+fn farm(runtime: &tokio::runtime::Runtime) -> (TestFarm, String) {
+    let farm = TestFarm::new(true).expect("test farm");
+    let addr = runtime.block_on(farm.serve()).expect("serving the master");
+    (farm, format!("http://{addr}/"))
+}
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime")
+}
+
+#[test]
+fn two_users_stream_and_report_frame_rate_and_pose_to_frame_latency() {
+    let rt = runtime();
+    let (farm, url) = farm(&rt);
+    farm.refuse_next(1);
+    let config = LoadConfig { url, users: 2, duration: Duration::from_secs(2), width: 160, height: 120, ..LoadConfig::default() };
+    let live = Arc::new(Live::default());
+    let reports = rt.block_on(nephele_loadgen::run(&config, Arc::clone(&live))).expect("loadgen runs");
+    let table = nephele_loadgen::table(&reports);
+    println!("{table}");
+    assert_eq!(reports.len(), 2);
+    let offers = farm.offers();
+    assert_eq!(offers.len(), 2, "{table}");
+    for r in &reports {
+        assert_eq!(r.error, None, "{table}");
+        let id = r.session_id.as_deref().expect("a session");
+        assert!(offers.iter().any(|o| o.session_id == id));
+        // 2 s of poses every 20 ms; the farm saw them all as well-formed poses.
+        assert!((70..=110).contains(&r.poses_sent), "{table}");
+        assert!(r.frames >= 20 && r.idr_frames >= 1, "{table}");
+        assert!(r.fps > 0.6 * f64::from(FPS) && r.fps < 1.5 * f64::from(FPS), "{table}");
+        assert_eq!((r.lost_packets, r.damaged_frames), (0, 0), "{table}");
+        assert!(r.rtt_ms.count >= 1 && r.pose_to_frame_ms.count >= 20, "{table}");
+        let p50 = r.pose_to_frame_ms.p50.expect("latency");
+        assert!(p50 > 0.0 && p50 < 500.0, "{table}");
+    }
+    // One user met the busy farm first and retried.
+    assert_eq!(farm.refused(), 1);
+    assert_eq!(reports.iter().map(|r| r.busy_retries).sum::<u32>(), 1, "{table}");
+    // Every session was closed with DELETE.
+    let closed = farm.closed();
+    assert!(reports.iter().all(|r| r.session_id.as_ref().is_some_and(|id| closed.contains(id))), "{closed:?}");
+    assert!(live.frames.load(std::sync::atomic::Ordering::Relaxed) >= 40);
+}
+
+#[test]
+fn the_command_prints_a_table_and_writes_json() {
+    let rt = runtime();
+    let (_farm, url) = farm(&rt);
+    let dir = tempfile::tempdir().expect("temp dir");
+    let json = dir.path().join("loadgen.json");
+    let json_arg = json.to_str().expect("utf-8 path");
+    let out = nephele_tests::nephele_ok(&["loadgen", "--url", &url, "--users", "1", "--seconds", "1", "--size", "160x120", "--json", json_arg]);
+    assert!(out.contains("1 of 1 users streamed"), "{out}");
+    let reports: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).expect("json written")).expect("valid JSON");
+    assert!(reports[0]["frames"].as_u64().is_some_and(|n| n > 5), "{reports}");
+    // A master that is not there is a clear failure.
+    let err = nephele_tests::nephele_err(&["loadgen", "--url", "http://127.0.0.1:9/", "--seconds", "1"]);
+    assert!(err.contains("no user could stream"), "{err}");
+    let err = nephele_tests::nephele_err(&["loadgen", "--url", "ftp://x", "--seconds", "1"]);
+    assert!(err.contains("only http://"), "{err}");
+}
