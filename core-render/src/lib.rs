@@ -19,6 +19,7 @@
 pub mod camera;
 pub mod dataset;
 pub mod image;
+pub mod inolf;
 pub mod kernel;
 pub mod metrics;
 pub mod reference;

@@ -1,0 +1,11 @@
+//! i-NOLF (NEPHELE section 4): the one-query-per-ray neural object kernel and its parts.
+//!
+//! * [`psh`]: Perfect Spatial Hashing of the voxels around the hit surfaces (the specular
+//!   branch's single-resolution encoding).
+//! * [`voxel`]: surface voxelisation of meshes (occupancies for tests and benchmarks).
+
+pub mod psh;
+pub mod voxel;
+
+#[cfg(test)]
+mod scene_tests;
