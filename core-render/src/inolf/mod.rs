@@ -1,9 +1,11 @@
 //! i-NOLF (NEPHELE section 4): the one-query-per-ray neural object kernel and its parts.
 //!
+//! * [`cubes`]: density (and diffuse) texture cubes and the ray marcher over them.
 //! * [`psh`]: Perfect Spatial Hashing of the voxels around the hit surfaces (the specular
 //!   branch's single-resolution encoding).
 //! * [`voxel`]: surface voxelisation of meshes (occupancies for tests and benchmarks).
 
+pub mod cubes;
 pub mod psh;
 pub mod voxel;
 
