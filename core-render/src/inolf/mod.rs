@@ -1,10 +1,12 @@
 //! i-NOLF (NEPHELE section 4): the one-query-per-ray neural object kernel and its parts.
 //!
+//! * [`asset`]: the versioned `.nolf` asset file and its defensive loader.
 //! * [`cubes`]: density (and diffuse) texture cubes and the ray marcher over them.
 //! * [`psh`]: Perfect Spatial Hashing of the voxels around the hit surfaces (the specular
 //!   branch's single-resolution encoding).
 //! * [`voxel`]: surface voxelisation of meshes (occupancies for tests and benchmarks).
 
+pub mod asset;
 pub mod cubes;
 pub mod psh;
 pub mod voxel;
