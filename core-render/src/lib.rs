@@ -21,5 +21,6 @@ pub mod dataset;
 pub mod image;
 pub mod kernel;
 pub mod metrics;
+pub mod nn;
 pub mod reference;
 pub mod scenes;
