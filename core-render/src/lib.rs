@@ -22,5 +22,6 @@ pub mod image;
 pub mod inolf;
 pub mod kernel;
 pub mod metrics;
+pub mod nn;
 pub mod reference;
 pub mod scenes;
