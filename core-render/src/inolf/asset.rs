@@ -30,6 +30,7 @@ use glam::Vec3;
 use thiserror::Error;
 
 use super::cubes::{DensityCubes, EMPTY_CELL, MAX_CELLS, MAX_CHANNELS, MAX_CUBE_RES, MAX_GRID_SIDE, SparseCubes};
+use super::encoding::PshEncoding;
 use super::psh::{MAX_DOMAIN, MAX_TABLE_SIDE, PshTable};
 
 /// First eight bytes of every asset.
@@ -130,18 +131,6 @@ pub struct Tensor {
     pub data: Vec<f32>,
 }
 
-/// The specular branch's encoding: a perfect spatial hash over a voxel lattice placed at
-/// `origin` with spacing `voxel`, and `feature_dim` learned values per hash slot.
-#[derive(Debug, Clone, PartialEq)]
-pub struct PshSection {
-    pub table: PshTable,
-    pub origin: Vec3,
-    pub voxel: f32,
-    pub feature_dim: u32,
-    /// `slot_count * feature_dim` values, slot-major.
-    pub features: Vec<f32>,
-}
-
 /// Everything a worker needs to render one i-NOLF object.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Asset {
@@ -150,7 +139,7 @@ pub struct Asset {
     pub density: DensityCubes,
     /// Diffuse colour and specular tint baked around the hit surfaces.
     pub diffuse: Option<SparseCubes>,
-    pub psh: Option<PshSection>,
+    pub psh: Option<PshEncoding>,
     pub tensors: Vec<Tensor>,
 }
 
@@ -192,7 +181,7 @@ fn encode_cubes(c: &SparseCubes) -> Vec<u8> {
     w.0
 }
 
-fn encode_psh(p: &PshSection) -> Vec<u8> {
+fn encode_psh(p: &PshEncoding) -> Vec<u8> {
     let mut w = Writer::default();
     let t = &p.table;
     w.u32(t.domain());
@@ -590,7 +579,7 @@ fn decode_cubes(payload: &[u8], kind: SectionKind) -> Result<SparseCubes, AssetE
     SparseCubes::from_parts(min, cell, dims, cube_res, channels, index, data).map_err(|e| r.malformed(e.to_string()))
 }
 
-fn decode_psh(payload: &[u8]) -> Result<PshSection, AssetError> {
+fn decode_psh(payload: &[u8]) -> Result<PshEncoding, AssetError> {
     let mut r = Reader::new(payload, SectionKind::Psh);
     let u = r.u32()?;
     let m = r.u32()?;
@@ -621,7 +610,7 @@ fn decode_psh(payload: &[u8]) -> Result<PshSection, AssetError> {
         return Err(r.malformed("non-finite feature"));
     }
     let table = PshTable::from_parts(u, m, rr, offsets, keys).map_err(|e| r.malformed(e))?;
-    Ok(PshSection { table, origin, voxel, feature_dim, features })
+    Ok(PshEncoding { table, origin, voxel, feature_dim, features })
 }
 
 fn decode_tensors(payload: &[u8]) -> Result<Vec<Tensor>, AssetError> {
@@ -681,7 +670,7 @@ mod tests {
             meta: r#"{"scene":"test"}"#.into(),
             density,
             diffuse: Some(diffuse),
-            psh: Some(PshSection { table, origin: Vec3::splat(-1.0), voxel: 0.125, feature_dim: 4, features }),
+            psh: Some(PshEncoding { table, origin: Vec3::splat(-1.0), voxel: 0.125, feature_dim: 4, features }),
             tensors: vec![
                 Tensor { name: "specular.0".into(), shape: vec![3, 2], data: vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0] },
                 Tensor { name: "specular.bias".into(), shape: vec![2], data: vec![0.5, -0.5] },

@@ -34,10 +34,50 @@ impl VoxelGrid {
     }
 }
 
+/// A set of voxels of a [`VoxelGrid`] as a bit array.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VoxelBits {
+    pub grid: VoxelGrid,
+    bits: Vec<u64>,
+}
+
+impl VoxelBits {
+    /// Whether the voxel holding `p` is set (false outside the grid).
+    pub fn contains(&self, p: Vec3) -> bool {
+        self.grid.voxel_of(p).is_some_and(|v| self.get(v))
+    }
+
+    pub fn get(&self, v: [u32; 3]) -> bool {
+        let res = self.grid.res as usize;
+        let idx = v[0] as usize + res * (v[1] as usize + res * v[2] as usize);
+        self.bits.get(idx / 64).is_some_and(|w| w >> (idx % 64) & 1 == 1)
+    }
+
+    /// Set voxels sorted by packed key (z, y, x).
+    pub fn points(&self) -> Vec<[u32; 3]> {
+        let res = self.grid.res as usize;
+        let mut out = Vec::new();
+        for (w, &word) in self.bits.iter().enumerate() {
+            let mut word = word;
+            while word != 0 {
+                let idx = w * 64 + word.trailing_zeros() as usize;
+                word &= word - 1;
+                out.push([(idx % res) as u32, ((idx / res) % res) as u32, (idx / (res * res)) as u32]);
+            }
+        }
+        out
+    }
+}
+
 /// Voxels of `grid` touched by the triangles of `mesh`, sorted by packed key (z, y, x) and
 /// without duplicates. Triangles are sampled on a barycentric lattice finer than half a
 /// voxel, which finds every voxel the surface crosses by more than a sliver.
 pub fn surface_voxels(mesh: &Mesh, grid: &VoxelGrid) -> Vec<[u32; 3]> {
+    surface_bits(mesh, grid).points()
+}
+
+/// [`surface_voxels`] as a bit array.
+pub fn surface_bits(mesh: &Mesh, grid: &VoxelGrid) -> VoxelBits {
     let res = grid.res as usize;
     let mut bits = vec![0u64; (res * res * res).div_ceil(64)];
     let step = 0.5 * grid.voxel;
@@ -58,16 +98,7 @@ pub fn surface_voxels(mesh: &Mesh, grid: &VoxelGrid) -> Vec<[u32; 3]> {
             }
         }
     }
-    let mut out = Vec::new();
-    for (w, &word) in bits.iter().enumerate() {
-        let mut word = word;
-        while word != 0 {
-            let idx = w * 64 + word.trailing_zeros() as usize;
-            word &= word - 1;
-            out.push([(idx % res) as u32, ((idx / res) % res) as u32, (idx / (res * res)) as u32]);
-        }
-    }
-    out
+    VoxelBits { grid: *grid, bits }
 }
 
 #[cfg(test)]
