@@ -20,6 +20,16 @@ pub enum Command {
     /// ray, and the error reached: PSNR of the timed render against a render with many more
     /// samples of the same view.
     Reference(ReferenceArgs),
+    /// Perfect spatial hashing of each scene's surface voxels at 128^3, 256^3, 512^3: table
+    /// sizes, build time, neighbour coherence, and a check of zero collisions.
+    Psh(super::bench_inolf::PshArgs),
+    /// Density texture cubes over each scene: bytes against a dense grid, and the cost of
+    /// marching the default view (cells, samples and nanoseconds per ray, rays that miss).
+    Cubes(super::bench_inolf::CubesArgs),
+    /// One stream of encoding queries (hit points from random viewpoints) answered by the PSH
+    /// encoding or the multiresolution hash grid; run it under
+    /// `valgrind --tool=cachegrind` once per `--encoding` (and once with `none` to subtract).
+    PshCache(super::bench_inolf::PshCacheArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -44,6 +54,9 @@ pub struct ReferenceArgs {
 pub fn run(command: Command, progress: &Progress) -> Result<()> {
     match command {
         Command::Reference(args) => reference(args, progress),
+        Command::Psh(args) => super::bench_inolf::psh(args, progress),
+        Command::Cubes(args) => super::bench_inolf::cubes(args, progress),
+        Command::PshCache(args) => super::bench_inolf::psh_cache(args, progress),
     }
 }
 

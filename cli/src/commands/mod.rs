@@ -1,6 +1,7 @@
 //! One module per subcommand; each parses its own arguments and calls into `nephele-render`.
 
 pub mod bench;
+pub mod bench_inolf;
 pub mod dataset;
 pub mod eval;
 pub mod pathtrace;
