@@ -544,7 +544,7 @@ impl DensityCubes {
 }
 
 /// Marks every cell within `r` cells (Chebyshev distance) of a marked cell.
-fn dilate(marks: &[bool], dims: [u32; 3], r: u32) -> Vec<bool> {
+pub(crate) fn dilate(marks: &[bool], dims: [u32; 3], r: u32) -> Vec<bool> {
     let mut cur = marks.to_vec();
     let (nx, ny, nz) = (dims[0] as usize, dims[1] as usize, dims[2] as usize);
     let r = r as usize;
