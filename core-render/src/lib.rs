@@ -21,6 +21,7 @@ pub mod dataset;
 pub mod image;
 pub mod kernel;
 pub mod metrics;
+pub mod ngp;
 pub mod nn;
 pub mod reference;
 pub mod scenes;
