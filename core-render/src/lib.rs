@@ -22,6 +22,7 @@ pub mod image;
 pub mod inolf;
 pub mod kernel;
 pub mod metrics;
+pub mod ngp;
 pub mod nn;
 pub mod reference;
 pub mod scenes;

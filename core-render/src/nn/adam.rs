@@ -60,6 +60,18 @@ impl Adam {
     /// One update of `params` from `grads` (same length as at construction). Runs on the
     /// rayon pool in chunks.
     pub fn step(&mut self, params: &mut [f32], grads: &[f32]) -> Result<(), NnError> {
+        self.update(params, grads, false)
+    }
+
+    /// Like [`Adam::step`], but entries whose gradient is exactly zero are left alone, moments
+    /// included (PyTorch's `SparseAdam` semantics). For hash-grid tables, where a step touches
+    /// a small fraction of the entries: it saves the memory traffic of the untouched ones and
+    /// keeps their features from drifting on stale momentum.
+    pub fn step_sparse(&mut self, params: &mut [f32], grads: &[f32]) -> Result<(), NnError> {
+        self.update(params, grads, true)
+    }
+
+    fn update(&mut self, params: &mut [f32], grads: &[f32], sparse: bool) -> Result<(), NnError> {
         check_len("Adam parameters", self.m.len(), params.len())?;
         check_len("Adam gradients", self.m.len(), grads.len())?;
         self.steps += 1;
@@ -78,6 +90,9 @@ impl Adam {
             .for_each(|(((p, g), m), v)| {
                 for i in 0..p.len() {
                     let mut grad = g[i];
+                    if sparse && grad == 0.0 {
+                        continue;
+                    }
                     if !grad.is_finite() {
                         // A non-finite gradient would poison the moments for good.
                         continue;
@@ -126,6 +141,21 @@ mod tests {
         // Non-finite gradients are skipped rather than poisoning the state.
         adam.step(&mut w, &[f32::NAN, f32::INFINITY, 0.0]).expect("step");
         assert!(w.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn sparse_step_leaves_zero_gradient_entries_alone() {
+        let mut w = vec![1.0f32, 1.0];
+        let mut adam = Adam::new(AdamConfig { learning_rate: 0.1, ..AdamConfig::default() }, 2);
+        adam.step_sparse(&mut w, &[1.0, 1.0]).expect("step");
+        adam.step_sparse(&mut w, &[1.0, 0.0]).expect("step");
+        // The second entry kept its value after the first step despite its momentum.
+        assert!((w[1] - 0.9).abs() < 1e-5 && w[0] < 0.85, "{w:?}");
+        let mut dense = vec![1.0f32, 1.0];
+        let mut adam = Adam::new(AdamConfig { learning_rate: 0.1, ..AdamConfig::default() }, 2);
+        adam.step(&mut dense, &[1.0, 1.0]).expect("step");
+        adam.step(&mut dense, &[1.0, 0.0]).expect("step");
+        assert!(dense[1] < 0.85, "{dense:?}");
     }
 
     #[test]

@@ -72,6 +72,32 @@ impl HashGridConfig {
     pub fn output_dim(&self) -> usize {
         self.levels as usize * FEATURES_PER_LEVEL
     }
+
+    /// Learned values of a grid of this shape (computed without allocating, for checking
+    /// file headers); meaningful for a valid config.
+    pub fn num_params(&self) -> usize {
+        level_layout(self).iter().map(|l| l.size).sum::<usize>() * FEATURES_PER_LEVEL
+    }
+}
+
+/// Geometry of every level of `config` (assumed valid).
+fn level_layout(config: &HashGridConfig) -> Vec<Level> {
+    let table = 1usize << config.log2_table_size.min(26);
+    let mut levels = Vec::with_capacity(config.levels as usize);
+    let mut offset = 0;
+    for l in 0..config.levels {
+        let scale = (f64::from(config.base_resolution) * f64::from(config.per_level_scale).powi(l as i32) - 1.0) as f32;
+        // Two more vertices than the span of [0.5, scale + 0.5] so that the upper corner of
+        // a point on the far face is still inside the dense grid.
+        let resolution = scale.ceil() as u32 + 2;
+        let dense_entries = u64::from(resolution).pow(3);
+        let dense = dense_entries <= table as u64;
+        // Round dense tables up to a multiple of 8 entries, as tiny-cuda-nn does.
+        let size = if dense { (dense_entries as usize).div_ceil(8) * 8 } else { table };
+        levels.push(Level { scale, resolution, offset, size, dense });
+        offset += size;
+    }
+    levels
 }
 
 /// Geometry of one level.
@@ -124,21 +150,8 @@ impl HashGrid {
     /// A grid with all features zero (for loading stored parameters).
     pub fn zeros(config: HashGridConfig) -> Result<Self, NnError> {
         config.validate()?;
-        let table = 1usize << config.log2_table_size;
-        let mut levels = Vec::with_capacity(config.levels as usize);
-        let mut offset = 0;
-        for l in 0..config.levels {
-            let scale = (f64::from(config.base_resolution) * f64::from(config.per_level_scale).powi(l as i32) - 1.0) as f32;
-            // Two more vertices than the span of [0.5, scale + 0.5] so that the upper corner of
-            // a point on the far face is still inside the dense grid.
-            let resolution = scale.ceil() as u32 + 2;
-            let dense_entries = u64::from(resolution).pow(3);
-            let dense = dense_entries <= table as u64;
-            // Round dense tables up to a multiple of 8 entries, as tiny-cuda-nn does.
-            let size = if dense { (dense_entries as usize).div_ceil(8) * 8 } else { table };
-            levels.push(Level { scale, resolution, offset, size, dense });
-            offset += size;
-        }
+        let levels = level_layout(&config);
+        let offset = levels.iter().map(|l| l.size).sum::<usize>();
         Ok(HashGrid { config, levels, params: vec![0.0; offset * FEATURES_PER_LEVEL] })
     }
 
@@ -328,6 +341,7 @@ mod tests {
             end = r.end;
         }
         assert_eq!(end, grid.num_params());
+        assert_eq!(small().num_params(), grid.num_params());
         let c = HashGridConfig::with_finest_resolution(16, 19, 16, 2048);
         assert!((c.per_level_scale - 1.3819).abs() < 1e-3, "{}", c.per_level_scale);
     }
