@@ -43,6 +43,9 @@ enum Command {
     /// Print performance figures (see BENCHMARKS.md).
     #[command(subcommand)]
     Bench(commands::bench::Command),
+    /// Bake an i-NOLF asset (.nolf) from posed RGBA images: radiance field, density cubes,
+    /// perfect spatial hash, trained heads, diffuse cubes.
+    Bake(commands::bake::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -69,6 +72,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Dataset(cmd) => commands::dataset::run(cmd, &progress),
         Command::Eval(args) => commands::eval::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
+        Command::Bake(args) => commands::bake::run(args, &progress),
     }
 }
 

@@ -1,5 +1,6 @@
 //! One module per subcommand; each parses its own arguments and calls into `nephele-render`.
 
+pub mod bake;
 pub mod bench;
 pub mod bench_inolf;
 pub mod dataset;
