@@ -69,6 +69,10 @@ pub struct Args {
     /// Learned features per PSH slot.
     #[arg(long, default_value_t = 8)]
     psh_features: u32,
+    /// Densities below this (per unit length) are cut to zero before caching: the floor of
+    /// what counts as matter.
+    #[arg(long, default_value_t = 1.0)]
+    density_threshold: f32,
     /// Also keep the diffuse network in the asset (for the "+ diffuse MLP" variant).
     #[arg(long)]
     keep_diffuse_network: bool,
@@ -132,10 +136,22 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let t = Instant::now();
     let cube_options = CubeOptions { resolution: args.cubes, cube_res: args.cube_res, ..CubeOptions::default() };
     let bar = progress.bar(1, "density cubes", "cells");
+    // The network's density, cut to zero outside the field's own occupancy grid (the
+    // calibrated notion of "empty" the baseline marches with) and below the threshold.
+    let occupancy = field.occupancy();
+    let res = occupancy.resolution();
+    let threshold = args.density_threshold;
     let density = |points: &[Vec3], out: &mut [f32]| {
         let mut scratch = FieldScratch::new();
         if field.density_batch(points, out, &mut scratch).is_err() {
             out.iter_mut().for_each(|v| *v = 0.0);
+        }
+        for (p, o) in points.iter().zip(out.iter_mut()) {
+            let u = field.to_unit(*p) * res as f32;
+            let cell = [u.x, u.y, u.z].map(|c| (c.max(0.0) as u32).min(res - 1));
+            if *o < threshold || !occupancy.get(occupancy.index(cell[0], cell[1], cell[2])) {
+                *o = 0.0;
+            }
         }
     };
     let cubes = DensityCubes::build(bounds, &cube_options, density, &|p| {

@@ -225,6 +225,14 @@ pub fn train(
             })
             .collect();
         let kept: Vec<usize> = (0..draws.len()).filter(|&i| marched[i].0.opacity >= HIT_OPACITY).collect();
+        // A ray that misses cannot be improved: its tile's error decays so that tiles of
+        // empty background stop being drawn.
+        for (i, m) in marched.iter().enumerate() {
+            if m.0.opacity < HIT_OPACITY {
+                let tile = draws[i].0;
+                map.error[tile] *= 0.9;
+            }
+        }
         report.rays += draws.len() as u64;
         report.rays_hit += kept.len() as u64;
         if kept.is_empty() {
