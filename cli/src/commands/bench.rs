@@ -30,6 +30,9 @@ pub enum Command {
     /// encoding or the multiresolution hash grid; run it under
     /// `valgrind --tool=cachegrind` once per `--encoding` (and once with `none` to subtract).
     PshCache(super::bench_inolf::PshCacheArgs),
+    /// i-NOLF against the i-NGP-style baseline on held-out views of a dataset: quality,
+    /// time per frame, rays per second and speed-up, measured in one run.
+    Inolf(super::bench_inolf::InolfArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -57,6 +60,7 @@ pub fn run(command: Command, progress: &Progress) -> Result<()> {
         Command::Psh(args) => super::bench_inolf::psh(args, progress),
         Command::Cubes(args) => super::bench_inolf::cubes(args, progress),
         Command::PshCache(args) => super::bench_inolf::psh_cache(args, progress),
+        Command::Inolf(args) => super::bench_inolf::inolf(args, progress),
     }
 }
 

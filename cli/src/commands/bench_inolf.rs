@@ -80,6 +80,27 @@ pub struct PshCacheArgs {
     features: u32,
 }
 
+#[derive(Debug, clap::Args)]
+pub struct InolfArgs {
+    /// A baked i-NOLF asset (`nephele bake`).
+    #[arg(long)]
+    asset: PathBuf,
+    /// The radiance field the asset was baked from (`nephele bake --save-field`): the
+    /// i-NGP-style baseline, rendered in the same run.
+    #[arg(long)]
+    field: PathBuf,
+    /// Dataset folder whose held-out split is rendered and scored.
+    #[arg(long)]
+    dataset: PathBuf,
+    #[arg(long, default_value = "test")]
+    split: String,
+    #[arg(long, default_value_t = 2)]
+    downscale: u32,
+    /// Score at most this many views.
+    #[arg(long, default_value_t = 8)]
+    views: usize,
+}
+
 fn scene_names(requested: &[String]) -> Vec<String> {
     if requested.is_empty() { scenes::names().iter().map(|s| s.to_string()).collect() } else { requested.to_vec() }
 }
@@ -326,5 +347,57 @@ fn write_json(path: Option<PathBuf>, rows: Vec<serde_json::Value>) -> Result<()>
     if let Some(path) = path {
         std::fs::write(&path, serde_json::to_string_pretty(&rows)?).with_context(|| format!("writing {}", path.display()))?;
     }
+    Ok(())
+}
+
+/// i-NOLF against the i-NGP-style baseline on held-out views: PSNR/SSIM against the images
+/// (over white, as NeRF papers), time per frame and rays per second, measured in one run.
+pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
+    use nephele_render::inolf::kernel::{DiffuseSource, InolfKernel};
+    use nephele_render::kernel::{RayKernel, frame_to_image};
+    use nephele_render::metrics::psnr_and_ssim;
+    use nephele_render::ngp::NgpKernel;
+
+    let data = nephele_render::dataset::load_split(&args.dataset, &args.split, args.downscale)?;
+    let mut inolf_cubes = InolfKernel::load(&args.asset)?;
+    let mut inolf_net = inolf_cubes.clone();
+    let has_net = inolf_net.set_diffuse_source(DiffuseSource::Network).is_ok();
+    inolf_cubes.set_diffuse_source(DiffuseSource::Cubes)?;
+    let ngp = NgpKernel::load(&args.field)?;
+    let mut kernels: Vec<(&str, &dyn RayKernel)> = vec![("i-NGP baseline", &ngp), ("i-NOLF (diffuse cubes)", &inolf_cubes)];
+    if has_net {
+        kernels.push(("i-NOLF (diffuse MLP)", &inolf_net));
+    }
+    let views: Vec<_> = data.views.iter().take(args.views.max(1)).collect();
+    let bar = progress.bar((views.len() * kernels.len()) as u64, "rendering", "frames");
+    let mut rows = Vec::new();
+    for (name, kernel) in &kernels {
+        let (mut seconds, mut rays, mut psnr, mut ssim) = (0.0f64, 0u64, 0.0f64, 0.0f64);
+        for v in &views {
+            let (w, h) = (v.image.width(), v.image.height());
+            let camera = Camera::from_fov_x(w, h, data.camera_angle_x, v.camera_to_world)?;
+            let start = Instant::now();
+            let (out, stats) = kernel.render_pixels(&camera, &all_pixels(&camera))?;
+            seconds += start.elapsed().as_secs_f64();
+            rays += stats.rays;
+            let image = frame_to_image(w, h, &out).context("frame")?;
+            let (p, s) = psnr_and_ssim(&image, &v.image, [1.0; 3])?;
+            psnr += p;
+            ssim += s;
+            bar.inc(1);
+        }
+        let n = views.len() as f64;
+        rows.push((name.to_string(), psnr / n, ssim / n, 1e3 * seconds / n, rays as f64 / seconds.max(1e-9)));
+    }
+    bar.finish_and_clear();
+    let base_ms = rows[0].3;
+    let (w, h) = (views[0].image.width(), views[0].image.height());
+    println!("{} held-out views of {w}x{h}, {} threads", views.len(), rayon::current_num_threads());
+    println!("{:<24} {:>8} {:>7} {:>10} {:>12} {:>9}", "kernel", "PSNR dB", "SSIM", "ms/frame", "rays/s", "speed-up");
+    for (name, p, s, ms, rps) in rows {
+        println!("{name:<24} {p:>8.2} {s:>7.4} {ms:>10.1} {rps:>12.0} {:>8.1}x", base_ms / ms.max(1e-9));
+    }
+    let file = std::fs::metadata(&args.asset)?.len();
+    println!("asset {:.2} MiB", file as f64 / 1048576.0);
     Ok(())
 }

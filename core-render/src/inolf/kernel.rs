@@ -42,6 +42,15 @@ pub struct InolfKernel {
     source: DiffuseSource,
 }
 
+/// Why an asset file could not be opened as a kernel.
+#[derive(Debug, thiserror::Error)]
+pub enum LoadError {
+    #[error(transparent)]
+    Asset(#[from] super::asset::AssetError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+}
+
 /// Pixels per rayon task.
 const CHUNK: usize = 1024;
 
@@ -61,6 +70,11 @@ impl InolfKernel {
             shape: heads.meta.shape,
             source,
         })
+    }
+
+    /// Loads and validates a `.nolf` file (first bytes [`super::asset::MAGIC`]).
+    pub fn load(path: &std::path::Path) -> Result<InolfKernel, LoadError> {
+        Ok(InolfKernel::from_asset(Asset::load(path)?)?)
     }
 
     /// From a model in memory (tests, and rendering right after training).
