@@ -78,6 +78,10 @@ pub struct PshCacheArgs {
     /// Features per PSH slot.
     #[arg(long, default_value_t = 16)]
     features: u32,
+    /// Passes over the query stream: run with 1 and 3 and divide the difference of the
+    /// counts by 2 x queries to get the cost of a query alone, without the set-up.
+    #[arg(long, default_value_t = 1)]
+    passes: u32,
 }
 
 #[derive(Debug, clap::Args)]
@@ -313,9 +317,11 @@ pub fn psh_cache(args: PshCacheArgs, progress: &Progress) -> Result<()> {
             let enc = PshEncoding::from_points(&stream, bounds.min, voxel, args.lattice, args.features, &PshOptions::coherent())?;
             bar.inc(1);
             let mut out = vec![0.0; enc.dim()];
-            for p in &stream {
-                enc.encode(*p, &mut out);
-                checksum += f64::from(out[0]);
+            for _ in 0..args.passes {
+                for p in &stream {
+                    enc.encode(*p, &mut out);
+                    checksum += f64::from(out[0]);
+                }
             }
             ("psh", enc.features.len() * 4 + enc.table.table_bytes())
         }
@@ -325,10 +331,12 @@ pub fn psh_cache(args: PshCacheArgs, progress: &Progress) -> Result<()> {
             bar.inc(1);
             let mut out = vec![0.0; grid.output_dim()];
             let inv = 1.0 / bounds.size().max_element();
-            for p in &stream {
-                let u = (*p - bounds.min) * inv;
-                grid.encode([u.x, u.y, u.z], &mut out);
-                checksum += f64::from(out[0]);
+            for _ in 0..args.passes {
+                for p in &stream {
+                    let u = (*p - bounds.min) * inv;
+                    grid.encode([u.x, u.y, u.z], &mut out);
+                    checksum += f64::from(out[0]);
+                }
             }
             ("hashgrid", grid.num_params() * 4)
         }

@@ -136,24 +136,31 @@ pub fn load_heads(asset: &Asset) -> Result<LoadedHeads, ModelError> {
         return Err(bad("grid bounds".into()));
     }
     let tensor = |name: &str| asset.tensors.iter().find(|t| t.name == name);
-    let fill = |mut params: Vec<f32>, name: &str| -> Result<Vec<f32>, ModelError> {
+    // Sizes are checked against the tensors present in the file before any network is
+    // allocated, so a hostile meta section cannot ask for a huge grid.
+    let data = |name: &str, expected: usize| -> Result<&[f32], ModelError> {
         let t = tensor(name).ok_or_else(|| bad(format!("tensor {name} missing")))?;
-        if t.data.len() != params.len() {
-            return Err(bad(format!("tensor {name} has {} values, the shape needs {}", t.data.len(), params.len())));
+        if t.data.len() != expected {
+            return Err(bad(format!("tensor {name} has {} values, the shape needs {expected}", t.data.len())));
         }
-        params.copy_from_slice(&t.data);
-        Ok(params)
+        Ok(&t.data)
     };
-    let mut specular = Mlp::zeros(meta.shape.specular_mlp(psh.feature_dim))?;
-    let p = fill(specular.params().to_vec(), "specular.mlp")?;
-    specular.params_mut().copy_from_slice(&p);
+    let specular_config = meta.shape.specular_mlp(psh.feature_dim);
+    specular_config.validate()?;
+    let weights = data("specular.mlp", specular_config.num_params())?;
+    let mut specular = Mlp::zeros(specular_config)?;
+    specular.params_mut().copy_from_slice(weights);
     let diffuse = if tensor("diffuse.mlp").is_some() {
-        let mut grid = HashGrid::zeros(meta.shape.grid())?;
-        let p = fill(grid.params().to_vec(), "diffuse.grid")?;
-        grid.params_mut().copy_from_slice(&p);
-        let mut mlp = Mlp::zeros(meta.shape.diffuse_mlp())?;
-        let p = fill(mlp.params().to_vec(), "diffuse.mlp")?;
-        mlp.params_mut().copy_from_slice(&p);
+        let grid_config = meta.shape.grid();
+        grid_config.validate()?;
+        let mlp_config = meta.shape.diffuse_mlp();
+        mlp_config.validate()?;
+        let grid_weights = data("diffuse.grid", grid_config.num_params())?;
+        let mlp_weights = data("diffuse.mlp", mlp_config.num_params())?;
+        let mut grid = HashGrid::zeros(grid_config)?;
+        grid.params_mut().copy_from_slice(grid_weights);
+        let mut mlp = Mlp::zeros(mlp_config)?;
+        mlp.params_mut().copy_from_slice(mlp_weights);
         Some((grid, mlp))
     } else {
         None

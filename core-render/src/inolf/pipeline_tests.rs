@@ -197,3 +197,30 @@ proptest! {
     }
 }
 
+
+/// A meta section describing networks that do not match the stored weights (or absurdly
+/// large ones) is rejected before any network is allocated.
+#[test]
+fn meta_that_disagrees_with_the_weights_is_rejected() {
+    let t = trained();
+    let asset = to_asset(&t.model, t.cubes.clone(), None, true, serde_json::Value::Null).expect("asset");
+    for edit in [
+        |s: &mut HeadsShape| {
+            s.grid_levels = 32;
+            s.grid_log2_table = 26;
+        },
+        |s: &mut HeadsShape| s.specular_hidden = 100_000,
+        |s: &mut HeadsShape| s.diffuse_hidden += 1,
+        |s: &mut HeadsShape| s.sh_degree = 9,
+    ] {
+        let mut meta: super::bake::InolfMeta = serde_json::from_str(&asset.meta).expect("meta");
+        edit(&mut meta.shape);
+        let mut hostile = asset.clone();
+        hostile.meta = serde_json::to_string(&meta).expect("json");
+        assert!(InolfKernel::from_asset(hostile).is_err(), "{:?}", meta.shape);
+    }
+    let mut garbage = asset.clone();
+    garbage.meta = "{\"format\": \"something else\"}".into();
+    assert!(InolfKernel::from_asset(garbage).is_err());
+    assert!(InolfKernel::from_asset(asset).is_ok());
+}
