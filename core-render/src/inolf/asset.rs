@@ -261,7 +261,7 @@ impl Asset {
         let mut out = vec![0u8; table_end];
         let mut entries = Vec::new();
         for (kind, payload) in &sections {
-            while out.len() % 8 != 0 {
+            while !out.len().is_multiple_of(8) {
                 out.push(0);
             }
             entries.push((*kind, out.len() as u64, payload.len() as u64, crc32fast::hash(payload)));

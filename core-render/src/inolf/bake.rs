@@ -39,6 +39,9 @@ pub fn decode_diffuse(code: f32) -> f32 {
     code * code
 }
 
+/// Per-thread buffers of the bake: grid inputs, outputs, encoder scratch.
+type BakeScratch = (Vec<[f32; 3]>, Vec<f32>, (Vec<f32>, MlpWorkspace));
+
 /// Samples the diffuse branch into cubes of `cube_res^3` on the density cubes' coarse grid,
 /// in the cells that hold density and lie within `margin` cells of a hit point.
 pub fn bake_diffuse_cubes(model: &InolfModel, cubes: &DensityCubes, hits: &[Vec3], margin: u32, cube_res: u32) -> Result<SparseCubes, ModelError> {
@@ -61,7 +64,7 @@ pub fn bake_diffuse_cubes(model: &InolfModel, cubes: &DensityCubes, hits: &[Vec3
         .par_iter()
         .map_init(
             || (Vec::new(), Vec::new(), (Vec::new(), MlpWorkspace::new())),
-            |(points, out, scratch): &mut (Vec<[f32; 3]>, Vec<f32>, (Vec<f32>, MlpWorkspace)), &c| {
+            |(points, out, scratch): &mut BakeScratch, &c| {
                 let g = [(c % nx) * (res - 1), ((c / nx) % ny) * (res - 1), (c / (nx * ny)) * (res - 1)];
                 points.clear();
                 for k in 0..res {

@@ -82,7 +82,7 @@ impl SparseCubes {
         data: Vec<u8>,
     ) -> Result<SparseCubes, CubeError> {
         let bad = |s: String| Err(CubeError::Inconsistent(s));
-        if !min.is_finite() || !(cell.is_finite() && cell > 0.0) {
+        if !(min.is_finite() && cell.is_finite() && cell > 0.0) {
             return bad(format!("origin {min} / cell size {cell} not finite and positive"));
         }
         if dims.iter().any(|&d| d == 0 || d > MAX_GRID_SIDE) {
@@ -96,7 +96,7 @@ impl SparseCubes {
             return bad(format!("{} index entries for {cells} cells", index.len()));
         }
         let cube_bytes = u64::from(cube_res).pow(3) * u64::from(channels);
-        if data.len() as u64 % cube_bytes != 0 {
+        if !(data.len() as u64).is_multiple_of(cube_bytes) {
             return bad(format!("{} data bytes is not a whole number of cubes", data.len()));
         }
         let count = data.len() as u64 / cube_bytes;
@@ -114,7 +114,7 @@ impl SparseCubes {
         if used.iter().any(|&u| !u) {
             return bad("a cube is referenced by no cell".into());
         }
-        if (min + cell * Vec3::new(dims[0] as f32, dims[1] as f32, dims[2] as f32)).is_finite().then_some(()).is_none() {
+        if !(min + cell * Vec3::new(dims[0] as f32, dims[1] as f32, dims[2] as f32)).is_finite() {
             return bad("grid extent overflows".into());
         }
         Ok(SparseCubes { min, cell, dims, cube_res, channels, index, data })
@@ -363,7 +363,7 @@ impl DensityCubes {
                     values.resize(points.len(), 0.0);
                     density(points, values);
                     let n = done.fetch_add(1, Ordering::Relaxed) + 1;
-                    if n % 4096 == 0 || n == total {
+                    if n.is_multiple_of(4096) || n == total {
                         progress(BuildProgress { phase: "probe", done: n, total });
                     }
                     values.iter().any(|&s| quantise(s, step) > 0)
@@ -396,7 +396,7 @@ impl DensityCubes {
                     values.resize(points.len(), 0.0);
                     density(points, values);
                     let n = done.fetch_add(1, Ordering::Relaxed) + 1;
-                    if n % 1024 == 0 || n == total {
+                    if n.is_multiple_of(1024) || n == total {
                         progress(BuildProgress { phase: "cubes", done: n, total });
                     }
                     let q: Vec<u8> = values.iter().map(|&s| quantise(s, step)).collect();
@@ -460,7 +460,8 @@ impl DensityCubes {
                 t1 = t1.min(ta.max(tb));
             }
         }
-        if !(t0 < t1) {
+        // Also a miss when either bound is NaN.
+        if t0.partial_cmp(&t1) != Some(std::cmp::Ordering::Less) {
             return hit;
         }
         let step = cubes.sample_step();
@@ -752,12 +753,10 @@ mod tests {
             if closest > RADIUS + 2.0 * step {
                 prop_assert_eq!(h.opacity, 0.0);
             }
-            if let Some((t, inside)) = analytic {
-                if inside > 2.0 * cell {
-                    prop_assert!(h.opacity > 0.9, "{:?} analytic {}", h, t);
-                    // Within one cube cell of the analytic hit.
-                    prop_assert!((h.t - near - t).abs() <= cell, "{:?} analytic {}", h, t + near);
-                }
+            if let Some((t, inside)) = analytic && inside > 2.0 * cell {
+                prop_assert!(h.opacity > 0.9, "{:?} analytic {}", h, t);
+                // Within one cube cell of the analytic hit.
+                prop_assert!((h.t - near - t).abs() <= cell, "{:?} analytic {}", h, t + near);
             }
         }
 

@@ -54,7 +54,7 @@ fn view(eye: Vec3, size: u32) -> TrainingView {
 fn views() -> Vec<TrainingView> {
     (0..16)
         .map(|i| {
-            let a = i as f32 * 0.3927;
+            let a = i as f32 * std::f32::consts::FRAC_PI_8;
             view(Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), if i % 2 == 0 { 1.0 } else { -0.8 }), 24)
         })
         .collect()
@@ -97,8 +97,8 @@ fn psnr_against(kernel: &InolfKernel, v: &TrainingView) -> f64 {
     assert_eq!(stats.rays, v.target.len() as u64);
     let mut se = 0.0f64;
     for (i, t) in v.target.iter().enumerate() {
-        for k in 0..3 {
-            se += f64::from(out.color[i][k] - t[k]).powi(2);
+        for (c, x) in out.color[i].iter().zip(t) {
+            se += f64::from(c - x).powi(2);
         }
         se += f64::from(out.opacity[i] - t[3]).powi(2);
     }
