@@ -40,6 +40,11 @@ enum Command {
     Dataset(commands::dataset::Command),
     /// Compare predicted images against ground truth: per-image and mean PSNR and SSIM.
     Eval(commands::eval::Args),
+    /// Train an i-NGP-style radiance field on a NeRF-synthetic dataset (CPU), save it, and
+    /// print the test PSNR/SSIM.
+    Train(commands::train::Args),
+    /// Render every pose of a transforms file with a trained asset to PNG (for `nephele eval`).
+    Render(commands::render::Args),
     /// Print performance figures (see BENCHMARKS.md).
     #[command(subcommand)]
     Bench(commands::bench::Command),
@@ -73,6 +78,8 @@ fn run(cli: Cli) -> Result<()> {
         Command::Eval(args) => commands::eval::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
         Command::Bake(args) => commands::bake::run(args, &progress),
+        Command::Train(args) => commands::train::run(args, &progress),
+        Command::Render(args) => commands::render::run(args, &progress),
     }
 }
 

@@ -6,7 +6,9 @@ pub mod bench_inolf;
 pub mod dataset;
 pub mod eval;
 pub mod pathtrace;
+pub mod render;
 pub mod scenes;
+pub mod train;
 
 use anyhow::{Context, Result, bail};
 use glam::Vec3;

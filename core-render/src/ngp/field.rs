@@ -134,6 +134,9 @@ pub struct RayResult {
     pub opacity: f32,
     /// `sum_i w_i t_i / sum_i w_i`: expected distance along the ray (0 when nothing).
     pub distance: f32,
+    /// Distance of the sample with the largest blending weight `w_i` (i-NOLF's hit point,
+    /// NEPHELE section 4), 0 when nothing.
+    pub peak_distance: f32,
     /// Density samples evaluated.
     pub samples: u32,
     /// Colour network evaluations.
@@ -301,6 +304,7 @@ impl RadianceField {
         let mut sh_done = false;
         let mut transmittance = 1.0f32;
         let mut weighted_t = 0.0f32;
+        let mut peak_weight = 0.0f32;
         let mut ts = [0.0f32; RENDER_CHUNK];
         let mut weights = [0.0f32; RENDER_CHUNK];
         loop {
@@ -331,6 +335,10 @@ impl RadianceField {
                 let alpha = 1.0 - (-sigma * dt).exp();
                 let w = transmittance * alpha;
                 weights[i] = w;
+                if w > peak_weight {
+                    peak_weight = w;
+                    result.peak_distance = ts[i];
+                }
                 transmittance *= 1.0 - alpha;
                 if w >= MIN_COLOR_WEIGHT {
                     colored += 1;
@@ -383,7 +391,10 @@ impl RadianceField {
         if result.opacity > 0.0 {
             result.distance = weighted_t / result.opacity;
         }
-        if !(result.color.iter().all(|c| c.is_finite()) && result.distance.is_finite()) {
+        if result.opacity <= 0.0 {
+            result.peak_distance = 0.0;
+        }
+        if !(result.color.iter().all(|c| c.is_finite()) && result.distance.is_finite() && result.peak_distance.is_finite()) {
             return RayResult { samples: result.samples, color_queries: result.color_queries, ..RayResult::default() };
         }
         result

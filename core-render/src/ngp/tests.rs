@@ -103,6 +103,11 @@ fn training_on_a_sphere_lowers_the_loss_and_beats_a_constant() {
     let (out, stats) = kernel.render_pixels(&test, &[centre, 0]).expect("render");
     let expected = test.position().length() - RADIUS;
     assert!(out.opacity[0] > 0.9 && (out.depth[0] - expected).abs() < 0.08, "{:?} vs {expected}", out);
+    // The peak-weight sample (i-NOLF's hit point) lies on the surface too.
+    let ray = test.pixel_center_ray(size / 2, size / 2);
+    let (hit, _) = kernel.render_rays(&[(ray.origin, ray.direction)]);
+    let surface = ray.origin.length() - RADIUS;
+    assert!((hit[0].peak_distance - surface).abs() < 0.08, "{:?} vs {surface}", hit[0]);
     assert_eq!((out.opacity[1], out.depth[1]), (0.0, 0.0));
     assert_eq!(stats.rays, 2);
     assert!(stats.queries > 0 && stats.rays_hit >= 1);

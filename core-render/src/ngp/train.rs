@@ -90,6 +90,12 @@ pub struct StepStats {
     /// Fraction of occupancy cells set.
     pub occupied_fraction: f32,
     pub learning_rate: f32,
+    /// Wall-clock seconds of the phases: rays through the MLPs forward and backward, the
+    /// hash-grid scatter, the Adam updates, the occupancy refresh (0 on most steps).
+    pub seconds_rays: f32,
+    pub seconds_grid: f32,
+    pub seconds_adam: f32,
+    pub seconds_occupancy: f32,
 }
 
 /// A ray to train on.
@@ -287,6 +293,7 @@ impl Trainer {
         self.adam_density.set_learning_rate(lr);
         self.adam_color.set_learning_rate(lr);
 
+        let clock = std::time::Instant::now();
         let tasks = self.draw_rays(self.rays_per_step);
         let n_rays = tasks.len();
         let field = &self.field;
@@ -328,11 +335,17 @@ impl Trainer {
             points.extend_from_slice(&o.points);
             d_encoding.extend_from_slice(&o.d_encoding);
         }
+        let seconds_rays = clock.elapsed().as_secs_f32();
+        let clock = std::time::Instant::now();
         self.grad_grid.par_chunks_mut(1 << 16).for_each(|c| c.fill(0.0));
         self.field.grid.backward_batch_parallel(&points, &d_encoding, &mut self.grad_grid)?;
+        let seconds_grid = clock.elapsed().as_secs_f32();
+        let clock = std::time::Instant::now();
         self.adam_grid.step_sparse(self.field.grid.params_mut(), &self.grad_grid)?;
         self.adam_density.step(self.field.density.params_mut(), &grad_density)?;
         self.adam_color.step(self.field.color.params_mut(), &grad_color)?;
+        let seconds_adam = clock.elapsed().as_secs_f32();
+        let clock = std::time::Instant::now();
 
         self.steps += 1;
         // Adapt the ray count to the sample budget (i-NGP), smoothing the estimate.
@@ -342,6 +355,7 @@ impl Trainer {
         if self.steps.is_multiple_of(u64::from(self.config.occupancy_every.max(1))) {
             self.update_occupancy()?;
         }
+        let seconds_occupancy = clock.elapsed().as_secs_f32();
         let occupancy = self.field.occupancy();
         Ok(StepStats {
             loss: (loss / n_rays.max(1) as f64) as f32,
@@ -349,6 +363,10 @@ impl Trainer {
             samples,
             occupied_fraction: occupancy.occupied_count() as f32 / occupancy.cell_count() as f32,
             learning_rate: lr,
+            seconds_rays,
+            seconds_grid,
+            seconds_adam,
+            seconds_occupancy,
         })
     }
 
@@ -576,4 +594,83 @@ fn train_ray(field: &RadianceField, ray: &RayTask, n_rays: usize, b: &mut RayBuf
     }
     out.points.extend_from_slice(&b.points[..k]);
     out.d_encoding.extend_from_slice(&b.d_encoding[..k * enc_dim]);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nn::HashGridConfig;
+
+    /// Loss and gradients of one ray through an untrained (foggy, never terminating) field.
+    fn ray_loss(field: &RadianceField, ray: &RayTask) -> (f64, TaskOut) {
+        let mut out = TaskOut {
+            grad_density: vec![0.0; field.density.num_params()],
+            grad_color: vec![0.0; field.color.num_params()],
+            ..TaskOut::default()
+        };
+        train_ray(field, ray, 1, &mut RayBuffers::default(), &mut out);
+        (out.loss, out)
+    }
+
+    #[test]
+    fn ray_gradients_match_finite_differences() {
+        let config = FieldConfig {
+            grid: HashGridConfig { levels: 4, log2_table_size: 10, base_resolution: 4, per_level_scale: 2.0 },
+            density_hidden: 16,
+            geo_features: 7,
+            color_hidden: 16,
+            color_hidden_layers: 1,
+            sh_degree: 2,
+            steps_per_diagonal: 64,
+            occupancy_resolution: 16,
+        };
+        let mut field = RadianceField::new(config, Vec3::splat(-1.0), 2.0, 8).expect("field");
+        // Larger hash features than the default 1e-4 so that their gradients matter.
+        let mut rng = Rng::new(1, 2);
+        for p in field.grid.params_mut() {
+            *p = 0.5 * (rng.next_f32() - 0.5);
+        }
+        let ray = RayTask { origin: Vec3::new(-3.0, 0.1, 0.2), dir: Vec3::new(1.0, 0.1, -0.05).normalize(), offset: 0.3, target: [0.3, 0.1, 0.2, 0.8] };
+        let (loss, out) = ray_loss(&field, &ray);
+        assert!(loss > 0.0 && out.samples > 20, "{loss} {}", out.samples);
+        let mut grad_grid = vec![0.0; field.grid.num_params()];
+        field.grid.backward_batch(&out.points, &out.d_encoding, &mut grad_grid).expect("grid backward");
+
+        let h = 1e-3f32;
+        let check = |analytic: f32, up: f64, down: f64, what: String| {
+            let fd = (up - down) / (2.0 * f64::from(h));
+            assert!((fd - f64::from(analytic)).abs() < 0.05 * fd.abs() + 2e-5, "{what}: fd {fd} analytic {analytic}");
+        };
+        // The largest gradients of each parameter group.
+        let top = |g: &[f32]| {
+            let mut idx: Vec<usize> = (0..g.len()).collect();
+            idx.sort_by(|&a, &b| g[b].abs().total_cmp(&g[a].abs()));
+            idx.truncate(6);
+            idx
+        };
+        for i in top(&out.grad_density) {
+            let mut f = field.clone();
+            f.density.params_mut()[i] += h;
+            let up = ray_loss(&f, &ray).0;
+            f.density.params_mut()[i] -= 2.0 * h;
+            let down = ray_loss(&f, &ray).0;
+            check(out.grad_density[i], up, down, format!("density param {i}"));
+        }
+        for i in top(&out.grad_color) {
+            let mut f = field.clone();
+            f.color.params_mut()[i] += h;
+            let up = ray_loss(&f, &ray).0;
+            f.color.params_mut()[i] -= 2.0 * h;
+            let down = ray_loss(&f, &ray).0;
+            check(out.grad_color[i], up, down, format!("colour param {i}"));
+        }
+        for i in top(&grad_grid) {
+            let mut f = field.clone();
+            f.grid.params_mut()[i] += h;
+            let up = ray_loss(&f, &ray).0;
+            f.grid.params_mut()[i] -= 2.0 * h;
+            let down = ray_loss(&f, &ray).0;
+            check(grad_grid[i], up, down, format!("grid param {i}"));
+        }
+    }
 }
