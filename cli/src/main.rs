@@ -42,6 +42,11 @@ enum Command {
     Dataset(commands::dataset::Command),
     /// Compare predicted images against ground truth: per-image and mean PSNR and SSIM.
     Eval(commands::eval::Args),
+    /// Train an i-NGP-style radiance field on a NeRF-synthetic dataset (CPU), save it, and
+    /// print the test PSNR/SSIM.
+    Train(commands::train::Args),
+    /// Render every pose of a transforms file with a trained asset to PNG (for `nephele eval`).
+    Render(commands::render::Args),
     /// Print performance figures (see BENCHMARKS.md).
     #[command(subcommand)]
     Bench(commands::bench::Command),
@@ -50,6 +55,9 @@ enum Command {
     /// Simulate the farm: the scheduler core (NEPHELE Algorithm 1) against baselines on
     /// simulated workers and users; prints a table and writes CSV.
     Simulate(commands::simulate::Args),
+    /// Bake an i-NOLF asset (.nolf) from posed RGBA images: radiance field, density cubes,
+    /// perfect spatial hash, trained heads, diffuse cubes.
+    Bake(commands::bake::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -78,6 +86,9 @@ fn run(cli: Cli) -> Result<()> {
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
         Command::Worker(args) => commands::worker::run(args, cli.threads),
         Command::Simulate(args) => commands::simulate::run(args, &progress),
+        Command::Bake(args) => commands::bake::run(args, &progress),
+        Command::Train(args) => commands::train::run(args, &progress),
+        Command::Render(args) => commands::render::run(args, &progress),
     }
 }
 
