@@ -27,6 +27,9 @@ pub enum Command {
     /// The receiving end of `bench wire` (started by it).
     #[command(hide = true)]
     WireSink(super::bench_wire::SinkArgs),
+    /// Scheduler core: microseconds per scheduling round at 10, 100 and 1000 users with
+    /// 10,000 pending tasks (NEPHELE against FIFO in the same run).
+    Scheduler(super::bench_scheduler::SchedulerArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -53,6 +56,7 @@ pub fn run(command: Command, progress: &Progress) -> Result<()> {
         Command::Reference(args) => reference(args, progress),
         Command::Wire(args) => super::bench_wire::run(args, progress),
         Command::WireSink(args) => super::bench_wire::sink(args),
+        Command::Scheduler(args) => super::bench_scheduler::run(args, progress),
     }
 }
 

@@ -2,11 +2,13 @@
 
 pub mod bench;
 pub mod bench_wire;
+pub mod bench_scheduler;
 pub mod dataset;
 pub mod eval;
 pub mod pathtrace;
 pub mod scenes;
 pub mod worker;
+pub mod simulate;
 
 use anyhow::{Context, Result, bail};
 use glam::Vec3;
