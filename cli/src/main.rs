@@ -45,6 +45,8 @@ enum Command {
     Bench(commands::bench::Command),
     /// Run a render worker: connect to a master and render the ray batches it sends.
     Worker(commands::worker::Args),
+    /// Run the master: HTTP API and signalling, the live scheduler, the farm listener.
+    Master(commands::master::Args),
     /// Simulate the farm: the scheduler core (NEPHELE Algorithm 1) against baselines on
     /// simulated workers and users; prints a table and writes CSV.
     Simulate(commands::simulate::Args),
@@ -75,6 +77,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Eval(args) => commands::eval::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
         Command::Worker(args) => commands::worker::run(args, cli.threads),
+        Command::Master(args) => commands::master::run(args),
         Command::Simulate(args) => commands::simulate::run(args, &progress),
     }
 }

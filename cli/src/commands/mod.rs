@@ -5,6 +5,7 @@ pub mod bench_wire;
 pub mod bench_scheduler;
 pub mod dataset;
 pub mod eval;
+pub mod master;
 pub mod pathtrace;
 pub mod scenes;
 pub mod worker;
