@@ -105,6 +105,8 @@ pub fn wire_camera(camera: &Camera, translation: Vec3) -> WireCamera {
 
 /// A command for a connection task.
 #[derive(Debug)]
+// A message is moved once into the channel; boxing it would only add an allocation.
+#[allow(clippy::large_enum_variant)]
 pub enum LinkCommand {
     Send(Message),
     /// Say goodbye (with this reason) and close.
@@ -984,5 +986,153 @@ async fn sleep_until(at: Option<tokio::time::Instant>) {
     match at {
         Some(at) => tokio::time::sleep_until(at).await,
         None => std::future::pending().await,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nephele_proto::{BatchDone, KernelStats};
+
+    fn peer() -> SocketAddr {
+        SocketAddr::from(([127, 0, 0, 1], 1))
+    }
+
+    async fn next(rx: &mut mpsc::UnboundedReceiver<LinkCommand>) -> LinkCommand {
+        tokio::time::timeout(Duration::from_secs(10), rx.recv()).await.expect("a command in time").expect("link open")
+    }
+
+    #[test]
+    fn the_wire_camera_sees_the_object_where_the_world_camera_sees_its_placement() {
+        let camera = Camera::look_at(64, 48, 0.8, Vec3::new(1.0, -6.0, 2.0), Vec3::new(0.5, 0.5, 0.0), Vec3::Z).expect("camera");
+        let translation = Vec3::new(-1.4, 2.7, 0.3);
+        let wire = wire_camera(&camera, translation);
+        let object_camera =
+            Camera::from_view_projection(wire.width, wire.height, Mat4::from_cols_array(&wire.view), Mat4::from_cols_array(&wire.projection))
+                .expect("a valid camera");
+        for local in [Vec3::ZERO, Vec3::new(0.3, -0.2, 0.5), Vec3::new(-0.6, 0.4, -0.1)] {
+            let world = local + translation;
+            let (a, b) = (camera.project(world).expect("in view"), object_camera.project(local).expect("in view"));
+            assert!((a - b).length() < 1e-3, "{a} vs {b}");
+            assert!((camera.view_depth(world) - object_camera.view_depth(local)).abs() < 1e-4);
+        }
+        // At the origin the view matrix passes through unchanged.
+        assert_eq!(wire_camera(&camera, Vec3::ZERO).view, camera.world_to_camera().to_cols_array());
+    }
+
+    /// The actor end to end over in-memory links: a worker and a composer join, a session
+    /// opens, a pose becomes ray batches (each object of the `default` scene, moved into its
+    /// own frame), the completed frame becomes a plan, the session closes, the farm shuts
+    /// down with goodbyes.
+    #[tokio::test]
+    async fn poses_become_batches_and_completed_frames_become_plans() {
+        let catalog = Catalog::builtin().expect("catalog");
+        let (farm, task, _ended) = Farm::start(FarmConfig::default(), catalog).expect("farm");
+
+        let (wtx, mut wrx) = mpsc::unbounded_channel();
+        let (reply, answer) = oneshot::channel();
+        let register = Register { name: "w".into(), threads: 1, kernels: vec!["pathtrace".into()], rays_per_second: 1e6 };
+        assert!(farm.send(Event::WorkerJoin { register, peer: peer(), link: wtx, reply }));
+        let wid = answer.await.expect("reply").expect("worker accepted");
+        let (ctx, mut crx) = mpsc::unbounded_channel();
+        let (reply, answer) = oneshot::channel();
+        let register = ComposerRegister { name: "c".into(), results_address: "127.0.0.1:9".into() };
+        assert!(farm.send(Event::ComposerJoin { register, peer: peer(), link: ctx, reply }));
+        let cid = answer.await.expect("reply").expect("composer accepted");
+        // A second composer is refused.
+        let (other, _other_rx) = mpsc::unbounded_channel();
+        let (reply, answer) = oneshot::channel();
+        let register = ComposerRegister { name: "c2".into(), results_address: "127.0.0.1:10".into() };
+        assert!(farm.send(Event::ComposerJoin { register, peer: peer(), link: other, reply }));
+        assert!(answer.await.expect("reply").is_err());
+
+        let request = SessionRequest { scene: "default".into(), views: 1, width: 64, height: 48, target_fps: 30.0 };
+        let opening = tokio::spawn(farm.open("s1-abc".into(), request, "v=0 offer".into()));
+        let LinkCommand::Send(Message::OpenStream(open)) = next(&mut crx).await else { panic!("expected the offer") };
+        assert_eq!((open.session_name.as_str(), open.offer_sdp.as_str(), open.width), ("s1-abc", "v=0 offer", 64));
+        let answer = StreamOpened { session_id: open.session_id, answer: Ok("v=0 answer".into()) };
+        assert!(farm.send(Event::ComposerMessage(cid, Message::StreamOpened(answer))));
+        assert_eq!(opening.await.expect("task").expect("opened"), "v=0 answer");
+
+        let scene = farm.catalog().scene("default").expect("scene").clone();
+        let v = &scene.view;
+        let camera =
+            Camera::look_at(64, 48, v.fov_y_deg.to_radians(), Vec3::from(v.eye), Vec3::from(v.target), Vec3::Z).expect("camera");
+        let pose = WireCamera {
+            width: 64,
+            height: 48,
+            view: camera.world_to_camera().to_cols_array(),
+            projection: camera.projection_matrix(0.05, 100.0).to_cols_array(),
+        };
+        let client_pose = ClientPose { session_id: open.session_id, sequence: 7, client_time_ms: 140.0, views: vec![pose] };
+        assert!(farm.send(Event::ComposerMessage(cid, Message::ClientPose(client_pose))));
+
+        // Serve batches until the plan comes.
+        let mut tasks = std::collections::BTreeSet::new();
+        let mut assets = std::collections::BTreeSet::new();
+        let plan = loop {
+            tokio::select! {
+                command = next(&mut wrx) => {
+                    let LinkCommand::Send(Message::RayBatch(batch)) = command else { panic!("expected a batch") };
+                    assert_eq!(batch.composer, "127.0.0.1:9");
+                    assert_eq!(batch.ids.session_id, open.session_id);
+                    assert!(batch.pixels.iter().all(|&p| p < 64 * 48) && !batch.pixels.is_empty());
+                    let object = farm.catalog().objects().iter().find(|o| o.asset == batch.asset_id && scene.objects.contains(&o.id)).expect("object");
+                    // The batch's camera sees the object (in its own frame) where the pose sees
+                    // its placement.
+                    let wire = batch.camera;
+                    let local = Camera::from_view_projection(64, 48, Mat4::from_cols_array(&wire.view), Mat4::from_cols_array(&wire.projection)).expect("camera");
+                    let center = object.bounds.center();
+                    if let (Some(a), Some(b)) = (camera.project(center), local.project(center - object.translation)) {
+                        assert!((a - b).length() < 1e-2, "{} {a} {b}", object.asset);
+                    }
+                    tasks.insert(batch.ids.task_id);
+                    assets.insert(batch.asset_id.clone());
+                    let done = BatchDone { ids: batch.ids, pixels: batch.pixels.len() as u32, render_time_us: 10, stats: KernelStats::default() };
+                    assert!(farm.send(Event::WorkerMessage(wid, Message::BatchDone(done))));
+                }
+                command = next(&mut crx) => match command {
+                    LinkCommand::Send(Message::FramePlan(plan)) => break plan,
+                    other => panic!("unexpected {other:?}"),
+                },
+            }
+        };
+        assert_eq!(assets.len(), 3, "every object of the default scene is in its first view: {assets:?}");
+        assert_eq!((plan.session_id, plan.pose_sequence, plan.client_time_ms), (open.session_id, 7, 140.0));
+        let planned: std::collections::BTreeSet<u64> = plan.parts.iter().map(|p| p.task_id).collect();
+        assert_eq!(planned, tasks);
+        assert!(plan.parts.iter().all(|p| p.view == 0));
+
+        let state = farm.farm_state().await;
+        assert_eq!(state["workers"][0]["name"], "w");
+        assert_eq!(state["composer"]["name"], "c");
+        assert_eq!(state["sessions"][0]["id"], "s1-abc");
+        assert!(state["live"]["plans_sent"].as_u64() >= Some(1), "{state:#}");
+
+        farm.close("s1-abc".into()).await;
+        let close = loop {
+            match next(&mut crx).await {
+                LinkCommand::Send(Message::CloseStream(close)) => break close,
+                LinkCommand::Send(Message::FramePlan(_) | Message::ReleaseTask(_)) => {}
+                other => panic!("unexpected {other:?}"),
+            }
+        };
+        assert_eq!(close.session_id, open.session_id);
+
+        let shutdown = tokio::spawn({
+            let farm = farm.clone();
+            async move { farm.shutdown().await }
+        });
+        let goodbye = loop {
+            match next(&mut wrx).await {
+                LinkCommand::Close(reason) => break reason,
+                LinkCommand::Send(_) => {}
+            }
+        };
+        assert!(goodbye.contains("shutting down"));
+        drop((wrx, crx));
+        shutdown.await.expect("shutdown");
+        drop(farm);
+        task.await.expect("actor");
     }
 }

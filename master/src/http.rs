@@ -299,7 +299,13 @@ mod tests {
         fn open(&self, _id: String, _request: SessionRequest, offer: String) -> BoxFuture<Result<String, OpenError>> {
             self.opened.fetch_add(1, Ordering::SeqCst);
             Box::pin(async move {
-                if offer.contains("m=video") { Ok("v=0 answer".to_string()) } else { Err(OpenError::BadOffer("no video section".into())) }
+                if offer.contains("starve") {
+                    Err(OpenError::Refused { retry_after: Duration::from_millis(2500) })
+                } else if offer.contains("m=video") {
+                    Ok("v=0 answer".to_string())
+                } else {
+                    Err(OpenError::BadOffer("no video section".into()))
+                }
             })
         }
         fn close(&self, _id: String) -> BoxFuture<()> {
@@ -392,6 +398,12 @@ mod tests {
         assert_eq!(headers.get(header::RETRY_AFTER).and_then(|v| v.to_str().ok()), Some("2"));
         assert!(state.sessions().is_empty());
         assert_eq!(farm.opened.load(Ordering::SeqCst), 0);
+        // Refused by the scheduler itself (starvation began after the check): the same answer.
+        farm.refuse.store(false, Ordering::SeqCst);
+        let (status, headers, body) = call(&app, post(r#"{"sdp": "v=0\r\nm=video starve\r\n"}"#)).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+        assert_eq!(headers.get(header::RETRY_AFTER).and_then(|v| v.to_str().ok()), Some("3"));
+        assert!(state.sessions().is_empty());
     }
 
     #[tokio::test]

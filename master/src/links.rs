@@ -175,8 +175,9 @@ async fn run(mut conn: Conn, mut commands: mpsc::UnboundedReceiver<LinkCommand>,
             },
             item = conn.next() => match item {
                 None => return "the peer closed the connection".into(),
+                Some(Err(ProtoError::Io(e))) => return format!("connection lost: {e}"),
                 Some(Err(e)) => {
-                    if !matches!(e, ProtoError::Io(_) | ProtoError::Closed) {
+                    if !matches!(e, ProtoError::Closed) {
                         let _ = tokio::time::timeout(Duration::from_secs(1), conn.send(&error_message(&e))).await;
                     }
                     return format!("protocol error: {e}");
