@@ -46,6 +46,14 @@ enum Command {
     /// Run a render worker: connect to a master and render the ray batches it sends.
     Worker(commands::worker::Args),
     /// Run the master: HTTP API and signalling, the live scheduler, the farm listener.
+    ///
+    /// Workers (`nephele worker --master FARM_ADDR`) and the composer connect to
+    /// `--farm-listen`; browsers open `http://HTTP_ADDR/`. The master turns each session's
+    /// poses into ray batches (NEPHELE Algorithm 1), re-issues the batches of a worker that
+    /// dies or stalls, and tells the composer which results make up each frame; `GET /v1/farm`
+    /// shows workers, load, queues and per-user FPS. It prints `listening: http=ADDR
+    /// farm=ADDR` once both sockets listen. On SIGTERM or Ctrl-C it stops taking requests,
+    /// says goodbye to the workers and the composer, and exits 0.
     Master(commands::master::Args),
     /// Simulate the farm: the scheduler core (NEPHELE Algorithm 1) against baselines on
     /// simulated workers and users; prints a table and writes CSV.

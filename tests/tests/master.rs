@@ -395,16 +395,20 @@ impl Reference {
     }
 }
 
-/// Sends a pose every 20 ms from a thread until stopped.
+type SendTimes = Arc<Mutex<HashMap<u32, Instant>>>;
+
+/// Sends a pose every 20 ms from a thread until stopped, noting when each left.
 struct PoseSender {
     stop: Arc<AtomicBool>,
     handle: Option<thread::JoinHandle<()>>,
+    sent: SendTimes,
 }
 
 impl PoseSender {
     fn start(writer: Arc<Mutex<FrameWriter<TcpStream>>>, session_id: u64, view: View, next: Arc<AtomicU32>) -> PoseSender {
         let stop = Arc::new(AtomicBool::new(false));
-        let flag = stop.clone();
+        let sent = SendTimes::default();
+        let (flag, times) = (stop.clone(), sent.clone());
         let handle = thread::spawn(move || {
             while !flag.load(Ordering::Relaxed) {
                 let sequence = next.fetch_add(1, Ordering::Relaxed);
@@ -415,10 +419,11 @@ impl PoseSender {
                         return;
                     }
                 }
+                times.lock().expect("times").insert(sequence, Instant::now());
                 thread::sleep(Duration::from_millis(20));
             }
         });
-        PoseSender { stop, handle: Some(handle) }
+        PoseSender { stop, handle: Some(handle), sent }
     }
 }
 
@@ -600,6 +605,13 @@ fn admission_control_refuses_while_a_user_is_starved_and_bad_requests_are_answer
         json!({ "sdp": sdp, "scene": scene, "views": 1, "width": size.0, "height": size.1, "target_fps": fps })
     };
 
+    // Bad command lines are clear errors.
+    let taken = master.http.to_string();
+    let err = nephele_tests::nephele_err(&["master", "--http", &taken, "--farm-listen", "127.0.0.1:0"]);
+    assert!(err.contains("cannot listen on") && err.contains("http"), "{err}");
+    let err = nephele_tests::nephele_err(&["master", "--http", "127.0.0.1:0", "--load-report-ms", "1"]);
+    assert!(err.contains("--load-report-ms"), "{err}");
+
     // No composer yet: 503 without Retry-After (nothing to wait for).
     let r = open_session(&master, request("diffuse", (64, 48), 30.0, OFFER));
     assert_eq!(r.status, 503, "{}", r.body);
@@ -677,4 +689,94 @@ fn admission_control_refuses_while_a_user_is_starved_and_bad_requests_are_answer
         assert!(start.elapsed() < WAIT, "admission never reopened");
         thread::sleep(Duration::from_millis(100));
     }
+}
+
+/// Percentile of unsorted samples.
+fn percentile(samples: &mut [f64], q: f64) -> f64 {
+    if samples.is_empty() {
+        return f64::NAN;
+    }
+    samples.sort_by(f64::total_cmp);
+    samples[((samples.len() as f64 - 1.0) * q).round() as usize]
+}
+
+/// The live loop's figures: sessions x target FPS on two one-thread workers, moving poses
+/// every 20 ms, for a few seconds each. Prints a table (see /work/notes/svc-BENCH.md).
+#[test]
+#[ignore = "a benchmark: cargo test -p nephele-tests --test master bench_live_loop -- --ignored --nocapture"]
+fn bench_live_loop() {
+    let seconds: f64 = std::env::var("BENCH_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(5.0);
+    let (width, height) = (160u32, 120u32);
+    println!("live loop: diffuse {width}x{height}, 2 workers x 1 thread, spp {SPP}, poses every 20 ms, {seconds} s per row");
+    println!(
+        "{:>8} {:>5} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "admitted", "fps", "plans/s/u", "e2e p50", "e2e p99", "in p50", "in p99", "round50", "round99", "rounds", "reissue", "dropped"
+    );
+    for (sessions, fps) in [(1usize, 30.0), (1, 120.0), (4, 30.0), (4, 120.0)] {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let assets = dir.path().join("assets");
+        std::fs::create_dir(&assets).expect("assets");
+        let master = MasterProcess::start(&["--max-batch-rays", "2048"]);
+        let _workers: Vec<Process> =
+            ["alpha", "beta"].iter().map(|n| start_worker(master.farm, &assets, n, &dir.path().join(format!("{n}.log")))).collect();
+        let mut composer = connect_composer(master.farm, "composer-bench").expect("composer");
+        wait_for_farm(&master, "two workers", |s| s["workers"].as_array().is_some_and(|w| w.len() == 2));
+        let mut senders = Vec::new();
+        for k in 0..sessions {
+            let body = json!({ "sdp": OFFER, "scene": "diffuse", "views": 1, "width": width, "height": height, "target_fps": fps });
+            let r = open_session(&master, body);
+            if r.status == 503 {
+                // Admission control: the users already in are starved.
+                continue;
+            }
+            assert_eq!(r.status, 201, "{}", r.body);
+            let sid = loop {
+                if let Message::OpenStream(open) = composer.next() {
+                    break open.session_id;
+                }
+            };
+            // Sessions orbit from different angles: no two ask for the same rays.
+            let first = 1 + 1000 * k as u32;
+            senders.push((sid, PoseSender::start(composer.writer.clone(), sid, object_view("diffuse", width, height), Arc::new(AtomicU32::new(first)))));
+        }
+        let start = Instant::now();
+        let mut e2e = Vec::new();
+        let mut seen = HashSet::new();
+        let mut plans = 0usize;
+        while start.elapsed().as_secs_f64() < seconds {
+            let Ok(message) = composer.messages.recv_timeout(Duration::from_millis(100)) else { continue };
+            let Message::FramePlan(plan) = message else { continue };
+            plans += 1;
+            let arrived = Instant::now();
+            if seen.insert((plan.session_id, plan.pose_sequence))
+                && let Some((_, sender)) = senders.iter().find(|(sid, _)| *sid == plan.session_id)
+                && let Some(sent) = sender.sent.lock().expect("times").get(&plan.pose_sequence)
+            {
+                e2e.push(arrived.duration_since(*sent).as_secs_f64() * 1e3);
+            }
+        }
+        let state = farm_state(&master);
+        let admitted = senders.len();
+        drop(senders);
+        let live = &state["live"];
+        let stats = &state["scheduler"]["stats"];
+        let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
+        let n = |v: &Value| v.as_u64().unwrap_or(0);
+        println!(
+            "{:>8} {:>5} {:>10.1} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>8.1} {:>8.1} {:>8} {:>8} {:>8}",
+            format!("{admitted}/{sessions}"),
+            fps,
+            plans as f64 / seconds / admitted.max(1) as f64,
+            percentile(&mut e2e.clone(), 0.5),
+            percentile(&mut e2e, 0.99),
+            f(&live["pose_to_plan_ms"]["p50"]),
+            f(&live["pose_to_plan_ms"]["p99"]),
+            f(&live["round_us"]["p50"]),
+            f(&live["round_us"]["p99"]),
+            n(&live["round_us"]["samples"]),
+            n(&stats["batches_reissued"]),
+            n(&stats["frames_dropped"]),
+        );
+    }
+    println!("e2e: pose sent by the test composer -> first frame plan for it received (ms); in: the master's pose received -> plan sent (ms); round: scheduler tick (us)");
 }

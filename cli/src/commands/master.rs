@@ -33,9 +33,10 @@ pub struct Args {
     /// STUN/TURN server URL offered to browsers (repeatable), e.g. `stun:stun.example.org:3478`.
     #[arg(long = "ice-server", value_name = "URL")]
     ice_servers: Vec<String>,
-    /// Username and credential for the `turn:` servers among `--ice-server`.
+    /// Username for the `turn:` servers among `--ice-server`.
     #[arg(long, value_name = "NAME", requires = "ice_credential")]
     ice_username: Option<String>,
+    /// Credential for the `turn:` servers (with `--ice-username`).
     #[arg(long, value_name = "SECRET", requires = "ice_username")]
     ice_credential: Option<String>,
     /// Scheduling policy: nephele (Algorithm 1), or a baseline: round-robin, fifo,
