@@ -58,6 +58,16 @@ enum Command {
     /// Bake an i-NOLF asset (.nolf) from posed RGBA images: radiance field, density cubes,
     /// perfect spatial hash, trained heads, diffuse cubes.
     Bake(commands::bake::Args),
+    /// Run the master: HTTP API and signalling, the live scheduler, the farm listener.
+    ///
+    /// Workers (`nephele worker --master FARM_ADDR`) and the composer connect to
+    /// `--farm-listen`; browsers open `http://HTTP_ADDR/`. The master turns each session's
+    /// poses into ray batches (NEPHELE Algorithm 1), re-issues the batches of a worker that
+    /// dies or stalls, and tells the composer which results make up each frame; `GET /v1/farm`
+    /// shows workers, load, queues and per-user FPS. It prints `listening: http=ADDR
+    /// farm=ADDR` once both sockets listen. On SIGTERM or Ctrl-C it stops taking requests,
+    /// says goodbye to the workers and the composer, and exits 0.
+    Master(commands::master::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -89,6 +99,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Bake(args) => commands::bake::run(args, &progress),
         Command::Train(args) => commands::train::run(args, &progress),
         Command::Render(args) => commands::render::run(args, &progress),
+        Command::Master(args) => commands::master::run(args),
     }
 }
 

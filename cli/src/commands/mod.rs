@@ -7,6 +7,7 @@ pub mod bench_scheduler;
 pub mod bench_inolf;
 pub mod dataset;
 pub mod eval;
+pub mod master;
 pub mod pathtrace;
 pub mod render;
 pub mod scenes;
