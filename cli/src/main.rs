@@ -43,6 +43,8 @@ enum Command {
     /// Print performance figures (see BENCHMARKS.md).
     #[command(subcommand)]
     Bench(commands::bench::Command),
+    /// Run a composer: depth fusion, H.264 encoding and WebRTC streaming to viewers.
+    Composer(commands::composer::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -69,6 +71,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Dataset(cmd) => commands::dataset::run(cmd, &progress),
         Command::Eval(args) => commands::eval::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
+        Command::Composer(args) => commands::composer::run(args),
     }
 }
 

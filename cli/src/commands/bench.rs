@@ -20,6 +20,9 @@ pub enum Command {
     /// ray, and the error reached: PSNR of the timed render against a render with many more
     /// samples of the same view.
     Reference(ReferenceArgs),
+    /// The composer's stages per frame at streaming sizes: depth fusion, colour conversion
+    /// and H.264 encoding (frames/s, bitrate, PSNR of the decoded stream against its input).
+    Encode(super::bench_encode::Args),
 }
 
 #[derive(Debug, clap::Args)]
@@ -44,6 +47,7 @@ pub struct ReferenceArgs {
 pub fn run(command: Command, progress: &Progress) -> Result<()> {
     match command {
         Command::Reference(args) => reference(args, progress),
+        Command::Encode(args) => super::bench_encode::run(args, progress),
     }
 }
 

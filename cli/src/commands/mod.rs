@@ -1,6 +1,8 @@
 //! One module per subcommand; each parses its own arguments and calls into `nephele-render`.
 
 pub mod bench;
+pub mod bench_encode;
+pub mod composer;
 pub mod dataset;
 pub mod eval;
 pub mod pathtrace;
