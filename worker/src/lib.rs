@@ -1,4 +1,18 @@
-//! `nephele-worker`: the render worker process (receives ray batches over TCP, runs the
-//! kernels of `nephele-render`, sends results to the composer).
+//! `nephele-worker`: the render worker process (`nephele worker`).
 //!
-//! Empty for now: it arrives with the ray-level scheduling work (issue 4).
+//! A worker connects to the master, says hello, registers (name, threads, kernel kinds and
+//! the throughput a short calibration render measured), then serves [`nephele_proto::RayBatch`]es:
+//! it loads the batch's asset on demand ([`assets`]), renders the pixel set with the asset's
+//! [`nephele_render::kernel::RayKernel`] on its own rayon pool (never on the async runtime's
+//! threads), sends the [`nephele_proto::BatchResult`] straight to the composer the batch names
+//! (one cached connection per composer) and tells the master `BatchDone` or `BatchFailed`.
+//! It reports its load periodically (the heartbeat), honours cancellations, reconnects if it
+//! loses the master, and on shutdown hands back queued batches, finishes in-flight ones and
+//! says goodbye.
+
+pub mod assets;
+mod composer;
+mod service;
+
+pub use assets::{AssetError, AssetLoader, AssetOptions, DirAssetLoader};
+pub use service::{WorkerConfig, WorkerError, run, to_camera};

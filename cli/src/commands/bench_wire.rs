@@ -1,0 +1,351 @@
+//! `nephele bench wire`: what the protocol costs. Encode and decode time per pixel (packed
+//! arrays against serde's element-by-element encoding of the same data), bytes on the wire
+//! per pixel, and the loopback throughput of batch results between two processes (blocking
+//! I/O) and between two tasks of one process (the tokio codec the worker uses).
+
+use std::io::{BufRead, BufReader};
+use std::net::{TcpListener, TcpStream};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail, ensure};
+use nephele_proto::stream::{framed, handshake};
+use nephele_proto::{
+    BatchIds, BatchResult, FrameConfig, FrameReader, FrameWriter, Goodbye, KernelStats, Message, RayBatch, Role, WireCamera,
+    decode_frame, encode_frame,
+};
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+use crate::progress::Progress;
+
+#[derive(Debug, clap::Args)]
+pub struct WireArgs {
+    /// Pixels per batch.
+    #[arg(long, default_value_t = 16384)]
+    pixels: usize,
+    /// Batches sent over each loopback link.
+    #[arg(long, default_value_t = 2000)]
+    batches: usize,
+    /// Repetitions of the in-memory encode/decode timings.
+    #[arg(long, default_value_t = 200)]
+    repeats: usize,
+    /// Also write the results as JSON.
+    #[arg(long)]
+    json: Option<std::path::PathBuf>,
+}
+
+/// The receiving process of the loopback run (spawned by `bench wire`).
+#[derive(Debug, clap::Args)]
+pub struct SinkArgs {
+    /// Address to listen on; the bound address is printed on stdout.
+    #[arg(long, default_value = "127.0.0.1:0")]
+    listen: String,
+}
+
+/// Pixel result bytes (colour 12 + opacity 4 + depth 4) per pixel: the payload the figures
+/// count as "pixel results".
+const RESULT_BYTES_PER_PIXEL: f64 = 20.0;
+
+fn sample_result(pixels: usize, batch_id: u64) -> BatchResult {
+    let (width, height) = (4096u32, 4096u32);
+    let start = (batch_id as usize * pixels) % (width as usize * height as usize - pixels);
+    let pixels: Vec<u32> = (start as u32..(start + pixels) as u32).collect();
+    let hash = |p: u32| (p.wrapping_mul(2_654_435_761) >> 8) as f32 / (1u32 << 24) as f32;
+    BatchResult {
+        ids: BatchIds { batch_id, task_id: batch_id / 4, session_id: 1, frame_id: batch_id / 16, view_index: 0 },
+        worker_id: 1,
+        width,
+        height,
+        color: pixels.iter().map(|&p| [hash(p) * 0.8, hash(p ^ 1) * 0.8, hash(p ^ 2) * 0.8]).collect(),
+        opacity: pixels.iter().map(|&p| if p % 5 == 0 { 0.0 } else { 1.0 }).collect(),
+        depth: pixels.iter().map(|&p| if p % 5 == 0 { 0.0 } else { 2.0 + hash(p) }).collect(),
+        pixels,
+        render_time_us: 1000,
+        stats: KernelStats { rays: 1, rays_hit: 1, queries: 1 },
+    }
+}
+
+/// The same result as serde sees it without packing: every element visited on its own.
+#[derive(Serialize, Deserialize)]
+struct ElementWise {
+    ids: BatchIds,
+    worker_id: u64,
+    width: u32,
+    height: u32,
+    pixels: Vec<u32>,
+    color: Vec<[f32; 3]>,
+    opacity: Vec<f32>,
+    depth: Vec<f32>,
+    render_time_us: u64,
+    stats: KernelStats,
+}
+
+impl From<&BatchResult> for ElementWise {
+    fn from(r: &BatchResult) -> ElementWise {
+        ElementWise {
+            ids: r.ids,
+            worker_id: r.worker_id,
+            width: r.width,
+            height: r.height,
+            pixels: r.pixels.clone(),
+            color: r.color.clone(),
+            opacity: r.opacity.clone(),
+            depth: r.depth.clone(),
+            render_time_us: r.render_time_us,
+            stats: r.stats,
+        }
+    }
+}
+
+/// Median of `repeats` timings of `f`, nanoseconds.
+fn median_ns(repeats: usize, mut f: impl FnMut()) -> f64 {
+    let mut times: Vec<f64> = (0..repeats.max(3))
+        .map(|_| {
+            let start = Instant::now();
+            f();
+            start.elapsed().as_nanos() as f64
+        })
+        .collect();
+    times.sort_by(f64::total_cmp);
+    times[times.len() / 2]
+}
+
+pub fn run(args: WireArgs, progress: &Progress) -> Result<()> {
+    ensure!(args.pixels > 0 && args.batches > 0, "--pixels and --batches must be positive");
+    let cfg = FrameConfig::default();
+    let n = args.pixels;
+    let result = sample_result(n, 0);
+    let message = Message::BatchResult(result.clone());
+
+    // In memory: packed (the protocol) against element by element.
+    let mut frame = Vec::new();
+    encode_frame(&message, &mut frame, &cfg)?;
+    let mut buf = Vec::with_capacity(frame.len());
+    let encode_ns = median_ns(args.repeats, || {
+        buf.clear();
+        encode_frame(&message, &mut buf, &cfg).expect("encodes");
+    }) / n as f64;
+    let decode_ns = median_ns(args.repeats, || {
+        let (decoded, _) = decode_frame(&frame, &cfg).expect("decodes");
+        assert!(decoded.is_ok());
+    }) / n as f64;
+    let validate_ns = median_ns(args.repeats, || {
+        nephele_proto::validate::message(&message).expect("valid");
+    }) / n as f64;
+    let elementwise = ElementWise::from(&result);
+    let plain = postcard::to_allocvec(&elementwise)?;
+    let mut plain_buf = Vec::with_capacity(plain.len());
+    let plain_encode_ns = median_ns(args.repeats, || {
+        plain_buf = postcard::to_extend(&elementwise, std::mem::take(&mut plain_buf)).expect("encodes");
+        plain_buf.clear();
+    }) / n as f64;
+    let plain_decode_ns = median_ns(args.repeats, || {
+        let decoded: ElementWise = postcard::from_bytes(&plain).expect("decodes");
+        assert_eq!(decoded.pixels.len(), n);
+    }) / n as f64;
+    let result_bytes_per_pixel = frame.len() as f64 / n as f64;
+    let batch = Message::RayBatch(RayBatch {
+        ids: result.ids,
+        asset_id: "lego".into(),
+        camera: WireCamera { width: 4096, height: 4096, view: identity(), projection: identity() },
+        pixels: result.pixels.clone(),
+        deadline_unix_us: Some(0),
+        composer: "127.0.0.1:9000".into(),
+    });
+    let mut batch_frame = Vec::new();
+    encode_frame(&batch, &mut batch_frame, &cfg)?;
+    let batch_bytes_per_pixel = batch_frame.len() as f64 / n as f64;
+
+    println!("protocol cost, {n} pixels per batch, {} repeats, medians", args.repeats);
+    println!("{:<34} {:>12} {:>12} {:>12}", "encoding", "encode ns/px", "decode ns/px", "bytes/px");
+    println!("{:<34} {:>12.2} {:>12.2} {:>12.2}", "packed arrays (nephele-proto)", encode_ns, decode_ns, result_bytes_per_pixel);
+    println!(
+        "{:<34} {:>12.2} {:>12.2} {:>12.2}",
+        "element by element (serde+postcard)",
+        plain_encode_ns,
+        plain_decode_ns,
+        plain.len() as f64 / n as f64
+    );
+    println!(
+        "packed encode and decode include validation (finite colour, opacity in [0,1], indices in the image): {validate_ns:.2} ns/px of it"
+    );
+    println!("ray batch (master -> worker): {batch_bytes_per_pixel:.2} bytes/px on the wire");
+
+    let bar = progress.bar(2 * args.batches as u64, "loopback", "batches");
+    let process = loopback_processes(&args, &bar).context("two-process loopback")?;
+    let tasks = loopback_tokio(&args, &bar).context("tokio loopback")?;
+    bar.finish_and_clear();
+    println!(
+        "{:<34} {:>10} {:>10} {:>12} {:>12}",
+        "loopback TCP, batch results", "batches/s", "GB/s px", "GB/s wire", "Mpixels/s"
+    );
+    for (name, r) in [("two processes (blocking I/O)", &process), ("two tokio tasks (worker codec)", &tasks)] {
+        println!(
+            "{:<34} {:>10.0} {:>10.2} {:>12.2} {:>12.1}",
+            name,
+            r.batches_per_second,
+            r.batches_per_second * n as f64 * RESULT_BYTES_PER_PIXEL / 1e9,
+            r.wire_bytes_per_second / 1e9,
+            r.batches_per_second * n as f64 / 1e6
+        );
+    }
+    if let Some(path) = &args.json {
+        let loopback = |r: &Loopback| {
+            json!({
+                "batches_per_second": r.batches_per_second,
+                "pixel_result_gb_per_second": r.batches_per_second * n as f64 * RESULT_BYTES_PER_PIXEL / 1e9,
+                "wire_gb_per_second": r.wire_bytes_per_second / 1e9,
+            })
+        };
+        let out = json!({
+            "pixels_per_batch": n,
+            "batches": args.batches,
+            "packed": { "encode_ns_per_pixel": encode_ns, "decode_ns_per_pixel": decode_ns, "validate_ns_per_pixel": validate_ns, "bytes_per_pixel": result_bytes_per_pixel },
+            "elementwise": { "encode_ns_per_pixel": plain_encode_ns, "decode_ns_per_pixel": plain_decode_ns, "bytes_per_pixel": plain.len() as f64 / n as f64 },
+            "ray_batch_bytes_per_pixel": batch_bytes_per_pixel,
+            "loopback_two_processes": loopback(&process),
+            "loopback_tokio_tasks": loopback(&tasks),
+        });
+        std::fs::write(path, serde_json::to_string_pretty(&out)?).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+fn identity() -> [f32; 16] {
+    glam::Mat4::IDENTITY.to_cols_array()
+}
+
+#[derive(Debug)]
+struct Loopback {
+    batches_per_second: f64,
+    wire_bytes_per_second: f64,
+}
+
+/// Sender here, receiver in a child process (`bench wire-sink`), blocking sockets. Timed
+/// from the first byte to the receiver's goodbye, which it sends after decoding and
+/// validating the last batch.
+fn loopback_processes(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<Loopback> {
+    let exe = std::env::current_exe().context("locating the nephele binary")?;
+    let mut child = Command::new(exe)
+        .args(["--quiet", "bench", "wire-sink", "--listen", "127.0.0.1:0"])
+        .stdout(Stdio::piped())
+        .spawn()
+        .context("starting the receiving process")?;
+    let stdout = child.stdout.take().context("child stdout")?;
+    let mut lines = BufReader::new(stdout).lines();
+    let addr = lines.next().context("the receiver printed no address")??;
+    let stream = TcpStream::connect(addr.trim()).with_context(|| format!("connecting to {addr}"))?;
+    stream.set_nodelay(true)?;
+    let cfg = FrameConfig::default();
+    let mut reader = FrameReader::new(stream.try_clone()?, cfg);
+    let mut writer = FrameWriter::new(stream, cfg);
+    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Tool, &[Role::Composer])?;
+    // Distinct batches, encoded while timing: the sender's encode cost is part of the link.
+    let messages: Vec<Message> = (0..8).map(|i| Message::BatchResult(sample_result(args.pixels, i))).collect();
+    let mut wire_bytes = 0u64;
+    let mut frame = Vec::new();
+    let start = Instant::now();
+    for i in 0..args.batches {
+        frame.clear();
+        encode_frame(&messages[i % messages.len()], &mut frame, &cfg)?;
+        writer.write_raw(&frame)?;
+        wire_bytes += frame.len() as u64;
+        bar.inc(1);
+    }
+    writer.write_message(&Message::Goodbye(Goodbye { reason: "done".into(), returned_batches: vec![] }))?;
+    writer.flush()?;
+    match reader.read_message()? {
+        Ok(Message::Goodbye(g)) => ensure!(g.reason == format!("received {}", args.batches), "receiver: {}", g.reason),
+        other => bail!("expected the receiver's goodbye, got {other:?}"),
+    }
+    let seconds = start.elapsed().as_secs_f64();
+    let status = child.wait()?;
+    ensure!(status.success(), "the receiving process failed");
+    Ok(Loopback { batches_per_second: args.batches as f64 / seconds, wire_bytes_per_second: wire_bytes as f64 / seconds })
+}
+
+/// `nephele bench wire-sink`: accepts one connection as a composer, decodes and validates
+/// every frame, answers the sender's goodbye with its own.
+pub fn sink(args: SinkArgs) -> Result<()> {
+    let listener = TcpListener::bind(&args.listen).with_context(|| format!("binding {}", args.listen))?;
+    println!("{}", listener.local_addr()?);
+    let (stream, _) = listener.accept()?;
+    stream.set_nodelay(true)?;
+    let cfg = FrameConfig::default();
+    let mut reader = FrameReader::new(BufReader::with_capacity(1 << 18, stream.try_clone()?), cfg);
+    let mut writer = FrameWriter::new(stream, cfg);
+    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Tool, Role::Worker])?;
+    let mut received = 0u64;
+    loop {
+        match reader.read_message()? {
+            Ok(Message::BatchResult(r)) => {
+                ensure!(r.pixels.len() == r.depth.len(), "inconsistent result");
+                received += 1;
+            }
+            Ok(Message::Goodbye(_)) => break,
+            Ok(other) => bail!("unexpected {} message", other.kind()),
+            Err(rejected) => bail!("{rejected}"),
+        }
+    }
+    writer.write_message(&Message::Goodbye(Goodbye { reason: format!("received {received}"), returned_batches: vec![] }))?;
+    writer.flush()?;
+    Ok(())
+}
+
+/// Both ends as tokio tasks over a loopback socket, with the codec the worker uses.
+fn loopback_tokio(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<Loopback> {
+    use futures_util::{SinkExt, StreamExt};
+
+    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let batches = args.batches;
+    let pixels = args.pixels;
+    runtime.block_on(async move {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        let addr = listener.local_addr()?;
+        let timeout = Duration::from_secs(10);
+        let receiver = tokio::spawn(async move {
+            let (stream, _) = listener.accept().await?;
+            stream.set_nodelay(true)?;
+            let mut conn = framed(stream, FrameConfig::default());
+            handshake(&mut conn, Role::Composer, &[Role::Tool], timeout).await?;
+            let mut received = 0u64;
+            while let Some(item) = conn.next().await {
+                match item?.map_err(nephele_proto::ProtoError::from)? {
+                    Message::BatchResult(_) => received += 1,
+                    Message::Goodbye(_) => break,
+                    other => bail!("unexpected {} message", other.kind()),
+                }
+            }
+            conn.send(&Message::Goodbye(Goodbye { reason: format!("received {received}"), returned_batches: vec![] })).await?;
+            anyhow::Ok(received)
+        });
+        let stream = tokio::net::TcpStream::connect(addr).await?;
+        stream.set_nodelay(true)?;
+        let mut conn = framed(stream, FrameConfig::default());
+        handshake(&mut conn, Role::Tool, &[Role::Composer], timeout).await?;
+        let messages: Vec<Message> = (0..8).map(|i| Message::BatchResult(sample_result(pixels, i))).collect();
+        let mut frame_lens = Vec::new();
+        for m in &messages {
+            let mut frame = Vec::new();
+            encode_frame(m, &mut frame, &FrameConfig::default())?;
+            frame_lens.push(frame.len() as u64);
+        }
+        let mut wire_bytes = 0u64;
+        let start = Instant::now();
+        for i in 0..batches {
+            conn.send(&messages[i % messages.len()]).await?;
+            wire_bytes += frame_lens[i % messages.len()];
+            bar.inc(1);
+        }
+        conn.send(&Message::Goodbye(Goodbye { reason: "done".into(), returned_batches: vec![] })).await?;
+        match conn.next().await {
+            Some(Ok(Ok(Message::Goodbye(_)))) => {}
+            other => bail!("expected the receiver's goodbye, got {other:?}"),
+        }
+        let seconds = start.elapsed().as_secs_f64();
+        let received = receiver.await??;
+        ensure!(received == batches as u64, "received {received} of {batches}");
+        Ok(Loopback { batches_per_second: batches as f64 / seconds, wire_bytes_per_second: wire_bytes as f64 / seconds })
+    })
+}

@@ -1,0 +1,121 @@
+//! `nephele worker`: a render worker process.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use nephele_proto::FrameConfig;
+use nephele_worker::{AssetOptions, DirAssetLoader, WorkerConfig};
+
+/// Connects to a master, registers, and renders the ray batches it sends, sending each result
+/// to the composer the batch names.
+///
+/// Asset ids resolve to `<ASSETS>/<id>.glb|.gltf` (path traced) or a built-in scene (see
+/// `nephele scenes`), path traced at `--spp` samples per pixel; `.nolf` / `.ngp` files are
+/// recognised but need the neural kernels. On SIGTERM or Ctrl-C the worker hands queued
+/// batches back to the master, finishes those in flight, says goodbye and exits 0 (a second
+/// signal exits at once). If the master goes away it keeps reconnecting for
+/// `--reconnect-secs`, then exits with an error.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Master address, `host:port`.
+    #[arg(long, value_name = "ADDR")]
+    master: String,
+    /// Asset directory (asset ids never resolve outside it).
+    #[arg(long, value_name = "DIR")]
+    assets: PathBuf,
+    /// Name shown by the master (`[A-Za-z0-9._-]`, default `worker-<pid>`).
+    #[arg(long)]
+    name: Option<String>,
+    /// Samples per pixel of path-traced assets.
+    #[arg(long, default_value_t = 4)]
+    spp: u32,
+    /// Bounces of path-traced assets.
+    #[arg(long, default_value_t = 4)]
+    bounces: u32,
+    /// Batches rendering at once (each on all render threads).
+    #[arg(long, default_value_t = 2)]
+    concurrent_batches: usize,
+    /// Most batches waiting; more are refused as overloaded (the master sends them elsewhere).
+    #[arg(long, default_value_t = 4096)]
+    max_queued: usize,
+    /// Largest frame accepted or sent, MiB.
+    #[arg(long, default_value_t = 64)]
+    max_frame_mib: usize,
+    /// Seconds to keep trying to reach the master, at start and after losing it.
+    #[arg(long, default_value_t = 30)]
+    reconnect_secs: u64,
+    /// Seconds in-flight batches may take to finish after SIGTERM.
+    #[arg(long, default_value_t = 30)]
+    drain_secs: u64,
+    /// Asset rendered at start-up to measure this worker's throughput.
+    #[arg(long, default_value = "diffuse")]
+    calibration_asset: String,
+}
+
+pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
+    let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let name = args.name.unwrap_or_else(|| format!("worker-{}", std::process::id()));
+    let options = AssetOptions { pathtrace_spp: args.spp, pathtrace_bounces: args.bounces, ..AssetOptions::default() };
+    let loader = DirAssetLoader::new(&args.assets, options)
+        .with_context(|| format!("opening the asset directory {}", args.assets.display()))?;
+    let mut config = WorkerConfig::new(args.master, name, threads);
+    config.max_concurrent_batches = args.concurrent_batches;
+    config.max_queued_batches = args.max_queued;
+    config.frame = FrameConfig { max_frame: args.max_frame_mib.saturating_mul(1 << 20) };
+    config.reconnect_for = Duration::from_secs(args.reconnect_secs);
+    config.drain_timeout = Duration::from_secs(args.drain_secs);
+    config.calibration_asset = args.calibration_asset;
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("worker-io")
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let result = runtime.block_on(async move {
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let mut signals = Signals::new()?;
+        tokio::spawn(async move {
+            signals.next().await;
+            let _ = tx.send(());
+            signals.next().await;
+            tracing::warn!("second signal: exiting now");
+            std::process::exit(130);
+        });
+        let shutdown = async move {
+            let _ = rx.await;
+        };
+        nephele_worker::run(config, Arc::new(loader), shutdown).await.map_err(anyhow::Error::from)
+    });
+    // Renders that outlived the drain timeout must not hold the exit.
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    result
+}
+
+/// SIGTERM and Ctrl-C.
+pub(crate) struct Signals {
+    #[cfg(unix)]
+    term: tokio::signal::unix::Signal,
+}
+
+impl Signals {
+    pub(crate) fn new() -> Result<Signals> {
+        Ok(Signals {
+            #[cfg(unix)]
+            term: tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+                .context("installing the SIGTERM handler")?,
+        })
+    }
+
+    pub(crate) async fn next(&mut self) {
+        #[cfg(unix)]
+        tokio::select! {
+            _ = self.term.recv() => tracing::info!("SIGTERM received"),
+            _ = tokio::signal::ctrl_c() => tracing::info!("Ctrl-C received"),
+        }
+        #[cfg(not(unix))]
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}

@@ -1,0 +1,422 @@
+//! The master's HTTP API and signalling (axum): the thin shell around the session table and
+//! the farm. See `client/PROTOCOL.md` for the wire format.
+//!
+//! * `GET /` and `GET /client/*`: the browser client (plain files compiled into the binary).
+//! * `GET /v1/config`: ICE servers and scenes for the client.
+//! * `POST /v1/sessions`: SDP offer + scene in, SDP answer + session token out; 503 with
+//!   `Retry-After` while the scheduler's admission control refuses new users.
+//! * `DELETE /v1/sessions/{id}` with `Authorization: Bearer TOKEN`.
+//! * `GET /v1/farm`: the scheduler's state.
+
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use axum::extract::{DefaultBodyLimit, Path, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{delete, get, post};
+use axum::{Json, Router};
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+use crate::client_files;
+use crate::sessions::{AccessError, SessionRequest, SessionTable};
+
+/// Largest request body accepted (an SDP offer is a few kilobytes).
+pub const MAX_BODY_BYTES: usize = 256 * 1024;
+/// Largest SDP accepted.
+pub const MAX_SDP_BYTES: usize = 64 * 1024;
+
+pub type BoxFuture<T> = Pin<Box<dyn Future<Output = T> + Send>>;
+
+/// A first camera for a scene, in Nephele world coordinates.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SceneView {
+    pub eye: [f32; 3],
+    pub target: [f32; 3],
+    pub fov_y_deg: f32,
+}
+
+/// Whether a new session may start now (NEPHELE Algorithm 1: no admission while any user is
+/// starved).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Admission {
+    Admit,
+    Refuse { retry_after: Duration },
+}
+
+/// Why the farm could not open a session.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum OpenError {
+    /// The client's offer was rejected (malformed SDP, no video codec we can send).
+    #[error("bad offer: {0}")]
+    BadOffer(String),
+    /// No composer (or no worker) is available.
+    #[error("service unavailable: {0}")]
+    Unavailable(String),
+    /// Admission control refused the session after all (a user became starved between the
+    /// [`FarmBackend::admission`] check and the open): 503 with `Retry-After`.
+    #[error("the farm is saturated (a user is starved); retry later")]
+    Refused { retry_after: Duration },
+}
+
+/// What the HTTP layer needs from the farm: the live master implements it over its TCP links
+/// to the composer and the workers; tests implement it in memory.
+pub trait FarmBackend: Send + Sync + 'static {
+    /// Scenes a client may ask for, with a good first view.
+    fn scenes(&self) -> Vec<(String, SceneView)>;
+    /// ICE servers to offer the client (`{"urls": [...], "username", "credential"}`).
+    fn ice_servers(&self) -> serde_json::Value;
+    fn admission(&self) -> Admission;
+    /// Hands the offer to a composer and returns its SDP answer.
+    fn open(&self, session_id: String, request: SessionRequest, offer_sdp: String) -> BoxFuture<Result<String, OpenError>>;
+    /// The session ended (closed by its client or dropped by the service).
+    fn close(&self, session_id: String) -> BoxFuture<()>;
+    /// The scheduler's state for `GET /v1/farm`.
+    fn farm_state(&self) -> BoxFuture<serde_json::Value>;
+}
+
+/// Shared state of the HTTP handlers.
+pub struct AppState {
+    pub sessions: Mutex<SessionTable>,
+    pub backend: Arc<dyn FarmBackend>,
+    clock: Box<dyn Fn() -> f64 + Send + Sync>,
+}
+
+impl std::fmt::Debug for AppState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AppState").finish_non_exhaustive()
+    }
+}
+
+impl AppState {
+    pub fn new(backend: Arc<dyn FarmBackend>, clock: Box<dyn Fn() -> f64 + Send + Sync>) -> Arc<AppState> {
+        Arc::new(AppState { sessions: Mutex::new(SessionTable::new()), backend, clock })
+    }
+
+    fn sessions(&self) -> std::sync::MutexGuard<'_, SessionTable> {
+        // A panic while holding the lock cannot leave the table half-updated (every update is
+        // a single insert or remove), so a poisoned lock is still usable.
+        self.sessions.lock().unwrap_or_else(|poison| poison.into_inner())
+    }
+}
+
+pub fn router(state: Arc<AppState>) -> Router {
+    Router::new()
+        .route("/", get(index))
+        .route("/client/{file}", get(client_file))
+        .route("/v1/config", get(config))
+        .route("/v1/sessions", post(open_session).get(list_sessions))
+        .route("/v1/sessions/{id}", delete(close_session))
+        .route("/v1/farm", get(farm))
+        .route("/healthz", get(|| async { "ok" }))
+        .layer(DefaultBodyLimit::max(MAX_BODY_BYTES))
+        .with_state(state)
+}
+
+/// A JSON error body with a status.
+fn error(status: StatusCode, message: impl std::fmt::Display) -> Response {
+    (status, Json(json!({ "error": message.to_string() }))).into_response()
+}
+
+async fn index() -> Response {
+    client_files::serve("index.html")
+}
+
+async fn client_file(Path(file): Path<String>) -> Response {
+    client_files::serve(&file)
+}
+
+async fn config(State(state): State<Arc<AppState>>) -> Response {
+    let scenes: Vec<String> = state.backend.scenes().into_iter().map(|(name, _)| name).collect();
+    Json(json!({ "ice_servers": state.backend.ice_servers(), "scenes": scenes })).into_response()
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct OpenBody {
+    sdp: String,
+    #[serde(default = "default_scene")]
+    scene: String,
+    #[serde(default = "one")]
+    views: u32,
+    #[serde(default = "default_width")]
+    width: u32,
+    #[serde(default = "default_height")]
+    height: u32,
+    #[serde(default = "default_fps")]
+    target_fps: f32,
+}
+
+fn default_scene() -> String {
+    "default".into()
+}
+fn one() -> u32 {
+    1
+}
+fn default_width() -> u32 {
+    640
+}
+fn default_height() -> u32 {
+    480
+}
+fn default_fps() -> f32 {
+    30.0
+}
+
+async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Bytes) -> Response {
+    // Parse by hand so that every malformed body gets our JSON error, not axum's text.
+    let body: OpenBody = match serde_json::from_slice(&body) {
+        Ok(body) => body,
+        Err(e) => return error(StatusCode::BAD_REQUEST, format!("malformed session request: {e}")),
+    };
+    if body.sdp.len() > MAX_SDP_BYTES {
+        return error(StatusCode::BAD_REQUEST, format!("SDP offer larger than {MAX_SDP_BYTES} bytes"));
+    }
+    if !body.sdp.starts_with("v=0") {
+        return error(StatusCode::BAD_REQUEST, "malformed SDP offer: it must start with \"v=0\"");
+    }
+    let request = SessionRequest {
+        scene: body.scene,
+        views: body.views,
+        width: body.width,
+        height: body.height,
+        target_fps: body.target_fps,
+    };
+    if let Err(e) = request.validate() {
+        return error(StatusCode::BAD_REQUEST, e);
+    }
+    let scenes = state.backend.scenes();
+    let Some((_, view)) = scenes.iter().find(|(name, _)| *name == request.scene) else {
+        let names: Vec<&str> = scenes.iter().map(|(n, _)| n.as_str()).collect();
+        return error(StatusCode::BAD_REQUEST, format!("unknown scene {:?}; known: {}", request.scene, names.join(", ")));
+    };
+    let view = view.clone();
+    if let Admission::Refuse { retry_after } = state.backend.admission() {
+        tracing::info!(retry_after_s = retry_after.as_secs_f64(), "session refused by admission control");
+        return refused(retry_after);
+    }
+    let mut secret = [0u8; 16];
+    if let Err(e) = getrandom::fill(&mut secret) {
+        return error(StatusCode::INTERNAL_SERVER_ERROR, format!("no randomness for a token: {e}"));
+    }
+    let now = (state.clock)();
+    let (id, token) = state.sessions().open(request.clone(), secret, now);
+    match state.backend.open(id.clone(), request, body.sdp).await {
+        Ok(answer) => {
+            tracing::info!(session = %id, "session opened");
+            let body = json!({ "session_id": id, "token": token, "type": "answer", "sdp": answer, "view": view });
+            (StatusCode::CREATED, Json(body)).into_response()
+        }
+        Err(e) => {
+            state.sessions().drop_session(&id);
+            tracing::warn!(session = %id, error = %e, "session not opened");
+            match e {
+                OpenError::BadOffer(_) => error(StatusCode::BAD_REQUEST, e),
+                OpenError::Unavailable(_) => error(StatusCode::SERVICE_UNAVAILABLE, e),
+                OpenError::Refused { retry_after } => refused(retry_after),
+            }
+        }
+    }
+}
+
+/// 503 with `Retry-After` in whole seconds (at least 1).
+fn refused(retry_after: Duration) -> Response {
+    let seconds = retry_after.as_secs_f64().ceil().max(1.0) as u64;
+    let mut response = error(StatusCode::SERVICE_UNAVAILABLE, "the farm is saturated (a user is starved); retry later");
+    response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(seconds));
+    response
+}
+
+async fn list_sessions(State(state): State<Arc<AppState>>) -> Response {
+    let sessions: Vec<serde_json::Value> = state
+        .sessions()
+        .iter()
+        .map(|s| json!({ "id": s.id, "scene": s.request.scene, "views": s.request.views, "width": s.request.width, "height": s.request.height, "target_fps": s.request.target_fps }))
+        .collect();
+    Json(json!({ "sessions": sessions })).into_response()
+}
+
+async fn close_session(State(state): State<Arc<AppState>>, Path(id): Path<String>, headers: HeaderMap) -> Response {
+    let token = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .unwrap_or("");
+    let closed = state.sessions().close(&id, token);
+    match closed {
+        Ok(session) => {
+            state.backend.close(session.id.clone()).await;
+            tracing::info!(session = %session.id, "session closed by its client");
+            StatusCode::NO_CONTENT.into_response()
+        }
+        Err(e @ AccessError::Unknown(_)) => error(StatusCode::NOT_FOUND, e),
+        Err(e @ AccessError::BadToken(_)) => error(StatusCode::UNAUTHORIZED, e),
+    }
+}
+
+async fn farm(State(state): State<Arc<AppState>>) -> Response {
+    let sessions = state.sessions().len();
+    let mut body = state.backend.farm_state().await;
+    if let Some(object) = body.as_object_mut() {
+        object.insert("sessions_open".into(), json!(sessions));
+    }
+    Json(body).into_response()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use axum::body::Body;
+    use axum::http::Request;
+    use http_body_util::BodyExt;
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    use tower::ServiceExt;
+
+    #[derive(Default)]
+    struct FakeFarm {
+        refuse: AtomicBool,
+        opened: AtomicUsize,
+        closed: AtomicUsize,
+    }
+
+    impl FarmBackend for FakeFarm {
+        fn scenes(&self) -> Vec<(String, SceneView)> {
+            vec![("default".into(), SceneView { eye: [0.0, -4.0, 2.0], target: [0.0; 3], fov_y_deg: 40.0 })]
+        }
+        fn ice_servers(&self) -> serde_json::Value {
+            json!([])
+        }
+        fn admission(&self) -> Admission {
+            if self.refuse.load(Ordering::SeqCst) {
+                Admission::Refuse { retry_after: Duration::from_millis(1500) }
+            } else {
+                Admission::Admit
+            }
+        }
+        fn open(&self, _id: String, _request: SessionRequest, offer: String) -> BoxFuture<Result<String, OpenError>> {
+            self.opened.fetch_add(1, Ordering::SeqCst);
+            Box::pin(async move {
+                if offer.contains("starve") {
+                    Err(OpenError::Refused { retry_after: Duration::from_millis(2500) })
+                } else if offer.contains("m=video") {
+                    Ok("v=0 answer".to_string())
+                } else {
+                    Err(OpenError::BadOffer("no video section".into()))
+                }
+            })
+        }
+        fn close(&self, _id: String) -> BoxFuture<()> {
+            self.closed.fetch_add(1, Ordering::SeqCst);
+            Box::pin(async {})
+        }
+        fn farm_state(&self) -> BoxFuture<serde_json::Value> {
+            Box::pin(async { json!({ "workers": [] }) })
+        }
+    }
+
+    fn app() -> (Router, Arc<FakeFarm>, Arc<AppState>) {
+        let farm = Arc::new(FakeFarm::default());
+        let state = AppState::new(farm.clone(), Box::new(|| 0.0));
+        (router(state.clone()), farm, state)
+    }
+
+    async fn call(app: &Router, request: Request<Body>) -> (StatusCode, HeaderMap, serde_json::Value) {
+        let response = app.clone().oneshot(request).await.expect("infallible");
+        let (parts, body) = response.into_parts();
+        let bytes = body.collect().await.expect("body").to_bytes();
+        let value = serde_json::from_slice(&bytes).unwrap_or(serde_json::Value::Null);
+        (parts.status, parts.headers, value)
+    }
+
+    fn post(body: &str) -> Request<Body> {
+        Request::post("/v1/sessions").header("content-type", "application/json").body(Body::from(body.to_owned())).expect("request")
+    }
+
+    const OFFER: &str = r#"{"sdp": "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 96\r\n", "scene": "default"}"#;
+
+    #[tokio::test]
+    async fn session_lifecycle() {
+        let (app, farm, state) = app();
+        let (status, _, body) = call(&app, post(OFFER)).await;
+        assert_eq!(status, StatusCode::CREATED, "{body}");
+        assert_eq!(body["sdp"], "v=0 answer");
+        assert_eq!(body["view"]["fov_y_deg"], 40.0);
+        let id = body["session_id"].as_str().expect("id").to_owned();
+        let token = body["token"].as_str().expect("token").to_owned();
+        assert_eq!(state.sessions().len(), 1);
+        let (status, _, farm_body) = call(&app, Request::get("/v1/farm").body(Body::empty()).expect("request")).await;
+        assert_eq!((status, farm_body["sessions_open"].as_u64()), (StatusCode::OK, Some(1)));
+
+        let del = |token: &str| {
+            Request::delete(format!("/v1/sessions/{id}")).header("authorization", format!("Bearer {token}")).body(Body::empty()).expect("request")
+        };
+        assert_eq!(call(&app, del("wrong")).await.0, StatusCode::UNAUTHORIZED);
+        assert_eq!(call(&app, del(&token)).await.0, StatusCode::NO_CONTENT);
+        assert_eq!(call(&app, del(&token)).await.0, StatusCode::NOT_FOUND);
+        assert_eq!((farm.opened.load(Ordering::SeqCst), farm.closed.load(Ordering::SeqCst)), (1, 1));
+    }
+
+    #[tokio::test]
+    async fn bad_requests_get_clear_errors() {
+        let (app, farm, state) = app();
+        let cases = [
+            "not json",
+            r#"{"scene": "default"}"#,
+            r#"{"sdp": "hello", "scene": "default"}"#,
+            r#"{"sdp": "v=0", "scene": "nowhere"}"#,
+            r#"{"sdp": "v=0", "scene": "../../etc/passwd"}"#,
+            r#"{"sdp": "v=0", "views": 0}"#,
+            r#"{"sdp": "v=0", "width": 641}"#,
+            r#"{"sdp": "v=0", "target_fps": -3}"#,
+            r#"{"sdp": "v=0", "bogus": 1}"#,
+        ];
+        for case in cases {
+            let (status, _, body) = call(&app, post(case)).await;
+            assert_eq!(status, StatusCode::BAD_REQUEST, "{case}: {body}");
+            assert!(body["error"].as_str().is_some_and(|e| !e.is_empty()), "{case}: {body}");
+        }
+        // An offer the composer rejects: 400, and the session is not left behind.
+        let (status, _, body) = call(&app, post(r#"{"sdp": "v=0\r\n"}"#)).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
+        assert!(state.sessions().is_empty());
+        assert_eq!(farm.opened.load(Ordering::SeqCst), 1);
+        let huge = format!(r#"{{"sdp": "v=0{}"}}"#, "a".repeat(MAX_SDP_BYTES));
+        assert_eq!(call(&app, post(&huge)).await.0, StatusCode::BAD_REQUEST);
+        let too_big = "x".repeat(MAX_BODY_BYTES + 1);
+        assert_eq!(call(&app, post(&too_big)).await.0, StatusCode::PAYLOAD_TOO_LARGE);
+    }
+
+    #[tokio::test]
+    async fn starved_farm_refuses_with_retry_after() {
+        let (app, farm, state) = app();
+        farm.refuse.store(true, Ordering::SeqCst);
+        let (status, headers, body) = call(&app, post(OFFER)).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+        assert_eq!(headers.get(header::RETRY_AFTER).and_then(|v| v.to_str().ok()), Some("2"));
+        assert!(state.sessions().is_empty());
+        assert_eq!(farm.opened.load(Ordering::SeqCst), 0);
+        // Refused by the scheduler itself (starvation began after the check): the same answer.
+        farm.refuse.store(false, Ordering::SeqCst);
+        let (status, headers, body) = call(&app, post(r#"{"sdp": "v=0\r\nm=video starve\r\n"}"#)).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+        assert_eq!(headers.get(header::RETRY_AFTER).and_then(|v| v.to_str().ok()), Some("3"));
+        assert!(state.sessions().is_empty());
+    }
+
+    #[tokio::test]
+    async fn serves_the_client() {
+        let (app, _, _) = app();
+        let response = app.clone().oneshot(Request::get("/").body(Body::empty()).expect("request")).await.expect("infallible");
+        assert_eq!(response.status(), StatusCode::OK);
+        assert_eq!(response.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()), Some("text/html; charset=utf-8"));
+        let js = app.clone().oneshot(Request::get("/client/nephele.js").body(Body::empty()).expect("request")).await.expect("infallible");
+        assert_eq!(js.status(), StatusCode::OK);
+        let missing = app.clone().oneshot(Request::get("/client/..%2FCargo.toml").body(Body::empty()).expect("request")).await.expect("infallible");
+        assert_eq!(missing.status(), StatusCode::NOT_FOUND);
+        let (status, _, config) = call(&app, Request::get("/v1/config").body(Body::empty()).expect("request")).await;
+        assert_eq!((status, config["scenes"][0].as_str()), (StatusCode::OK, Some("default")));
+    }
+}

@@ -1,0 +1,574 @@
+//! The messages. Every type here is plain data: the wire layout lives in [`crate::codec`],
+//! the limits and checks in [`crate::validate`].
+//!
+//! Who sends what:
+//!
+//! | message | from → to | when |
+//! | --- | --- | --- |
+//! | [`Hello`] | everyone, both ways | first frame on every connection |
+//! | [`Register`] | worker → master | after the handshake |
+//! | [`Registered`] | master → worker | answer to `Register` |
+//! | [`LoadReport`] | worker → master | periodically; doubles as the heartbeat |
+//! | [`RayBatch`] | master → worker | work |
+//! | [`BatchResult`] | worker → composer | the pixels of one batch (packed arrays) |
+//! | [`BatchDone`] | worker → master | a batch's result was handed to the composer |
+//! | [`BatchFailed`] | worker → master | a batch could not be rendered (bad asset, bad camera, …) |
+//! | [`Cancel`] | master → worker | drop queued batches (of a batch, frame or session) |
+//! | [`Goodbye`] | any → peer | orderly close; a worker lists the batches it hands back |
+//! | [`ErrorMessage`] | any → peer | a protocol error, sent (best effort) before closing |
+//! | [`ComposerRegister`] | composer → master | after the handshake: name and the address workers send results to; answered by [`Registered`] |
+//! | [`OpenStream`] | master → composer | a client's SDP offer for a new session |
+//! | [`StreamOpened`] | composer → master | the SDP answer (or why there is none) |
+//! | [`ClientPose`] | composer → master | one pose from a client's data channel |
+//! | [`FramePlan`] | master → composer | a frame is complete: which task results make up each view |
+//! | [`ReleaseTask`] | master → composer | a task's results are no longer needed |
+//! | [`CloseStream`] | master ⇄ composer | a session ended (closed by its client, or its peer vanished) |
+
+use std::fmt;
+
+use serde::{Deserialize, Serialize};
+
+use crate::packed;
+use crate::PROTOCOL_VERSION;
+
+/// What a peer is. Sent in [`Hello`] so that each side can refuse the wrong kind of peer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Role {
+    Master,
+    Worker,
+    Composer,
+    /// Benchmarks, test doubles, command-line probes.
+    Tool,
+}
+
+impl Role {
+    pub(crate) fn to_byte(self) -> u8 {
+        match self {
+            Role::Master => 1,
+            Role::Worker => 2,
+            Role::Composer => 3,
+            Role::Tool => 4,
+        }
+    }
+
+    pub(crate) fn from_byte(byte: u8) -> Option<Role> {
+        Some(match byte {
+            1 => Role::Master,
+            2 => Role::Worker,
+            3 => Role::Composer,
+            4 => Role::Tool,
+            _ => return None,
+        })
+    }
+}
+
+impl fmt::Display for Role {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Role::Master => "master",
+            Role::Worker => "worker",
+            Role::Composer => "composer",
+            Role::Tool => "tool",
+        })
+    }
+}
+
+/// First frame on every connection, both ways. Its layout is frozen across versions
+/// (tag 1, magic `NPHL`, version u16 LE, role u8) so that any two builds can tell each
+/// other that they disagree.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Hello {
+    pub version: u16,
+    pub role: Role,
+}
+
+impl Hello {
+    /// A hello of this build's [`PROTOCOL_VERSION`].
+    pub fn new(role: Role) -> Hello {
+        Hello { version: PROTOCOL_VERSION, role }
+    }
+}
+
+/// A worker introduces itself.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Register {
+    /// Unique-ish, for logs and `GET /v1/farm`: `[A-Za-z0-9._-]`, 1 to 64 bytes.
+    pub name: String,
+    /// Render threads.
+    pub threads: u32,
+    /// Kernel kinds it can run (`RayKernel::kind`, e.g. "pathtrace", "inolf").
+    pub kernels: Vec<String>,
+    /// Throughput measured by a calibration render at start-up, rays per second. The
+    /// scheduler's Heavy/Light thresholds come from these figures.
+    pub rays_per_second: f64,
+}
+
+/// The master accepts a worker.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Registered {
+    /// Id the master gives the worker; it appears in [`BatchResult::worker_id`].
+    pub worker_id: u64,
+    /// How often the worker sends a [`LoadReport`]; the master presumes it dead after a few
+    /// missed reports.
+    pub load_report_interval_ms: u32,
+}
+
+/// A worker's load, sent periodically. It is the heartbeat too.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct LoadReport {
+    /// Batches rendering now.
+    pub in_flight_batches: u32,
+    /// Batches received and waiting.
+    pub queued_batches: u32,
+    /// Pixels of the waiting batches.
+    pub queued_rays: u64,
+    /// Rays per second over the last report interval(s).
+    pub recent_rays_per_second: f64,
+    /// Totals since start.
+    pub batches_done: u64,
+    pub rays_done: u64,
+}
+
+/// Identifies a batch and the frame it belongs to; repeated in every message about it.
+///
+/// With shared rays one task (one object seen from one camera) feeds the frames of several
+/// views and sessions: the composer files results by `task_id` and a [`FramePlan`] names the
+/// tasks of each view. `session_id`, `frame_id` and `view_index` then name the first frame
+/// the batch feeds (for logs and [`CancelTarget`]s).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+pub struct BatchIds {
+    /// Unique per master; a re-issued batch keeps its id.
+    pub batch_id: u64,
+    /// The scheduler's task the batch is a part of (unique per master).
+    pub task_id: u64,
+    /// The user session (one user, one stream).
+    pub session_id: u64,
+    /// The frame of that session.
+    pub frame_id: u64,
+    /// Which view of the frame: 0 for a flat screen, 0/1 for the eyes of a headset, 0..45
+    /// for a quilt.
+    pub view_index: u32,
+}
+
+/// A camera as WebXR gives it, with no dependency on the render crate: image size and
+/// column-major 4x4 matrices. `view` is world-to-camera (`XRView.transform.inverse.matrix`),
+/// `projection` OpenGL clip conventions. The worker converts it with
+/// `nephele_render::camera::Camera::from_view_projection`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct WireCamera {
+    pub width: u32,
+    pub height: u32,
+    pub view: [f32; 16],
+    pub projection: [f32; 16],
+}
+
+/// Work: render `pixels` of `camera`'s image of asset `asset_id`, send the result to
+/// `composer`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RayBatch {
+    pub ids: BatchIds,
+    /// Object/asset to render: `[A-Za-z0-9._-]`, no `..`, 1 to 128 bytes.
+    pub asset_id: String,
+    pub camera: WireCamera,
+    /// Pixel indices `y * width + x`, each `< width * height`; packed little-endian u32 on
+    /// the wire.
+    #[serde(with = "packed")]
+    pub pixels: Vec<u32>,
+    /// Microseconds since the Unix epoch (master's clock) by which the result must reach
+    /// the composer; `None` for no deadline. A worker drops a batch whose deadline passed
+    /// before it started and reports [`ErrorCode::DeadlineExpired`].
+    pub deadline_unix_us: Option<u64>,
+    /// `host:port` of the composer that gathers this frame.
+    pub composer: String,
+}
+
+/// Work a kernel did for a batch (mirrors `nephele_render::kernel::KernelStats`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct KernelStats {
+    pub rays: u64,
+    pub rays_hit: u64,
+    pub queries: u64,
+}
+
+/// The pixels of one batch, worker → composer. Arrays are parallel to `pixels`; each travels
+/// as one packed little-endian block (20 bytes per pixel for the results + 4 for the index).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BatchResult {
+    pub ids: BatchIds,
+    pub worker_id: u64,
+    /// Image size the pixel indices refer to.
+    pub width: u32,
+    pub height: u32,
+    #[serde(with = "packed")]
+    pub pixels: Vec<u32>,
+    /// Linear RGB premultiplied by opacity.
+    #[serde(with = "packed")]
+    pub color: Vec<[f32; 3]>,
+    /// In `[0, 1]`.
+    #[serde(with = "packed")]
+    pub opacity: Vec<f32>,
+    /// View-space depth, `0` where the pixel saw nothing.
+    #[serde(with = "packed")]
+    pub depth: Vec<f32>,
+    pub render_time_us: u64,
+    pub stats: KernelStats,
+}
+
+/// A batch's result was sent to its composer (worker → master): the master's completion
+/// time model (`t_u`) and resiliency bookkeeping run on these.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BatchDone {
+    pub ids: BatchIds,
+    pub pixels: u32,
+    pub render_time_us: u64,
+    pub stats: KernelStats,
+}
+
+/// A batch could not be rendered (worker → master). The worker carries on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BatchFailed {
+    pub ids: BatchIds,
+    pub code: ErrorCode,
+    pub message: String,
+}
+
+/// Which queued work to drop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum CancelTarget {
+    Batch(u64),
+    Frame { session_id: u64, frame_id: u64 },
+    Session(u64),
+}
+
+/// Master → worker: drop matching batches that have not started; results of matching
+/// batches that are rendering are discarded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Cancel {
+    pub target: CancelTarget,
+}
+
+/// Orderly close. A worker shutting down lists the batches it did not start, so that the
+/// master re-issues them at once instead of waiting for a deadline.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Goodbye {
+    pub reason: String,
+    pub returned_batches: Vec<u64>,
+}
+
+/// What went wrong, in [`BatchFailed`] and [`ErrorMessage`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum ErrorCode {
+    /// The frame could not be decoded.
+    Malformed,
+    FrameTooLarge,
+    UnknownMessageType,
+    VersionMismatch,
+    /// A field is out of range (NaN camera, pixel outside the image, bad name, …).
+    InvalidField,
+    /// A message that makes no sense in this state (e.g. a batch before registration).
+    Unexpected,
+    UnknownAsset,
+    AssetLoadFailed,
+    RenderFailed,
+    DeadlineExpired,
+    Cancelled,
+    ComposerUnreachable,
+    /// The worker's queue is full: send the batch elsewhere.
+    Overloaded,
+    ShuttingDown,
+    Internal,
+}
+
+/// A protocol error, sent before closing (or, for a rejected message, instead of acting on
+/// it).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ErrorMessage {
+    pub code: ErrorCode,
+    pub message: String,
+}
+
+/// A composer introduces itself to the master (after the handshake). The master answers
+/// with [`Registered`] (its `worker_id` is the composer's id) and names `results_address`
+/// in every [`RayBatch`] it sends, so that workers deliver their results there.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ComposerRegister {
+    /// For logs and `GET /v1/farm`: `[A-Za-z0-9._-]`, 1 to 64 bytes.
+    pub name: String,
+    /// `host:port` where the composer accepts worker connections.
+    pub results_address: String,
+}
+
+/// Master → composer: a client asks for a stream. The composer answers with
+/// [`StreamOpened`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OpenStream {
+    /// The scheduler's session id; every later message about the session carries it.
+    pub session_id: u64,
+    /// The public session id of the HTTP API (`[A-Za-z0-9._-]`, 1 to 64 bytes), for logs.
+    pub session_name: String,
+    /// The client's SDP offer (at most [`crate::validate::MAX_SDP_LEN`] bytes).
+    pub offer_sdp: String,
+    /// Views side by side in the video (1 screen, 2 headset, N quilt; 1 to 64).
+    pub views: u32,
+    /// Size of one view, pixels.
+    pub width: u32,
+    pub height: u32,
+    pub target_fps: f32,
+}
+
+/// Composer → master: the answer to an [`OpenStream`]: the SDP answer, or why the offer was
+/// refused (malformed SDP, no codec in common).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StreamOpened {
+    pub session_id: u64,
+    pub answer: Result<String, String>,
+}
+
+/// Composer → master: one pose a client sent over its data channel (already checked by the
+/// composer: size, magic, rate), one camera per view.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ClientPose {
+    pub session_id: u64,
+    /// The client's sequence number (wraps).
+    pub sequence: u32,
+    /// The client's clock (`performance.now()`, ms), echoed back for pose-to-frame latency.
+    pub client_time_ms: f64,
+    /// 1 to [`crate::validate::MAX_VIEWS`] views.
+    pub views: Vec<WireCamera>,
+}
+
+/// One object in one view of a frame, and the task whose results fill it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct PlanPart {
+    pub view: u32,
+    pub task_id: u64,
+    pub object_id: u64,
+}
+
+/// Master → composer: a frame of a session is complete (every batch of every task it needs
+/// has been rendered and delivered). The composer fuses the parts of each view by depth,
+/// front to back; a part whose results are missing at `deadline_unix_us` is filled from the
+/// previous frame. A view with no part shows nothing (no object in view).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FramePlan {
+    pub session_id: u64,
+    pub frame_id: u64,
+    /// The [`ClientPose::sequence`] and client time of the pose the frame was rendered for.
+    pub pose_sequence: u32,
+    pub client_time_ms: f64,
+    /// Size of one view, pixels.
+    pub width: u32,
+    pub height: u32,
+    /// Views in the frame (1 to [`crate::validate::MAX_VIEWS`]).
+    pub views: u32,
+    pub parts: Vec<PlanPart>,
+    /// Microseconds since the Unix epoch (master's clock); `None` for no deadline.
+    pub deadline_unix_us: Option<u64>,
+}
+
+/// Master → composer: no frame needs this task's results any more.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ReleaseTask {
+    pub task_id: u64,
+}
+
+/// Either way: a session ended (master: its client closed it or the service dropped it;
+/// composer: the peer connection failed or the client vanished).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CloseStream {
+    pub session_id: u64,
+    pub reason: String,
+}
+
+/// Every message. The frame's first payload byte is [`MessageKind::tag`].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Message {
+    Hello(Hello),
+    Register(Register),
+    Registered(Registered),
+    LoadReport(LoadReport),
+    RayBatch(RayBatch),
+    BatchResult(BatchResult),
+    BatchDone(BatchDone),
+    BatchFailed(BatchFailed),
+    Cancel(Cancel),
+    Goodbye(Goodbye),
+    Error(ErrorMessage),
+    ComposerRegister(ComposerRegister),
+    OpenStream(OpenStream),
+    StreamOpened(StreamOpened),
+    ClientPose(ClientPose),
+    FramePlan(FramePlan),
+    ReleaseTask(ReleaseTask),
+    CloseStream(CloseStream),
+}
+
+/// The type of a message, as its one-byte tag on the wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum MessageKind {
+    Hello,
+    Register,
+    Registered,
+    LoadReport,
+    RayBatch,
+    BatchResult,
+    BatchDone,
+    BatchFailed,
+    Cancel,
+    Goodbye,
+    Error,
+    ComposerRegister,
+    OpenStream,
+    StreamOpened,
+    ClientPose,
+    FramePlan,
+    ReleaseTask,
+    CloseStream,
+}
+
+impl MessageKind {
+    pub const ALL: [MessageKind; 18] = [
+        MessageKind::Hello,
+        MessageKind::Register,
+        MessageKind::Registered,
+        MessageKind::LoadReport,
+        MessageKind::RayBatch,
+        MessageKind::BatchResult,
+        MessageKind::BatchDone,
+        MessageKind::BatchFailed,
+        MessageKind::Cancel,
+        MessageKind::Goodbye,
+        MessageKind::Error,
+        MessageKind::ComposerRegister,
+        MessageKind::OpenStream,
+        MessageKind::StreamOpened,
+        MessageKind::ClientPose,
+        MessageKind::FramePlan,
+        MessageKind::ReleaseTask,
+        MessageKind::CloseStream,
+    ];
+
+    /// Wire tag (0 is never used, so a zeroed buffer is not a message).
+    pub fn tag(self) -> u8 {
+        match self {
+            MessageKind::Hello => 1,
+            MessageKind::Register => 2,
+            MessageKind::Registered => 3,
+            MessageKind::LoadReport => 4,
+            MessageKind::RayBatch => 5,
+            MessageKind::BatchResult => 6,
+            MessageKind::BatchDone => 7,
+            MessageKind::BatchFailed => 8,
+            MessageKind::Cancel => 9,
+            MessageKind::Goodbye => 10,
+            MessageKind::Error => 11,
+            MessageKind::ComposerRegister => 12,
+            MessageKind::OpenStream => 13,
+            MessageKind::StreamOpened => 14,
+            MessageKind::ClientPose => 15,
+            MessageKind::FramePlan => 16,
+            MessageKind::ReleaseTask => 17,
+            MessageKind::CloseStream => 18,
+        }
+    }
+
+    pub fn from_tag(tag: u8) -> Option<MessageKind> {
+        MessageKind::ALL.into_iter().find(|k| k.tag() == tag)
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            MessageKind::Hello => "Hello",
+            MessageKind::Register => "Register",
+            MessageKind::Registered => "Registered",
+            MessageKind::LoadReport => "LoadReport",
+            MessageKind::RayBatch => "RayBatch",
+            MessageKind::BatchResult => "BatchResult",
+            MessageKind::BatchDone => "BatchDone",
+            MessageKind::BatchFailed => "BatchFailed",
+            MessageKind::Cancel => "Cancel",
+            MessageKind::Goodbye => "Goodbye",
+            MessageKind::Error => "Error",
+            MessageKind::ComposerRegister => "ComposerRegister",
+            MessageKind::OpenStream => "OpenStream",
+            MessageKind::StreamOpened => "StreamOpened",
+            MessageKind::ClientPose => "ClientPose",
+            MessageKind::FramePlan => "FramePlan",
+            MessageKind::ReleaseTask => "ReleaseTask",
+            MessageKind::CloseStream => "CloseStream",
+        }
+    }
+}
+
+impl fmt::Display for MessageKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl Message {
+    pub fn kind(&self) -> MessageKind {
+        match self {
+            Message::Hello(_) => MessageKind::Hello,
+            Message::Register(_) => MessageKind::Register,
+            Message::Registered(_) => MessageKind::Registered,
+            Message::LoadReport(_) => MessageKind::LoadReport,
+            Message::RayBatch(_) => MessageKind::RayBatch,
+            Message::BatchResult(_) => MessageKind::BatchResult,
+            Message::BatchDone(_) => MessageKind::BatchDone,
+            Message::BatchFailed(_) => MessageKind::BatchFailed,
+            Message::Cancel(_) => MessageKind::Cancel,
+            Message::Goodbye(_) => MessageKind::Goodbye,
+            Message::Error(_) => MessageKind::Error,
+            Message::ComposerRegister(_) => MessageKind::ComposerRegister,
+            Message::OpenStream(_) => MessageKind::OpenStream,
+            Message::StreamOpened(_) => MessageKind::StreamOpened,
+            Message::ClientPose(_) => MessageKind::ClientPose,
+            Message::FramePlan(_) => MessageKind::FramePlan,
+            Message::ReleaseTask(_) => MessageKind::ReleaseTask,
+            Message::CloseStream(_) => MessageKind::CloseStream,
+        }
+    }
+
+    /// The batch a message is about, if any.
+    pub fn batch_ids(&self) -> Option<BatchIds> {
+        match self {
+            Message::RayBatch(m) => Some(m.ids),
+            Message::BatchResult(m) => Some(m.ids),
+            Message::BatchDone(m) => Some(m.ids),
+            Message::BatchFailed(m) => Some(m.ids),
+            _ => None,
+        }
+    }
+}
+
+macro_rules! from_variant {
+    ($($t:ident => $v:ident),* $(,)?) => {
+        $(impl From<$t> for Message {
+            fn from(m: $t) -> Message {
+                Message::$v(m)
+            }
+        })*
+    };
+}
+
+from_variant!(
+    Hello => Hello,
+    Register => Register,
+    Registered => Registered,
+    LoadReport => LoadReport,
+    RayBatch => RayBatch,
+    BatchResult => BatchResult,
+    BatchDone => BatchDone,
+    BatchFailed => BatchFailed,
+    Cancel => Cancel,
+    Goodbye => Goodbye,
+    ErrorMessage => Error,
+    ComposerRegister => ComposerRegister,
+    OpenStream => OpenStream,
+    StreamOpened => StreamOpened,
+    ClientPose => ClientPose,
+    FramePlan => FramePlan,
+    ReleaseTask => ReleaseTask,
+    CloseStream => CloseStream,
+);

@@ -1,0 +1,817 @@
+//! Round trips, hostile input and limits of the codec, the framing and the handshake.
+
+use std::io::{Cursor, Read};
+
+use bytes::BytesMut;
+use proptest::prelude::*;
+use tokio_util::codec::{Decoder, Encoder};
+
+use crate::stream::FrameCodec;
+use crate::*;
+
+// ---------------------------------------------------------------------------------------
+// Strategies
+
+fn ids() -> impl Strategy<Value = BatchIds> {
+    (any::<u64>(), any::<u64>(), any::<u64>(), any::<u64>(), 0u32..64).prop_map(
+        |(batch_id, task_id, session_id, frame_id, view_index)| BatchIds { batch_id, task_id, session_id, frame_id, view_index },
+    )
+}
+
+fn token(max: usize) -> impl Strategy<Value = String> {
+    proptest::string::string_regex(&format!("[A-Za-z0-9_-][A-Za-z0-9_-]{{0,{}}}", max - 1)).expect("regex")
+}
+
+fn text() -> impl Strategy<Value = String> {
+    proptest::string::string_regex(".{0,40}").expect("regex")
+}
+
+fn finite() -> impl Strategy<Value = f32> {
+    -1e6f32..1e6f32
+}
+
+fn camera() -> impl Strategy<Value = WireCamera> {
+    (1u32..300, 1u32..300, prop::array::uniform16(finite()), prop::array::uniform16(finite()))
+        .prop_map(|(width, height, view, projection)| WireCamera { width, height, view, projection })
+}
+
+/// A camera and 1..200 pixel indices inside its image.
+fn camera_and_pixels() -> impl Strategy<Value = (WireCamera, Vec<u32>)> {
+    camera().prop_flat_map(|c| {
+        let n = c.width * c.height;
+        (Just(c), prop::collection::vec(0..n, 1..200))
+    })
+}
+
+fn address() -> impl Strategy<Value = String> {
+    (token(20), 1u16..).prop_map(|(host, port)| format!("{host}:{port}"))
+}
+
+fn stats() -> impl Strategy<Value = KernelStats> {
+    (any::<u64>(), any::<u64>(), any::<u64>()).prop_map(|(rays, rays_hit, queries)| KernelStats { rays, rays_hit, queries })
+}
+
+fn error_code() -> impl Strategy<Value = ErrorCode> {
+    prop_oneof![
+        Just(ErrorCode::Malformed),
+        Just(ErrorCode::InvalidField),
+        Just(ErrorCode::UnknownAsset),
+        Just(ErrorCode::DeadlineExpired),
+        Just(ErrorCode::ShuttingDown),
+        Just(ErrorCode::Internal),
+    ]
+}
+
+fn ray_batch() -> impl Strategy<Value = RayBatch> {
+    (ids(), token(40), camera_and_pixels(), any::<Option<u64>>(), address()).prop_map(
+        |(ids, asset_id, (camera, pixels), deadline_unix_us, composer)| RayBatch {
+            ids,
+            asset_id,
+            camera,
+            pixels,
+            deadline_unix_us,
+            composer,
+        },
+    )
+}
+
+fn batch_result() -> impl Strategy<Value = BatchResult> {
+    (ids(), any::<u64>(), camera_and_pixels(), any::<u64>(), stats()).prop_flat_map(
+        |(ids, worker_id, (camera, pixels), render_time_us, stats)| {
+            let n = pixels.len();
+            (
+                prop::collection::vec(prop::array::uniform3(finite()), n),
+                prop::collection::vec(0.0f32..=1.0, n),
+                prop::collection::vec(0.0f32..1e4, n),
+            )
+                .prop_map(move |(color, opacity, depth)| BatchResult {
+                    ids,
+                    worker_id,
+                    width: camera.width,
+                    height: camera.height,
+                    pixels: pixels.clone(),
+                    color,
+                    opacity,
+                    depth,
+                    render_time_us,
+                    stats,
+                })
+        },
+    )
+}
+
+/// The messages between master and composer.
+fn composer_message() -> impl Strategy<Value = Message> {
+    let sdp = || proptest::string::string_regex("v=0\r\n.{0,60}").expect("regex");
+    prop_oneof![
+        (token(64), address()).prop_map(|(name, results_address)| Message::ComposerRegister(ComposerRegister { name, results_address })),
+        (any::<u64>(), token(64), sdp(), 1u32..=64, 1u32..=256, 1u32..=256, 1.0f32..240.0).prop_map(
+            |(session_id, session_name, offer_sdp, views, width, height, target_fps)| {
+                Message::OpenStream(OpenStream { session_id, session_name, offer_sdp, views, width, height, target_fps })
+            }
+        ),
+        (any::<u64>(), prop_oneof![sdp().prop_map(Ok), text().prop_map(Err)])
+            .prop_map(|(session_id, answer)| Message::StreamOpened(StreamOpened { session_id, answer })),
+        (any::<u64>(), any::<u32>(), -1e9f64..1e9, prop::collection::vec(camera(), 1..4)).prop_map(
+            |(session_id, sequence, client_time_ms, views)| Message::ClientPose(ClientPose { session_id, sequence, client_time_ms, views })
+        ),
+        (any::<u64>(), any::<u64>(), any::<u32>(), 0.0f64..1e9, 1u32..300, 1u32..300, 1u32..=64, any::<Option<u64>>())
+            .prop_flat_map(|(session_id, frame_id, pose_sequence, client_time_ms, width, height, views, deadline_unix_us)| {
+                let part = (0..views, any::<u64>(), any::<u64>()).prop_map(|(view, task_id, object_id)| PlanPart { view, task_id, object_id });
+                prop::collection::vec(part, 0..8).prop_map(move |parts| {
+                    Message::FramePlan(FramePlan {
+                        session_id,
+                        frame_id,
+                        pose_sequence,
+                        client_time_ms,
+                        width,
+                        height,
+                        views,
+                        parts,
+                        deadline_unix_us,
+                    })
+                })
+            }),
+        any::<u64>().prop_map(|task_id| Message::ReleaseTask(ReleaseTask { task_id })),
+        (any::<u64>(), text()).prop_map(|(session_id, reason)| Message::CloseStream(CloseStream { session_id, reason })),
+    ]
+}
+
+fn message() -> impl Strategy<Value = Message> {
+    prop_oneof![3 => worker_message(), 1 => composer_message()]
+}
+
+/// The messages between master, workers and tools.
+fn worker_message() -> impl Strategy<Value = Message> {
+    let role = prop_oneof![Just(Role::Master), Just(Role::Worker), Just(Role::Composer), Just(Role::Tool)];
+    prop_oneof![
+        role.prop_map(|r| Message::Hello(Hello::new(r))),
+        (token(64), 1u32..512, prop::collection::vec(token(32), 1..4), 0.0f64..1e12).prop_map(
+            |(name, threads, kernels, rays_per_second)| Message::Register(Register { name, threads, kernels, rays_per_second })
+        ),
+        (any::<u64>(), 10u32..=60_000)
+            .prop_map(|(worker_id, load_report_interval_ms)| Message::Registered(Registered { worker_id, load_report_interval_ms })),
+        (any::<u32>(), any::<u32>(), any::<u64>(), 0.0f64..1e12, any::<u64>(), any::<u64>()).prop_map(|(a, b, c, d, e, f)| {
+            Message::LoadReport(LoadReport {
+                in_flight_batches: a,
+                queued_batches: b,
+                queued_rays: c,
+                recent_rays_per_second: d,
+                batches_done: e,
+                rays_done: f,
+            })
+        }),
+        ray_batch().prop_map(Message::RayBatch),
+        batch_result().prop_map(Message::BatchResult),
+        (ids(), 0u32..1000, any::<u64>(), stats())
+            .prop_map(|(ids, pixels, render_time_us, stats)| Message::BatchDone(BatchDone { ids, pixels, render_time_us, stats })),
+        (ids(), error_code(), text()).prop_map(|(ids, code, message)| Message::BatchFailed(BatchFailed { ids, code, message })),
+        prop_oneof![
+            any::<u64>().prop_map(CancelTarget::Batch),
+            (any::<u64>(), any::<u64>()).prop_map(|(session_id, frame_id)| CancelTarget::Frame { session_id, frame_id }),
+            any::<u64>().prop_map(CancelTarget::Session),
+        ]
+        .prop_map(|target| Message::Cancel(Cancel { target })),
+        (text(), prop::collection::vec(any::<u64>(), 0..10))
+            .prop_map(|(reason, returned_batches)| Message::Goodbye(Goodbye { reason, returned_batches })),
+        (error_code(), text()).prop_map(|(code, message)| Message::Error(ErrorMessage { code, message })),
+    ]
+}
+
+// ---------------------------------------------------------------------------------------
+// Fixtures
+
+fn cfg() -> FrameConfig {
+    FrameConfig::default()
+}
+
+fn good_camera() -> WireCamera {
+    let mut view = [0.0; 16];
+    view[0] = 1.0;
+    view[5] = 1.0;
+    view[10] = 1.0;
+    view[14] = -4.0;
+    view[15] = 1.0;
+    let mut projection = [0.0; 16];
+    projection[0] = 1.5;
+    projection[5] = 2.0;
+    projection[10] = -1.0;
+    projection[11] = -1.0;
+    projection[14] = -0.2;
+    WireCamera { width: 64, height: 48, view, projection }
+}
+
+fn good_batch() -> RayBatch {
+    RayBatch {
+        ids: BatchIds { batch_id: 7, task_id: 5, session_id: 3, frame_id: 11, view_index: 1 },
+        asset_id: "diffuse".into(),
+        camera: good_camera(),
+        pixels: (0..64 * 48).step_by(7).collect(),
+        deadline_unix_us: Some(1_700_000_000_000_000),
+        composer: "127.0.0.1:7000".into(),
+    }
+}
+
+fn good_result(n: usize) -> BatchResult {
+    let pixels: Vec<u32> = (0..n as u32).map(|i| (i * 13) % (640 * 480)).collect();
+    BatchResult {
+        ids: BatchIds { batch_id: 9, task_id: 8, session_id: 1, frame_id: 2, view_index: 0 },
+        worker_id: 4,
+        width: 640,
+        height: 480,
+        color: pixels.iter().map(|&p| [p as f32 * 1e-3, 0.5, 0.25]).collect(),
+        opacity: pixels.iter().map(|&p| (p % 2) as f32).collect(),
+        depth: pixels.iter().map(|&p| (p % 7) as f32).collect(),
+        pixels,
+        render_time_us: 1234,
+        stats: KernelStats { rays: 10, rays_hit: 5, queries: 40 },
+    }
+}
+
+fn frame_of(message: &Message) -> Vec<u8> {
+    let mut out = Vec::new();
+    encode_frame(message, &mut out, &cfg()).expect("encodes");
+    out
+}
+
+/// A frame around a raw payload (no validation): how a buggy or hostile peer sends.
+fn raw_frame(tag: u8, body: &[u8]) -> Vec<u8> {
+    let mut out = ((body.len() + 1) as u32).to_le_bytes().to_vec();
+    out.push(tag);
+    out.extend_from_slice(body);
+    out
+}
+
+fn decode_one(bytes: &[u8]) -> Result<Incoming, ProtoError> {
+    decode_frame(bytes, &cfg()).map(|(incoming, rest)| {
+        assert!(rest.is_empty());
+        incoming
+    })
+}
+
+fn rejected(bytes: &[u8]) -> Rejected {
+    match decode_one(bytes) {
+        Ok(Err(rejected)) => rejected,
+        other => panic!("expected a rejected message, got {other:?}"),
+    }
+}
+
+/// Every decoder we have, fed the same bytes: none may panic. Returns what the in-memory
+/// decoder said about the first frame.
+fn feed_all_decoders(bytes: &[u8], config: FrameConfig) -> Option<bool> {
+    let first = decode_frame(bytes, &config).ok().map(|(incoming, _)| incoming.is_ok());
+    let mut reader = FrameReader::new(Cursor::new(bytes), config);
+    while let Ok(_incoming) = reader.read_message() {}
+    let mut codec = FrameCodec::new(config);
+    let mut buf = BytesMut::from(bytes);
+    while let Ok(Some(_)) = codec.decode(&mut buf) {}
+    let _ = codec.decode_eof(&mut buf);
+    first
+}
+
+// ---------------------------------------------------------------------------------------
+// Round trips
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 200, ..ProptestConfig::default() })]
+
+    #[test]
+    fn every_message_round_trips_through_every_framing(message in message()) {
+        let frame = frame_of(&message);
+        // In memory.
+        let (decoded, rest) = decode_frame(&frame, &cfg()).expect("decodes");
+        prop_assert!(rest.is_empty());
+        prop_assert_eq!(decoded, Ok(message.clone()));
+        // Blocking reader, two frames back to back, then a clean end.
+        let mut two = frame.clone();
+        two.extend_from_slice(&frame);
+        let mut reader = FrameReader::new(Cursor::new(two), cfg());
+        prop_assert_eq!(reader.read_message().expect("first"), Ok(message.clone()));
+        prop_assert_eq!(reader.read_message().expect("second"), Ok(message.clone()));
+        prop_assert!(matches!(reader.read_message(), Err(ProtoError::Closed)));
+        // tokio codec, fed one byte at a time.
+        let mut codec = FrameCodec::new(cfg());
+        let mut encoded = BytesMut::new();
+        codec.encode(&message, &mut encoded).expect("codec encodes");
+        prop_assert_eq!(&encoded[..], &frame[..]);
+        let mut buf = BytesMut::new();
+        let mut out = None;
+        for (i, b) in frame.iter().enumerate() {
+            buf.extend_from_slice(&[*b]);
+            if let Some(item) = codec.decode(&mut buf).expect("no error") {
+                prop_assert_eq!(i, frame.len() - 1);
+                out = Some(item);
+            }
+        }
+        prop_assert_eq!(out, Some(Ok(message)));
+        prop_assert!(buf.is_empty());
+    }
+
+    #[test]
+    fn every_strict_prefix_is_truncated(message in message()) {
+        let frame = frame_of(&message);
+        for cut in 0..frame.len() {
+            let prefix = &frame[..cut];
+            prop_assert!(matches!(decode_frame(prefix, &cfg()), Err(ProtoError::Truncated { .. })), "cut {}", cut);
+            let mut reader = FrameReader::new(Cursor::new(prefix), cfg());
+            match reader.read_message() {
+                Err(ProtoError::Closed) => prop_assert_eq!(cut, 0),
+                Err(ProtoError::Truncated { received, .. }) => prop_assert_eq!(received, cut as u64),
+                other => prop_assert!(false, "cut {}: {:?}", cut, other),
+            }
+            let mut buf = BytesMut::from(prefix);
+            let mut codec = FrameCodec::new(cfg());
+            prop_assert!(matches!(codec.decode(&mut buf), Ok(None)));
+            let eof = codec.decode_eof(&mut buf);
+            let expected_eof = if cut == 0 { matches!(eof, Ok(None)) } else { matches!(eof, Err(ProtoError::Truncated { .. })) };
+            prop_assert!(expected_eof, "cut {}: {:?}", cut, eof);
+        }
+    }
+
+    #[test]
+    fn random_bytes_never_panic(bytes in prop::collection::vec(any::<u8>(), 0..600)) {
+        feed_all_decoders(&bytes, cfg());
+        feed_all_decoders(&bytes, FrameConfig { max_frame: 16 });
+        let _ = decode_payload(&bytes);
+    }
+
+    #[test]
+    fn random_payloads_behind_a_valid_header_never_panic(tag in 0u8..16, body in prop::collection::vec(any::<u8>(), 0..400)) {
+        feed_all_decoders(&raw_frame(tag, &body), cfg());
+    }
+
+    #[test]
+    fn corrupted_frames_never_panic(message in message(), flips in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..6)) {
+        let mut frame = frame_of(&message);
+        for (at, value) in flips {
+            let i = at.index(frame.len());
+            frame[i] = value;
+        }
+        feed_all_decoders(&frame, cfg());
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Packed arrays
+
+#[test]
+fn pixel_arrays_travel_packed() {
+    let n = 10_000;
+    let frame = frame_of(&Message::BatchResult(good_result(n)));
+    // 4 (index) + 12 (colour) + 4 (opacity) + 4 (depth) bytes per pixel plus a few dozen
+    // bytes of ids, lengths and stats: no per-element tags or varints.
+    assert!(frame.len() >= 24 * n && frame.len() <= 24 * n + 80, "{} bytes for {n} pixels", frame.len());
+    // The first pixel's colour sits verbatim (LE f32) in the frame.
+    let result = good_result(n);
+    let needle: Vec<u8> = result.color[..4].iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
+    assert!(frame.windows(needle.len()).any(|w| w == needle));
+    let batch = frame_of(&Message::RayBatch(good_batch()));
+    assert!(batch.len() <= 4 * good_batch().pixels.len() + 200);
+}
+
+#[test]
+fn packed_arrays_of_a_partial_element_are_malformed() {
+    // Hand-written body: a postcard BatchResult whose pixel block is 5 bytes long.
+    let mut body = postcard::to_allocvec(&BatchIds::default()).expect("ids");
+    body.extend(postcard::to_allocvec(&(4u64, 640u32, 480u32)).expect("header"));
+    body.push(5);
+    body.extend([0u8; 5]);
+    assert!(matches!(
+        decode_one(&raw_frame(MessageKind::BatchResult.tag(), &body)),
+        Err(ProtoError::Malformed { kind: MessageKind::BatchResult, .. })
+    ));
+}
+
+// ---------------------------------------------------------------------------------------
+// Hostile and broken input
+
+#[test]
+fn a_4_gib_length_prefix_is_refused_without_allocating() {
+    let header = u32::MAX.to_le_bytes();
+    assert!(matches!(
+        decode_frame(&header, &cfg()),
+        Err(ProtoError::FrameTooLarge { len, max }) if len == u64::from(u32::MAX) && max == DEFAULT_MAX_FRAME
+    ));
+    // A reader that would hand out endless bytes: only the header is read.
+    let mut endless = FrameReader::new(Read::chain(&header[..], std::io::repeat(0)), cfg());
+    assert!(matches!(endless.read_message(), Err(ProtoError::FrameTooLarge { .. })));
+    assert_eq!(endless.buf_capacity(), 0);
+    let mut codec = FrameCodec::new(cfg());
+    let mut buf = BytesMut::from(&header[..]);
+    assert!(matches!(codec.decode(&mut buf), Err(ProtoError::FrameTooLarge { .. })));
+    assert!(buf.capacity() < 1024);
+}
+
+#[test]
+fn a_large_claim_under_the_limit_allocates_only_what_arrives() {
+    let claim = (DEFAULT_MAX_FRAME - 1) as u32;
+    let mut bytes = claim.to_le_bytes().to_vec();
+    bytes.extend([6u8; 100]);
+    let mut reader = FrameReader::new(Cursor::new(&bytes), cfg());
+    assert!(matches!(reader.read_message(), Err(ProtoError::Truncated { received: 104, .. })));
+    assert!(reader.buf_capacity() <= 1 << 20, "{}", reader.buf_capacity());
+    let mut codec = FrameCodec::new(cfg());
+    let mut buf = BytesMut::from(&bytes[..]);
+    assert!(matches!(codec.decode(&mut buf), Ok(None)));
+    assert!(buf.capacity() <= 1 << 20, "{}", buf.capacity());
+}
+
+#[test]
+fn the_frame_limit_is_configurable_both_ways() {
+    let small = FrameConfig { max_frame: 1000 };
+    let big = Message::BatchResult(good_result(100));
+    let mut out = vec![1, 2, 3];
+    assert!(matches!(encode_frame(&big, &mut out, &small), Err(ProtoError::FrameTooLarge { .. })));
+    assert_eq!(out, [1, 2, 3], "a refused frame leaves the buffer as it was");
+    let frame = frame_of(&big);
+    assert!(matches!(decode_frame(&frame, &small), Err(ProtoError::FrameTooLarge { .. })));
+    assert!(matches!(FrameReader::new(Cursor::new(&frame), small).read_message(), Err(ProtoError::FrameTooLarge { .. })));
+}
+
+#[test]
+fn unknown_message_types_and_empty_frames_are_fatal() {
+    for tag in [0u8, 19, 99, 255] {
+        let err = decode_one(&raw_frame(tag, &[1, 2, 3])).expect_err("unknown");
+        assert!(matches!(err, ProtoError::UnknownMessageType(t) if t == tag));
+        assert!(err.is_fatal());
+        assert_eq!(err.code(), ErrorCode::UnknownMessageType);
+    }
+    assert!(matches!(decode_one(&0u32.to_le_bytes()), Err(ProtoError::EmptyFrame)));
+}
+
+#[test]
+fn wrong_versions_magic_and_roles_are_refused() {
+    let hello = |magic: &[u8; 4], version: u16, role: u8| {
+        let mut body = magic.to_vec();
+        body.extend(version.to_le_bytes());
+        body.push(role);
+        raw_frame(MessageKind::Hello.tag(), &body)
+    };
+    assert_eq!(decode_one(&hello(&MAGIC, PROTOCOL_VERSION, 2)).expect("ok"), Ok(Message::Hello(Hello::new(Role::Worker))));
+    let err = decode_one(&hello(&MAGIC, PROTOCOL_VERSION + 1, 2)).expect_err("version");
+    assert!(matches!(err, ProtoError::VersionMismatch { ours: PROTOCOL_VERSION, theirs } if theirs == PROTOCOL_VERSION + 1));
+    assert_eq!(err.code(), ErrorCode::VersionMismatch);
+    assert!(matches!(decode_one(&hello(&MAGIC, 0, 2)), Err(ProtoError::VersionMismatch { theirs: 0, .. })));
+    assert!(matches!(decode_one(&hello(b"HTTP", 1, 2)), Err(ProtoError::BadMagic(m)) if &m == b"HTTP"));
+    assert!(matches!(decode_one(&hello(&MAGIC, PROTOCOL_VERSION, 9)), Err(ProtoError::UnknownRole(9))));
+    let mut long = hello(&MAGIC, PROTOCOL_VERSION, 2);
+    long.push(0);
+    long[0] += 1;
+    assert!(matches!(decode_one(&long), Err(ProtoError::TrailingBytes { kind: MessageKind::Hello, count: 1 })));
+    // An encoder can never produce another version's hello.
+    let mut out = Vec::new();
+    encode_frame(&Message::Hello(Hello { version: 7, role: Role::Tool }), &mut out, &cfg()).expect("encodes");
+    assert!(matches!(decode_one(&out), Err(ProtoError::VersionMismatch { theirs: 7, .. })));
+}
+
+#[test]
+fn trailing_bytes_after_a_body_are_fatal() {
+    let mut body = postcard::to_allocvec(&Registered { worker_id: 1, load_report_interval_ms: 100 }).expect("body");
+    body.push(0);
+    assert!(matches!(
+        decode_one(&raw_frame(MessageKind::Registered.tag(), &body)),
+        Err(ProtoError::TrailingBytes { kind: MessageKind::Registered, count: 1 })
+    ));
+}
+
+/// Encodes without validation, as a hostile peer could.
+fn unchecked<T: serde::Serialize>(kind: MessageKind, value: &T) -> Vec<u8> {
+    raw_frame(kind.tag(), &postcard::to_allocvec(value).expect("postcard"))
+}
+
+#[test]
+fn nan_and_infinite_cameras_are_rejected_with_the_batch_ids() {
+    for (slot, value) in [(3usize, f32::NAN), (14, f32::INFINITY), (20, f32::NEG_INFINITY), (31, f32::NAN)] {
+        let mut batch = good_batch();
+        if slot < 16 {
+            batch.camera.view[slot] = value;
+        } else {
+            batch.camera.projection[slot - 16] = value;
+        }
+        let mut via_api = Vec::new();
+        encode_frame_unchecked(&Message::RayBatch(batch.clone()), &mut via_api, &cfg()).expect("unchecked");
+        assert_eq!(via_api, unchecked(MessageKind::RayBatch, &batch));
+        let r = rejected(&unchecked(MessageKind::RayBatch, &batch));
+        assert_eq!(r.kind, MessageKind::RayBatch);
+        assert_eq!(r.ids, Some(batch.ids));
+        assert!(matches!(r.error, ValidationError::NonFinite { .. }), "{r}");
+        // And we refuse to send it.
+        let err = encode_frame(&Message::RayBatch(batch), &mut Vec::new(), &cfg()).expect_err("invalid");
+        assert!(!err.is_fatal());
+    }
+}
+
+#[test]
+fn pixel_sets_out_of_the_image_and_bad_sizes_are_rejected() {
+    let mut batch = good_batch();
+    batch.pixels.push(64 * 48);
+    assert_eq!(
+        rejected(&unchecked(MessageKind::RayBatch, &batch)).error,
+        ValidationError::PixelOutOfImage { index: 64 * 48, width: 64, height: 48 }
+    );
+    batch.pixels = vec![u32::MAX];
+    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &batch)).error, ValidationError::PixelOutOfImage { .. }));
+    batch.pixels = vec![];
+    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &batch)).error, ValidationError::Count { field: "pixels", .. }));
+    for (w, h) in [(0, 48), (64, 0), (16385, 1)] {
+        let mut batch = good_batch();
+        batch.camera.width = w;
+        batch.camera.height = h;
+        batch.pixels = vec![0];
+        assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &batch)).error, ValidationError::ImageSize { .. }));
+    }
+    // The 16384^2 image does not overflow u32 arithmetic.
+    let mut batch = good_batch();
+    batch.camera.width = 16384;
+    batch.camera.height = 16384;
+    batch.pixels = vec![u32::MAX];
+    assert!(decode_one(&unchecked(MessageKind::RayBatch, &batch)).expect("decodes").is_err());
+    batch.pixels = vec![16384 * 16384 - 1];
+    assert!(decode_one(&unchecked(MessageKind::RayBatch, &batch)).expect("decodes").is_ok());
+}
+
+#[test]
+fn mismatched_and_out_of_range_result_arrays_are_rejected() {
+    let mut r = good_result(10);
+    r.depth.pop();
+    assert_eq!(
+        rejected(&unchecked(MessageKind::BatchResult, &r)).error,
+        ValidationError::LengthMismatch { field: "depth", len: 9, expected: 10 }
+    );
+    let mut r = good_result(10);
+    r.color.push([0.0; 3]);
+    assert!(matches!(rejected(&unchecked(MessageKind::BatchResult, &r)).error, ValidationError::LengthMismatch { field: "color", .. }));
+    let mut r = good_result(10);
+    r.opacity[3] = 1.5;
+    assert!(matches!(rejected(&unchecked(MessageKind::BatchResult, &r)).error, ValidationError::OutOfRange { field: "opacity", .. }));
+    let mut r = good_result(10);
+    r.color[2][1] = f32::NAN;
+    assert!(matches!(rejected(&unchecked(MessageKind::BatchResult, &r)).error, ValidationError::NonFinite { field: "color" }));
+    let mut r = good_result(10);
+    r.depth[0] = -1.0;
+    assert!(matches!(rejected(&unchecked(MessageKind::BatchResult, &r)).error, ValidationError::OutOfRange { field: "depth", .. }));
+}
+
+#[test]
+fn names_asset_ids_and_addresses_are_checked() {
+    for good in ["diffuse", "lego.v2", "room-day", "a_b-c.d", "x"] {
+        assert!(validate::asset_id(good).is_ok(), "{good}");
+    }
+    let too_long = "a".repeat(129);
+    for bad in ["", "..", "../etc/passwd", "a/b", "a\\b", ".hidden", "a..b", "lego/../x", "é", "a b", "a\0b", &too_long] {
+        assert!(validate::asset_id(bad).is_err(), "{bad:?}");
+        let mut batch = good_batch();
+        batch.asset_id = bad.to_string();
+        assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &batch)).error, ValidationError::BadString { .. }));
+    }
+    for good in ["127.0.0.1:7000", "composer-0.nephele:9000", "[::1]:80"] {
+        assert!(validate::address(good).is_ok(), "{good}");
+    }
+    for bad in ["", "127.0.0.1", ":80", "host:0", "host:65536", "host:http", "a b:1"] {
+        assert!(validate::address(bad).is_err(), "{bad:?}");
+    }
+    let register = |name: &str, threads, kernels: Vec<String>, rays_per_second| {
+        Message::Register(Register { name: name.into(), threads, kernels, rays_per_second })
+    };
+    let ok = register("w1", 4, vec!["pathtrace".into()], 1e6);
+    assert!(validate::message(&ok).is_ok());
+    for bad in [
+        register("", 4, vec!["pathtrace".into()], 1e6),
+        register("w/1", 4, vec!["pathtrace".into()], 1e6),
+        register("w1", 0, vec!["pathtrace".into()], 1e6),
+        register("w1", 4, vec![], 1e6),
+        register("w1", 4, vec!["".into()], 1e6),
+        register("w1", 4, vec!["pathtrace".into()], f64::NAN),
+        register("w1", 4, vec!["pathtrace".into()], -1.0),
+    ] {
+        assert!(validate::message(&bad).is_err(), "{bad:?}");
+    }
+}
+
+fn good_open() -> OpenStream {
+    OpenStream {
+        session_id: 4,
+        session_name: "s1-abc123".into(),
+        offer_sdp: "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 96\r\n".into(),
+        views: 2,
+        width: 640,
+        height: 480,
+        target_fps: 30.0,
+    }
+}
+
+fn good_plan() -> FramePlan {
+    FramePlan {
+        session_id: 4,
+        frame_id: 12,
+        pose_sequence: 99,
+        client_time_ms: 1234.5,
+        width: 64,
+        height: 48,
+        views: 2,
+        parts: vec![PlanPart { view: 0, task_id: 3, object_id: 1 }, PlanPart { view: 1, task_id: 4, object_id: 1 }],
+        deadline_unix_us: Some(1_700_000_000_000_000),
+    }
+}
+
+#[test]
+fn composer_messages_round_trip_and_bad_fields_are_rejected() {
+    let pose = ClientPose { session_id: 4, sequence: 7, client_time_ms: 16.5, views: vec![good_camera(), good_camera()] };
+    let good = [
+        Message::ComposerRegister(ComposerRegister { name: "composer-0".into(), results_address: "127.0.0.1:7100".into() }),
+        Message::OpenStream(good_open()),
+        Message::StreamOpened(StreamOpened { session_id: 4, answer: Ok("v=0\r\n".into()) }),
+        Message::StreamOpened(StreamOpened { session_id: 4, answer: Err("no H.264 in the offer".into()) }),
+        Message::ClientPose(pose.clone()),
+        Message::FramePlan(good_plan()),
+        Message::FramePlan(FramePlan { parts: vec![], deadline_unix_us: None, ..good_plan() }),
+        Message::ReleaseTask(ReleaseTask { task_id: u64::MAX }),
+        Message::CloseStream(CloseStream { session_id: 4, reason: "the client closed it".into() }),
+    ];
+    for message in &good {
+        assert_eq!(decode_one(&frame_of(message)).expect("decodes"), Ok(message.clone()), "{message:?}");
+    }
+
+    let huge_sdp = format!("v=0{}", "a".repeat(validate::MAX_SDP_LEN));
+    let bad: Vec<(Message, &str)> = vec![
+        (Message::ComposerRegister(ComposerRegister { name: "a/b".into(), results_address: "127.0.0.1:1".into() }), "composer name"),
+        (Message::ComposerRegister(ComposerRegister { name: "c".into(), results_address: "nowhere".into() }), "address"),
+        (Message::OpenStream(OpenStream { offer_sdp: huge_sdp.clone(), ..good_open() }), "offer_sdp"),
+        (Message::OpenStream(OpenStream { offer_sdp: String::new(), ..good_open() }), "offer_sdp"),
+        (Message::OpenStream(OpenStream { session_name: "../x".into(), ..good_open() }), "session name"),
+        (Message::OpenStream(OpenStream { views: 0, ..good_open() }), "views"),
+        (Message::OpenStream(OpenStream { views: 65, ..good_open() }), "views"),
+        (Message::OpenStream(OpenStream { views: 64, width: 4096, ..good_open() }), "image size"),
+        (Message::OpenStream(OpenStream { width: 0, ..good_open() }), "image size"),
+        (Message::OpenStream(OpenStream { target_fps: f32::NAN, ..good_open() }), "target_fps"),
+        (Message::OpenStream(OpenStream { target_fps: 0.0, ..good_open() }), "target_fps"),
+        (Message::StreamOpened(StreamOpened { session_id: 1, answer: Ok(huge_sdp) }), "answer sdp"),
+        (Message::StreamOpened(StreamOpened { session_id: 1, answer: Err("x".repeat(5000)) }), "answer error"),
+        (Message::ClientPose(ClientPose { views: vec![], ..pose.clone() }), "views"),
+        (Message::ClientPose(ClientPose { views: vec![good_camera(); 65], ..pose.clone() }), "views"),
+        (Message::ClientPose(ClientPose { client_time_ms: f64::NAN, ..pose.clone() }), "client_time_ms"),
+        (
+            Message::ClientPose(ClientPose {
+                views: vec![good_camera(), WireCamera { view: [f32::INFINITY; 16], ..good_camera() }],
+                ..pose.clone()
+            }),
+            "camera view matrix",
+        ),
+        (Message::ClientPose(ClientPose { views: vec![WireCamera { width: 0, ..good_camera() }], ..pose }), "image size"),
+        (
+            Message::FramePlan(FramePlan { parts: vec![PlanPart { view: 2, task_id: 1, object_id: 1 }], ..good_plan() }),
+            "part view",
+        ),
+        (Message::FramePlan(FramePlan { views: 0, parts: vec![], ..good_plan() }), "views"),
+        (Message::FramePlan(FramePlan { height: 16385, ..good_plan() }), "image size"),
+        (Message::FramePlan(FramePlan { client_time_ms: f64::INFINITY, ..good_plan() }), "client_time_ms"),
+        (Message::CloseStream(CloseStream { session_id: 1, reason: "r".repeat(5000) }), "reason"),
+    ];
+    for (message, field) in bad {
+        // We refuse to send it...
+        let err = encode_frame(&message, &mut Vec::new(), &cfg()).expect_err("invalid");
+        assert!(!err.is_fatal(), "{message:?}");
+        // ...and a peer that sends it anyway gets it rejected, the stream still in sync.
+        let mut bytes = Vec::new();
+        encode_frame_unchecked(&message, &mut bytes, &cfg()).expect("unchecked");
+        let r = rejected(&bytes);
+        assert_eq!(r.kind, message.kind());
+        let text = r.error.to_string();
+        assert!(text.contains(field), "{field:?} not in {text:?} for {message:?}");
+    }
+}
+
+#[test]
+fn batch_ids_carry_the_task() {
+    let batch = good_batch();
+    let Ok(Message::RayBatch(decoded)) = decode_one(&frame_of(&Message::RayBatch(batch.clone()))).expect("decodes") else {
+        panic!("a ray batch")
+    };
+    assert_eq!(decoded.ids.task_id, 5);
+    let result = good_result(3);
+    let Ok(Message::BatchResult(decoded)) = decode_one(&frame_of(&Message::BatchResult(result))).expect("decodes") else {
+        panic!("a batch result")
+    };
+    assert_eq!(decoded.ids.task_id, 8);
+}
+
+#[test]
+fn rejected_messages_leave_the_stream_in_sync() {
+    let mut bad = good_batch();
+    bad.camera.view[0] = f32::NAN;
+    let mut bytes = unchecked(MessageKind::RayBatch, &bad);
+    bytes.extend(frame_of(&Message::RayBatch(good_batch())));
+    let mut reader = FrameReader::new(Cursor::new(&bytes), cfg());
+    let first = reader.read_message().expect("framing is fine");
+    assert_eq!(first.expect_err("rejected").ids.map(|i| i.batch_id), Some(7));
+    assert_eq!(reader.read_message().expect("second"), Ok(Message::RayBatch(good_batch())));
+    let mut codec = FrameCodec::new(cfg());
+    let mut buf = BytesMut::from(&bytes[..]);
+    assert!(matches!(codec.decode(&mut buf), Ok(Some(Err(_)))));
+    assert!(matches!(codec.decode(&mut buf), Ok(Some(Ok(Message::RayBatch(_))))));
+}
+
+#[test]
+fn error_messages_fit_the_text_limit() {
+    let long = ProtoError::Malformed { kind: MessageKind::Register, reason: "é".repeat(5000) };
+    let Message::Error(e) = error_message(&long) else { panic!("error message") };
+    assert!(e.message.len() <= validate::MAX_TEXT_LEN && e.code == ErrorCode::Malformed);
+    assert!(validate::message(&Message::Error(e)).is_ok());
+}
+
+// ---------------------------------------------------------------------------------------
+// Handshakes over real sockets
+
+#[test]
+fn blocking_handshake_over_tcp() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    let server = std::thread::spawn(move || {
+        let (stream, _) = listener.accept().expect("accept");
+        let mut reader = FrameReader::new(stream.try_clone().expect("clone"), cfg());
+        let mut writer = FrameWriter::new(stream, cfg());
+        let peer = frame::handshake(&mut reader, &mut writer, Role::Master, &[Role::Worker]).expect("handshake");
+        assert_eq!(peer.role, Role::Worker);
+        let msg = reader.read_message().expect("frame").expect("valid");
+        writer.write_message(&msg).expect("echo");
+    });
+    let stream = std::net::TcpStream::connect(addr).expect("connect");
+    let mut reader = FrameReader::new(stream.try_clone().expect("clone"), cfg());
+    let mut writer = FrameWriter::new(stream, cfg());
+    let peer = frame::handshake(&mut reader, &mut writer, Role::Worker, &[Role::Master]).expect("handshake");
+    assert_eq!(peer, Hello::new(Role::Master));
+    let batch = Message::BatchResult(good_result(1000));
+    writer.write_message(&batch).expect("send");
+    assert_eq!(reader.read_message().expect("echo"), Ok(batch));
+    server.join().expect("server");
+}
+
+#[tokio::test]
+async fn async_handshake_refuses_wrong_roles_and_versions() {
+    use futures_util::StreamExt;
+    use std::time::Duration;
+    use tokio::io::AsyncWriteExt;
+
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    let timeout = Duration::from_secs(5);
+
+    // A worker where a composer is expected: refused, and told why.
+    let server = tokio::spawn(async move {
+        let (s, _) = listener.accept().await.expect("accept");
+        let mut conn = stream::framed(s, cfg());
+        let err = stream::handshake(&mut conn, Role::Master, &[Role::Composer], timeout).await.expect_err("wrong role");
+        assert!(matches!(err, ProtoError::WrongRole(Role::Worker)));
+        let (s, _) = listener.accept().await.expect("accept");
+        let mut conn = stream::framed(s, cfg());
+        let err = stream::handshake(&mut conn, Role::Master, &[Role::Worker], timeout).await.expect_err("version");
+        assert!(matches!(err, ProtoError::VersionMismatch { theirs: 9, .. }));
+    });
+    let mut conn = stream::framed(tokio::net::TcpStream::connect(addr).await.expect("connect"), cfg());
+    let hello = stream::handshake(&mut conn, Role::Worker, &[Role::Master], timeout).await.expect("we accept the master");
+    assert_eq!(hello.role, Role::Master);
+    match conn.next().await {
+        Some(Ok(Ok(Message::Error(e)))) => assert_eq!(e.code, ErrorCode::InvalidField),
+        other => panic!("expected an error message, got {other:?}"),
+    }
+
+    // A peer from the future.
+    let mut raw = tokio::net::TcpStream::connect(addr).await.expect("connect");
+    let mut body = MAGIC.to_vec();
+    body.extend(9u16.to_le_bytes());
+    body.push(Role::Worker.to_byte());
+    raw.write_all(&raw_frame(MessageKind::Hello.tag(), &body)).await.expect("send");
+    let mut conn = stream::framed(raw, cfg());
+    // Our hello, then the error telling why.
+    assert!(matches!(conn.next().await, Some(Ok(Ok(Message::Hello(_))))));
+    match conn.next().await {
+        Some(Ok(Ok(Message::Error(e)))) => assert_eq!(e.code, ErrorCode::VersionMismatch),
+        other => panic!("expected an error message, got {other:?}"),
+    }
+    server.await.expect("server");
+}
+
+/// Writes one valid frame of every message kind (and a few broken ones) as seeds for the
+/// fuzz target: `cargo test -p nephele-proto write_fuzz_seeds -- --ignored`.
+#[test]
+#[ignore = "writes files: run by hand to refresh proto/fuzz/seeds"]
+fn write_fuzz_seeds() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/decode");
+    std::fs::create_dir_all(&dir).expect("seed dir");
+    let mut runner = proptest::test_runner::TestRunner::deterministic();
+    let mut seen = std::collections::HashSet::new();
+    let mut count = 0;
+    while seen.len() < MessageKind::ALL.len() {
+        let message = proptest::strategy::ValueTree::current(&message().new_tree(&mut runner).expect("sample"));
+        if seen.insert(message.kind()) {
+            std::fs::write(dir.join(format!("{}.bin", message.kind())), frame_of(&message)).expect("write");
+            count += 1;
+        }
+    }
+    let mut bad = good_batch();
+    bad.camera.view[0] = f32::NAN;
+    std::fs::write(dir.join("RayBatch-nan.bin"), unchecked(MessageKind::RayBatch, &bad)).expect("write");
+    std::fs::write(dir.join("BatchResult-10.bin"), frame_of(&Message::BatchResult(good_result(10)))).expect("write");
+    std::fs::write(dir.join("huge-length.bin"), u32::MAX.to_le_bytes()).expect("write");
+    assert_eq!(count, MessageKind::ALL.len());
+}

@@ -1,0 +1,532 @@
+use super::*;
+use glam::Vec3;
+use nephele_render::camera::stereo_pair;
+
+const OBJ: ObjectId = ObjectId(1);
+
+fn ms(ms: u64) -> Time {
+    Time::from_micros(ms * 1000)
+}
+
+fn config(policy: Policy) -> SchedulerConfig {
+    SchedulerConfig { max_batch_rays: 128, ..SchedulerConfig::for_policy(policy) }
+}
+
+fn unit_object(center: Vec3, half: f32, cost: f64) -> ObjectInfo {
+    ObjectInfo { bounds: Bounds { min: center - Vec3::splat(half), max: center + Vec3::splat(half) }, occupancy: None, cost_per_ray: cost }
+}
+
+fn scheduler(config: SchedulerConfig) -> Scheduler {
+    let mut s = Scheduler::new(config).expect("valid config");
+    s.register_object(OBJ, unit_object(Vec3::ZERO, 0.5, 1.0)).expect("object");
+    s
+}
+
+fn camera_at(angle_deg: f32) -> Camera {
+    let a = angle_deg.to_radians();
+    Camera::look_at(64, 64, 0.8, Vec3::new(4.0 * a.sin(), -4.0 * a.cos(), 0.0), Vec3::ZERO, Vec3::Z).expect("camera")
+}
+
+fn open(s: &mut Scheduler, fps: f64, views: &[Camera], now: Time) -> SessionId {
+    let id = s.open_session(SessionSpec { target_fps: fps, objects: vec![OBJ] }, now).expect("admitted");
+    s.pose(id, views, now).expect("pose");
+    id
+}
+
+fn dispatches(actions: &[Action]) -> Vec<(WorkerId, BatchSpec)> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            Action::Dispatch { worker, batch } => Some((*worker, (**batch).clone())),
+            _ => None,
+        })
+        .collect()
+}
+
+fn completions(actions: &[Action]) -> Vec<(SessionId, FrameId, Vec<FramePart>)> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            Action::FrameComplete { session, frame, parts, .. } => Some((*session, *frame, parts.clone())),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Completes every dispatch of `actions` at `now`, ticks, and repeats until nothing is
+/// dispatched; returns every action seen.
+fn run_to_quiet(s: &mut Scheduler, mut actions: Vec<Action>, now: Time) -> Vec<Action> {
+    let mut all = Vec::new();
+    for _ in 0..1000 {
+        let sent = dispatches(&actions);
+        all.append(&mut actions);
+        if sent.is_empty() {
+            break;
+        }
+        for (worker, batch) in sent {
+            s.batch_done(worker, batch.id, now).expect("known batch");
+        }
+        actions = s.tick(now);
+    }
+    all
+}
+
+fn session_of(s: &Scheduler, batch: &BatchSpec) -> SessionId {
+    let _ = s;
+    batch.frames[0].0
+}
+
+#[test]
+fn starved_users_are_served_first() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.horizon = Duration::from_micros(1); // one batch per worker at a time
+    cfg.min_batch_timeout = Duration::from_secs(10);
+    cfg.heartbeat_timeout = None;
+    cfg.sharing = None;
+    cfg.history_capacity = 0;
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    let a = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
+    let first = dispatches(&s.tick(ms(0)));
+    assert_eq!(first.len(), 1);
+    assert_eq!(session_of(&s, &first[0].1), a);
+    // B arrives, slower frame rate: its deadline is later.
+    let b = open(&mut s, 5.0, &[camera_at(30.0)], ms(1));
+    assert!(dispatches(&s.tick(ms(1))).is_empty(), "the only worker is full");
+    // A second worker: nobody is starved, B has fewer loaded tasks, so B goes first.
+    s.add_worker(WorkerId(2), 1e6, ms(2)).expect("worker");
+    let second = dispatches(&s.tick(ms(2)));
+    assert_eq!(second.len(), 1);
+    assert_eq!(session_of(&s, &second[0].1), b);
+    // At 150 ms A's target time (release 0 + 1/10 s - t_u) has passed: A is starved, B (target
+    // 1 ms + 200 ms) is not. Worker 2 frees up; A still has a batch loaded on worker 1 and B has
+    // none, yet A is served.
+    s.batch_done(WorkerId(2), second[0].1.id, ms(150)).expect("done");
+    let third = dispatches(&s.tick(ms(150)));
+    assert_eq!(s.starved_sessions(), 1);
+    assert_eq!(third.len(), 1);
+    assert_eq!(session_of(&s, &third[0].1), a, "the starved user goes first");
+    let snapshot = s.snapshot(ms(150));
+    let starved: Vec<SessionId> = snapshot.sessions.iter().filter(|x| x.starved).map(|x| x.id).collect();
+    assert_eq!(starved, vec![a]);
+}
+
+#[test]
+fn no_session_is_admitted_while_anyone_is_starved() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.min_batch_timeout = Duration::from_secs(10);
+    cfg.heartbeat_timeout = None;
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e5, ms(0)).expect("worker");
+    let a = open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    let sent = dispatches(&s.tick(ms(0)));
+    assert!(!sent.is_empty());
+    assert_eq!(s.admission(ms(10)), Admission::Admit, "not starved yet");
+    // 1/30 s later the frame still has undispatched batches (the worker is full): starved.
+    assert!(matches!(s.admission(ms(40)), Admission::Refuse { retry_after } if retry_after >= Duration::from_secs(1)));
+    let refused = s.open_session(SessionSpec { target_fps: 30.0, objects: vec![OBJ] }, ms(40));
+    assert!(matches!(refused, Err(SchedError::Refused { .. })), "{refused:?}");
+    assert_eq!(s.stats().sessions_refused, 1);
+    let snapshot = s.snapshot(ms(40));
+    assert!(!snapshot.admission_open && snapshot.retry_after_s.is_some_and(|r| r >= 1));
+    // Serve everything: admission reopens.
+    let actions = s.tick(ms(40));
+    let mut all = sent.into_iter().map(|(w, b)| Action::Dispatch { worker: w, batch: Box::new(b) }).collect::<Vec<_>>();
+    all.extend(actions);
+    run_to_quiet(&mut s, all, ms(41));
+    s.close_session(a, ms(41)).expect("close");
+    // Nobody is starved any more, but admission stays closed for `admission_hold` (1 s)
+    // after the last starved round.
+    assert!(matches!(s.admission(ms(41)), Admission::Refuse { .. }));
+    assert_eq!(s.admission(ms(1041)), Admission::Admit);
+    assert!(s.open_session(SessionSpec { target_fps: 30.0, objects: vec![OBJ] }, ms(1041)).is_ok());
+}
+
+#[test]
+fn shared_rays_are_rendered_once_and_fanned_out() {
+    let mut s = scheduler(config(Policy::Nephele));
+    for w in 1..=3 {
+        s.add_worker(WorkerId(w), 1e8, ms(0)).expect("worker");
+    }
+    let view = camera_at(10.0);
+    let a = open(&mut s, 30.0, &[view], ms(0));
+    let b = open(&mut s, 30.0, &[view], ms(0));
+    let actions = s.tick(ms(0));
+    let sent = dispatches(&actions);
+    let tasks: BTreeSet<TaskId> = sent.iter().map(|(_, b)| b.task).collect();
+    assert_eq!(tasks.len(), 1, "one task for both users");
+    assert!(sent.iter().all(|(_, batch)| batch.frames.len() == 2), "each batch feeds both frames");
+    let stats = s.stats().clone();
+    assert_eq!((stats.tasks_created, stats.shared_joins), (1, 1));
+    assert_eq!(stats.rays_requested, 2 * stats.rays_created);
+    assert_eq!(stats.rays_dispatched, stats.rays_created, "every ray sent once");
+    let all = run_to_quiet(&mut s, actions, ms(1));
+    let done = completions(&all);
+    assert_eq!(done.len(), 2);
+    let sessions: BTreeSet<SessionId> = done.iter().map(|d| d.0).collect();
+    assert_eq!(sessions, [a, b].into_iter().collect());
+    assert!(done.iter().all(|d| d.2.len() == 1 && tasks.contains(&d.2[0].task)));
+    assert_eq!(s.stats().share_error_px_max, 0.0, "identical cameras");
+}
+
+#[test]
+fn the_two_eyes_of_a_user_are_two_tasks_and_baselines_never_share() {
+    let mut s = scheduler(config(Policy::Nephele));
+    s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+    let eyes = stereo_pair(&camera_at(0.0), 0.064).expect("stereo");
+    open(&mut s, 30.0, &eyes, ms(0));
+    s.tick(ms(0));
+    assert_eq!((s.stats().tasks_created, s.stats().shared_joins), (2, 0));
+    let mut fifo = scheduler(config(Policy::Fifo));
+    fifo.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+    open(&mut fifo, 30.0, &[camera_at(0.0)], ms(0));
+    open(&mut fifo, 30.0, &[camera_at(0.0)], ms(0));
+    fifo.tick(ms(0));
+    assert_eq!((fifo.stats().tasks_created, fifo.stats().shared_joins), (2, 0));
+}
+
+#[test]
+fn history_reuses_the_results_of_a_still_camera() {
+    let mut s = scheduler(config(Policy::Nephele));
+    s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+    let id = open(&mut s, 50.0, &[camera_at(0.0)], ms(0));
+    let actions = s.tick(ms(0));
+    let first = run_to_quiet(&mut s, actions, ms(1));
+    assert_eq!(completions(&first).len(), 1);
+    // 20 ms later the next frame asks for the same rays: served from history, nothing sent.
+    let second = s.tick(ms(20));
+    assert!(dispatches(&second).is_empty());
+    let done = completions(&second);
+    assert_eq!(done.len(), 1);
+    assert_eq!((done[0].0, done[0].2[0].source), (id, PartSource::History));
+    assert_eq!(s.stats().history_hits, 1);
+    assert_eq!(s.stats().rays_from_history, s.stats().rays_created);
+    // Past the maximum age the result is not reused; the expired one is released.
+    s.pose(id, &[camera_at(0.0)], ms(900)).expect("pose");
+    let third = s.tick(ms(900));
+    assert!(!dispatches(&third).is_empty());
+    assert!(third.iter().any(|a| matches!(a, Action::ReleaseResult { .. })));
+}
+
+#[test]
+fn worker_death_mid_frame_still_completes_every_pixel() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.heartbeat_timeout = None;
+    cfg.min_batch_timeout = Duration::from_secs(10);
+    cfg.horizon = Duration::from_micros(300); // about two batches per worker
+    cfg.object_switch_cost = Duration::ZERO;
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    s.add_worker(WorkerId(2), 1e6, ms(0)).expect("worker");
+    let id = open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    let sent = dispatches(&s.tick(ms(0)));
+    let on_one: Vec<BatchId> = sent.iter().filter(|(w, _)| *w == WorkerId(1)).map(|(_, b)| b.id).collect();
+    assert!(!on_one.is_empty() && sent.iter().any(|(w, _)| *w == WorkerId(2)));
+    let expected_pixels: u64 = s.stats().rays_created;
+    let mut rendered: Vec<(BatchId, PixelSet)> = Vec::new();
+    // Worker 2 finishes one batch; worker 1 dies.
+    let (w2, first) = sent.iter().find(|(w, _)| *w == WorkerId(2)).cloned().expect("a batch on worker 2");
+    s.batch_done(w2, first.id, ms(1)).expect("done");
+    rendered.push((first.id, first.pixels.clone()));
+    s.remove_worker(WorkerId(1), ms(2)).expect("remove");
+    assert!(matches!(s.batch_done(WorkerId(1), on_one[0], ms(2)), Err(SchedError::UnknownWorker(_))));
+    let mut actions = s.tick(ms(2));
+    let mut t = 3;
+    let mut complete = Vec::new();
+    while complete.is_empty() && t < 500 {
+        for (worker, batch) in dispatches(&actions) {
+            assert_eq!(worker, WorkerId(2), "only the survivor gets work");
+            s.batch_done(worker, batch.id, ms(t)).expect("done");
+            rendered.push((batch.id, batch.pixels.clone()));
+        }
+        for (w, b) in sent.iter().filter(|(w, b)| *w == WorkerId(2) && b.id != first.id) {
+            let _ = s.batch_done(*w, b.id, ms(t)); // the rest of worker 2's first load
+        }
+        actions = s.tick(ms(t));
+        complete = completions(&actions);
+        t += 1;
+    }
+    assert_eq!(complete.len(), 1, "the frame completes");
+    assert_eq!(complete[0].0, id);
+    for b in &on_one {
+        assert!(rendered.iter().any(|(id, _)| id == b), "batch {b} of the dead worker re-issued and rendered");
+    }
+    let first_load: u64 = sent.iter().filter(|(w, _)| *w == WorkerId(2)).map(|(_, b)| b.rays).sum();
+    let reissued: u64 = rendered.iter().map(|(_, p)| p.len()).sum();
+    assert!(reissued + first_load >= expected_pixels);
+    assert!(s.stats().batches_reissued as usize >= on_one.len());
+}
+
+#[test]
+fn a_missed_deadline_reissues_the_batch_and_the_first_answer_wins() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.heartbeat_timeout = None;
+    cfg.max_batch_rays = 1 << 20; // one batch
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+    open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    let sent = dispatches(&s.tick(ms(0)));
+    assert_eq!(sent.len(), 1);
+    let batch = sent[0].1.id;
+    s.add_worker(WorkerId(2), 1e8, ms(1)).expect("worker");
+    // Worker 1 stalls past the timeout (at least min_batch_timeout = 20 ms).
+    let actions = s.tick(ms(25));
+    assert!(actions.contains(&Action::Cancel { worker: WorkerId(1), batch }));
+    let again = dispatches(&actions);
+    assert_eq!(again.len(), 1);
+    assert_eq!((again[0].0, again[0].1.id, again[0].1.attempt), (WorkerId(2), batch, 2));
+    assert_eq!(s.stats().batches_timed_out, 1);
+    // The straggler answers first after all: accepted, the second copy is cancelled.
+    s.batch_done(WorkerId(1), batch, ms(26)).expect("late answer counts");
+    let actions = s.tick(ms(26));
+    assert!(actions.contains(&Action::Cancel { worker: WorkerId(2), batch }));
+    assert_eq!(completions(&actions).len(), 1);
+    assert!(matches!(s.batch_done(WorkerId(2), batch, ms(27)), Err(SchedError::UnknownBatch(_))));
+}
+
+#[test]
+fn silent_workers_are_declared_lost() {
+    let mut cfg = config(Policy::Fifo);
+    cfg.heartbeat_timeout = Some(Duration::from_millis(100));
+    cfg.min_batch_timeout = Duration::from_secs(10);
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    s.add_worker(WorkerId(2), 1e6, ms(0)).expect("worker");
+    open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    s.tick(ms(0));
+    s.heartbeat(WorkerId(2), ms(90)).expect("alive");
+    assert!(s.next_wakeup().is_some_and(|t| t <= ms(101)));
+    let actions = s.tick(ms(150));
+    assert!(actions.iter().any(|a| matches!(a, Action::WorkerLost { worker: WorkerId(1), reissued } if *reissued > 0)));
+    assert!(!actions.iter().any(|a| matches!(a, Action::WorkerLost { worker: WorkerId(2), .. })));
+    assert!(dispatches(&actions).iter().all(|(w, _)| *w == WorkerId(2)));
+    assert_eq!(s.stats().workers_lost, 1);
+}
+
+#[test]
+fn repeated_failures_drop_the_frame_and_cancel_its_work() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.max_attempts = 2;
+    cfg.sharing = None;
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+    s.add_worker(WorkerId(2), 1e8, ms(0)).expect("worker");
+    let id = open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    let sent = dispatches(&s.tick(ms(0)));
+    let (w, b) = (sent[0].0, sent[0].1.id);
+    s.batch_failed(w, b, ms(1)).expect("failure reported");
+    let retry = dispatches(&s.tick(ms(1)));
+    let (w2, _) = retry.iter().find(|(_, x)| x.id == b).cloned().expect("re-issued");
+    assert_ne!(w2, w, "not to the worker that failed");
+    s.batch_failed(w2, b, ms(2)).expect("failure reported");
+    let actions = s.tick(ms(2));
+    assert!(actions.contains(&Action::FrameDropped { session: id, frame: FrameId(0), reason: DropReason::BatchFailed(b) }));
+    assert!(actions.iter().any(|a| matches!(a, Action::Cancel { .. })), "the frame's other batches are cancelled");
+    assert_eq!(s.pending_batches(), 0);
+    assert_eq!(s.live_tasks(), 0);
+}
+
+#[test]
+fn a_newer_frame_supersedes_an_older_one() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.history_capacity = 0;
+    cfg.min_batch_timeout = Duration::from_secs(10);
+    cfg.heartbeat_timeout = None;
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+    let id = open(&mut s, 100.0, &[camera_at(0.0)], ms(0));
+    let old = dispatches(&s.tick(ms(0)));
+    s.pose(id, &[camera_at(5.0)], ms(10)).expect("pose");
+    let new = dispatches(&s.tick(ms(10)));
+    // Frame 1 completes first (its batches are answered, frame 0's are not).
+    for (w, b) in &new {
+        s.batch_done(*w, b.id, ms(11)).expect("done");
+    }
+    let mut actions = s.tick(ms(11));
+    for _ in 0..20 {
+        if !completions(&actions).is_empty() {
+            break;
+        }
+        let more = dispatches(&actions);
+        for (w, b) in &more {
+            if b.frames.iter().any(|f| f.1 == FrameId(1)) {
+                s.batch_done(*w, b.id, ms(12)).expect("done");
+            }
+        }
+        actions = s.tick(ms(12));
+    }
+    assert!(completions(&actions).iter().any(|c| c.1 == FrameId(1)));
+    assert!(actions.contains(&Action::FrameDropped { session: id, frame: FrameId(0), reason: DropReason::Superseded }));
+    assert!(old.iter().all(|(w, b)| actions.contains(&Action::Cancel { worker: *w, batch: b.id })));
+}
+
+#[test]
+fn heavy_tasks_get_workers_of_their_own() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.max_batch_rays = 256;
+    let mut s = Scheduler::new(cfg).expect("config");
+    // A close object filling the view (heavy) and small far ones (light).
+    s.register_object(ObjectId(1), unit_object(Vec3::new(0.0, -2.0, 0.0), 0.8, 1.0)).expect("object");
+    for i in 0..6 {
+        s.register_object(ObjectId(10 + i), unit_object(Vec3::new(-1.5 + 0.6 * i as f32, 3.0, 0.0), 0.05, 1.0)).expect("object");
+    }
+    for w in 1..=6 {
+        s.add_worker(WorkerId(w), 2e5, ms(0)).expect("worker");
+    }
+    let objects = std::iter::once(ObjectId(1)).chain((0..6).map(|i| ObjectId(10 + i))).collect();
+    let id = s.open_session(SessionSpec { target_fps: 30.0, objects }, ms(0)).expect("admitted");
+    s.pose(id, &[camera_at(0.0)], ms(0)).expect("pose");
+    let sent = dispatches(&s.tick(ms(0)));
+    let stats = s.stats();
+    assert!(stats.tasks_heavy >= 1 && stats.tasks_light >= 1, "{stats:?}");
+    let mut classes: BTreeMap<WorkerId, BTreeSet<(bool, ObjectId)>> = BTreeMap::new();
+    for (w, b) in &sent {
+        classes.entry(*w).or_default().insert((b.class == TaskClass::Heavy, b.object));
+    }
+    for (w, set) in &classes {
+        let heavy = set.iter().filter(|c| c.0).count();
+        assert!(heavy == 0 || set.len() == 1, "worker {w} mixes a heavy task with other work: {set:?}");
+    }
+    assert!(classes.values().any(|c| c.iter().any(|x| x.0)), "heavy work placed");
+    assert!(classes.values().any(|c| c.iter().any(|x| !x.0)), "light work placed beside it");
+    let snapshot = s.snapshot(ms(0));
+    assert!(snapshot.workers.iter().any(|w| w.mode.starts_with("heavy:o1:t")), "{:?}", snapshot.workers);
+}
+
+#[test]
+fn bad_input_is_rejected_with_clear_errors() {
+    let mut s = scheduler(config(Policy::Nephele));
+    for fps in [0.0, -30.0, f64::NAN, f64::INFINITY, 1000.0] {
+        let r = s.open_session(SessionSpec { target_fps: fps, objects: vec![OBJ] }, ms(0));
+        assert!(matches!(r, Err(SchedError::InvalidFps(_))), "{fps}: {r:?}");
+    }
+    assert_eq!(s.open_session(SessionSpec { target_fps: 30.0, objects: vec![] }, ms(0)), Err(SchedError::NoObjects));
+    let unknown = s.open_session(SessionSpec { target_fps: 30.0, objects: vec![ObjectId(99)] }, ms(0));
+    assert_eq!(unknown, Err(SchedError::UnknownObject(ObjectId(99))));
+    assert_eq!(s.pose(SessionId(42), &[camera_at(0.0)], ms(0)), Err(SchedError::UnknownSession(SessionId(42))));
+    assert_eq!(s.close_session(SessionId(42), ms(0)), Err(SchedError::UnknownSession(SessionId(42))));
+    assert_eq!(s.heartbeat(WorkerId(7), ms(0)), Err(SchedError::UnknownWorker(WorkerId(7))));
+    assert_eq!(s.remove_worker(WorkerId(7), ms(0)), Err(SchedError::UnknownWorker(WorkerId(7))));
+    for rate in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        assert!(matches!(s.add_worker(WorkerId(1), rate, ms(0)), Err(SchedError::InvalidThroughput(_))));
+    }
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    assert_eq!(s.add_worker(WorkerId(1), 1e6, ms(0)), Err(SchedError::DuplicateWorker(WorkerId(1))));
+    assert_eq!(s.batch_done(WorkerId(1), BatchId(12345), ms(0)), Err(SchedError::UnknownBatch(BatchId(12345))));
+    assert_eq!(s.batch_done(WorkerId(9), BatchId(1), ms(0)), Err(SchedError::UnknownWorker(WorkerId(9))));
+    let id = open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    // NaN and singular pose matrices, no views, too many views.
+    let good = camera_at(0.0);
+    let mut nan_view = good.world_to_camera();
+    nan_view.w_axis.x = f32::NAN;
+    let projection = good.projection_matrix(0.1, 100.0);
+    let bad = [ViewMatrices { width: 64, height: 64, view: nan_view, projection }];
+    assert!(matches!(s.pose_matrices(id, &bad, ms(1)), Err(SchedError::InvalidPose(m)) if m.contains("view 0")));
+    let singular = [ViewMatrices { width: 64, height: 64, view: good.world_to_camera(), projection: Mat4::ZERO }];
+    assert!(matches!(s.pose_matrices(id, &singular, ms(1)), Err(SchedError::InvalidPose(_))));
+    let fine = [ViewMatrices { width: 64, height: 64, view: good.world_to_camera(), projection }];
+    assert!(s.pose_matrices(id, &fine, ms(1)).is_ok());
+    assert!(matches!(s.pose(id, &[], ms(1)), Err(SchedError::InvalidPose(_))));
+    assert!(matches!(s.pose(id, &vec![good; 65], ms(1)), Err(SchedError::InvalidPose(_))));
+    // A batch reported by a worker it was not sent to.
+    s.add_worker(WorkerId(2), 1e6, ms(1)).expect("worker");
+    let sent = dispatches(&s.tick(ms(1)));
+    let (holder, batch) = (sent[0].0, sent[0].1.id);
+    let other = if holder == WorkerId(1) { WorkerId(2) } else { WorkerId(1) };
+    assert_eq!(s.batch_done(other, batch, ms(2)), Err(SchedError::NotAssigned { batch, worker: other }));
+    assert_eq!(s.batch_failed(other, batch, ms(2)), Err(SchedError::NotAssigned { batch, worker: other }));
+    // Objects: NaN bounds, inverted box, zero cost, a different object under a used id.
+    let nan = ObjectInfo { bounds: Bounds { min: Vec3::NAN, max: Vec3::ONE }, occupancy: None, cost_per_ray: 1.0 };
+    assert!(matches!(s.register_object(ObjectId(5), nan), Err(SchedError::InvalidObject { .. })));
+    let inverted = ObjectInfo { bounds: Bounds { min: Vec3::ONE, max: Vec3::ZERO }, occupancy: None, cost_per_ray: 1.0 };
+    assert!(s.register_object(ObjectId(5), inverted).is_err());
+    assert!(s.register_object(ObjectId(5), unit_object(Vec3::ZERO, 1.0, 0.0)).is_err());
+    assert!(s.register_object(OBJ, unit_object(Vec3::ZERO, 0.5, 1.0)).is_ok(), "same description again");
+    assert_eq!(s.register_object(OBJ, unit_object(Vec3::ONE, 0.5, 1.0)), Err(SchedError::DuplicateObject(OBJ)));
+    let cfg = SchedulerConfig { max_frames_in_flight: 0, ..Default::default() };
+    assert!(matches!(Scheduler::new(cfg), Err(SchedError::InvalidConfig(_))));
+    // The state is still consistent: the session renders.
+    let all = run_to_quiet(&mut s, sent.into_iter().map(|(w, b)| Action::Dispatch { worker: w, batch: Box::new(b) }).collect(), ms(3));
+    assert!(!dispatches(&all).is_empty());
+}
+
+#[test]
+fn closing_a_session_cancels_only_what_nobody_else_needs() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.horizon = Duration::from_micros(1);
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    let shared = camera_at(0.0);
+    let a = open(&mut s, 30.0, &[shared, camera_at(40.0)], ms(0));
+    let b = open(&mut s, 30.0, &[shared], ms(0));
+    let sent = dispatches(&s.tick(ms(0)));
+    assert_eq!(sent.len(), 1);
+    s.close_session(a, ms(1)).expect("close");
+    let snapshot = s.snapshot(ms(1));
+    assert_eq!(snapshot.sessions.len(), 1);
+    assert_eq!(s.live_tasks(), 1, "the shared view lives on for B, A's own view is cancelled");
+    let all = run_to_quiet(&mut s, sent.into_iter().map(|(w, b)| Action::Dispatch { worker: w, batch: Box::new(b) }).collect(), ms(2));
+    let done = completions(&all);
+    assert!(done.iter().all(|c| c.0 == b) && !done.is_empty());
+}
+
+#[test]
+fn every_policy_completes_frames_and_is_deterministic() {
+    for policy in Policy::ALL {
+        let run = || {
+            let mut s = scheduler(config(policy));
+            for w in 1..=3 {
+                s.add_worker(WorkerId(w), 1e6 * f64::from(w), ms(0)).expect("worker");
+            }
+            let ids: Vec<SessionId> = (0..4).map(|i| open(&mut s, 30.0, &[camera_at(10.0 * i as f32)], ms(0))).collect();
+            let mut log = Vec::new();
+            for step in 0..40u64 {
+                let now = ms(step * 10);
+                for (i, id) in ids.iter().enumerate() {
+                    s.pose(*id, &[camera_at(10.0 * i as f32 + step as f32)], now).expect("pose");
+                }
+                let actions = s.tick(now);
+                for (w, b) in dispatches(&actions) {
+                    s.batch_done(w, b.id, now + Duration::from_millis(3)).expect("done");
+                }
+                log.push(format!("{actions:?}"));
+            }
+            (log, s.stats().clone())
+        };
+        let (log, stats) = run();
+        assert!(stats.frames_completed > 10, "{policy}: {stats:?}");
+        assert_eq!(run().0, log, "{policy} is deterministic");
+    }
+}
+
+#[test]
+fn snapshot_serialises_for_the_farm_endpoint() {
+    let mut s = scheduler(config(Policy::Nephele));
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    s.tick(ms(0));
+    let snapshot = s.snapshot(ms(5));
+    let json = serde_json::to_string(&snapshot).expect("serialise");
+    assert!(json.contains("\"policy\":\"nephele\"") && json.contains("target_fps"), "{json}");
+    let back: FarmSnapshot = serde_json::from_str(&json).expect("deserialise");
+    assert_eq!(back, snapshot);
+    assert_eq!(snapshot.workers[0].mode, "light");
+    assert!(snapshot.queues.in_flight_batches > 0);
+}
+
+#[test]
+fn views_within_the_tolerance_share_and_the_error_is_measured() {
+    let mut s = scheduler(config(Policy::Nephele));
+    s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+    let at = |x: f32| Camera::look_at(64, 64, 0.8, Vec3::new(x, -4.0, 0.0), Vec3::ZERO, Vec3::Z).expect("camera");
+    // 0.2 mm apart, inside one 1 mm cell: one task, and a tiny but non-zero error.
+    open(&mut s, 30.0, &[at(0.0001)], ms(0));
+    open(&mut s, 30.0, &[at(0.0003)], ms(0));
+    // 5 cm away: other rays.
+    open(&mut s, 30.0, &[at(0.05)], ms(0));
+    s.tick(ms(0));
+    let stats = s.stats();
+    assert_eq!((stats.tasks_created, stats.shared_joins), (2, 1));
+    assert!(stats.share_error_px_max > 0.0 && stats.share_error_px_max < 0.05, "{}", stats.share_error_px_max);
+    assert!(stats.share_error_px_mean() > 0.0);
+}

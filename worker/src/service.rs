@@ -1,0 +1,532 @@
+//! The worker's life: calibrate, connect, register, serve batches, report load, drain.
+//!
+//! One event loop per master connection owns the queue and the in-flight table (no locks);
+//! each batch runs as its own task: load the asset and render on blocking threads (the
+//! render itself on the worker's rayon pool), then send the result to the batch's composer.
+//! The loop hears back through a channel and tells the master (`BatchDone` or
+//! `BatchFailed`).
+
+use std::collections::{HashMap, VecDeque};
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use futures_util::{SinkExt, StreamExt};
+use glam::{Mat4, Vec3};
+use nephele_proto::stream::{Connection, framed, handshake, recv};
+use nephele_proto::{
+    BatchDone, BatchFailed, BatchIds, BatchResult, Cancel, CancelTarget, ErrorCode, ErrorMessage, FrameConfig, Goodbye,
+    KernelStats, LoadReport, Message, ProtoError, RayBatch, Register, Registered, Role, WireCamera, clip_text,
+    error_message, validate,
+};
+use nephele_render::camera::{Camera, CameraError};
+use nephele_render::kernel::all_pixels;
+use thiserror::Error;
+use tokio::net::TcpStream;
+use tokio::sync::mpsc;
+
+use crate::assets::AssetLoader;
+use crate::composer::ComposerLinks;
+
+/// How a worker runs.
+#[derive(Debug, Clone)]
+pub struct WorkerConfig {
+    /// Master address, `host:port`.
+    pub master: String,
+    /// Name shown by the master (`[A-Za-z0-9._-]`, 1 to 64 bytes).
+    pub name: String,
+    /// Render threads.
+    pub threads: usize,
+    /// Batches rendering at once (each uses the whole pool; two keep it busy between
+    /// batches while a result is being sent).
+    pub max_concurrent_batches: usize,
+    pub frame: FrameConfig,
+    /// Limit for connecting, handshakes, registration and each send to a composer.
+    pub io_timeout: Duration,
+    /// How long to keep trying to reach the master (at start or after losing it) before
+    /// giving up with an error.
+    pub reconnect_for: Duration,
+    /// How long in-flight batches may take to finish after a shutdown request.
+    pub drain_timeout: Duration,
+    /// Most batches waiting; more are refused with `ErrorCode::Overloaded`.
+    pub max_queued_batches: usize,
+    /// Asset rendered at start-up to measure throughput.
+    pub calibration_asset: String,
+    /// Image side of the calibration render.
+    pub calibration_size: u32,
+}
+
+impl WorkerConfig {
+    pub fn new(master: impl Into<String>, name: impl Into<String>, threads: usize) -> WorkerConfig {
+        WorkerConfig {
+            master: master.into(),
+            name: name.into(),
+            threads,
+            max_concurrent_batches: 2,
+            frame: FrameConfig::default(),
+            io_timeout: Duration::from_secs(10),
+            reconnect_for: Duration::from_secs(30),
+            drain_timeout: Duration::from_secs(30),
+            max_queued_batches: 4096,
+            calibration_asset: "diffuse".into(),
+            calibration_size: 64,
+        }
+    }
+}
+
+#[derive(Debug, Error)]
+pub enum WorkerError {
+    #[error("invalid configuration: {0}")]
+    Config(String),
+    #[error("building the render thread pool: {0}")]
+    Pool(#[from] rayon::ThreadPoolBuildError),
+    #[error("calibration render failed: {0}")]
+    Calibration(String),
+    #[error("gave up on the master at {addr} after {seconds:.0} s: {last_error}")]
+    MasterUnreachable { addr: String, seconds: f64, last_error: String },
+}
+
+/// What the worker shares with its batch tasks.
+#[derive(Debug)]
+struct Shared {
+    pool: Arc<rayon::ThreadPool>,
+    loader: Arc<dyn AssetLoader>,
+    composers: ComposerLinks,
+    worker_id: AtomicU64,
+}
+
+/// Counters that survive reconnections.
+#[derive(Debug, Default)]
+struct Totals {
+    batches_done: u64,
+    rays_done: u64,
+}
+
+/// Runs a worker until `shutdown` resolves (then drains and says goodbye: `Ok`) or the
+/// master stays unreachable for `config.reconnect_for` (`Err`).
+pub async fn run<F: Future<Output = ()>>(
+    config: WorkerConfig,
+    loader: Arc<dyn AssetLoader>,
+    shutdown: F,
+) -> Result<(), WorkerError> {
+    validate::worker_name(&config.name).map_err(|e| WorkerError::Config(e.to_string()))?;
+    validate::address(&config.master).map_err(|e| WorkerError::Config(format!("--master: {e}")))?;
+    if config.threads == 0 || config.max_concurrent_batches == 0 {
+        return Err(WorkerError::Config("threads and concurrent batches must be at least 1".into()));
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(config.threads)
+        .thread_name(|i| format!("render-{i}"))
+        .build()?;
+    let shared = Arc::new(Shared {
+        pool: Arc::new(pool),
+        loader,
+        composers: ComposerLinks::new(config.frame, config.io_timeout),
+        worker_id: AtomicU64::new(0),
+    });
+    let rays_per_second = calibrate(&shared, &config).await?;
+    tracing::info!(name = %config.name, threads = config.threads, rays_per_second = format!("{rays_per_second:.0}"), "calibrated");
+    let register = Register {
+        name: config.name.clone(),
+        threads: u32::try_from(config.threads).unwrap_or(u32::MAX),
+        kernels: shared.loader.kernel_kinds(),
+        rays_per_second,
+    };
+
+    let mut shutdown = std::pin::pin!(shutdown);
+    let mut totals = Totals::default();
+    let mut lost_since = Instant::now();
+    let mut backoff = Duration::from_millis(50);
+    loop {
+        let attempt = tokio::select! {
+            attempt = connect_and_register(&config, &register) => attempt,
+            () = &mut shutdown => {
+                tracing::info!("shutdown requested while not connected to the master; exiting");
+                return Ok(());
+            }
+        };
+        match attempt {
+            Ok((conn, registered)) => {
+                tracing::info!(master = %config.master, worker_id = registered.worker_id, "registered");
+                shared.worker_id.store(registered.worker_id, Ordering::Relaxed);
+                backoff = Duration::from_millis(50);
+                let session = Session::new(&config, &shared, registered);
+                match session.run(conn, shutdown.as_mut(), &mut totals).await {
+                    SessionEnd::ShutDown => return Ok(()),
+                    SessionEnd::MasterLost(reason) => {
+                        tracing::warn!(master = %config.master, "lost the master: {reason}; reconnecting");
+                        lost_since = Instant::now();
+                    }
+                }
+            }
+            Err(e) => {
+                let waited = lost_since.elapsed();
+                if waited >= config.reconnect_for {
+                    return Err(WorkerError::MasterUnreachable {
+                        addr: config.master.clone(),
+                        seconds: waited.as_secs_f64(),
+                        last_error: e.to_string(),
+                    });
+                }
+                tracing::debug!(master = %config.master, "master not reachable yet: {e}");
+                tokio::select! {
+                    () = tokio::time::sleep(backoff) => {}
+                    () = &mut shutdown => return Ok(()),
+                }
+                backoff = (backoff * 2).min(Duration::from_secs(2));
+            }
+        }
+    }
+}
+
+/// Renders the calibration asset once and returns pixels (primary rays) per second.
+async fn calibrate(shared: &Arc<Shared>, config: &WorkerConfig) -> Result<f64, WorkerError> {
+    let shared = shared.clone();
+    let asset = config.calibration_asset.clone();
+    let size = config.calibration_size.max(8);
+    let job = tokio::task::spawn_blocking(move || -> Result<f64, String> {
+        let kernel = shared.loader.load(&asset).map_err(|e| e.to_string())?;
+        let bounds = kernel.bounds();
+        let radius = 0.5 * bounds.size().length().max(1e-3);
+        let eye = bounds.center() + Vec3::new(1.0, -1.7, 0.9).normalize() * radius * 3.0;
+        let camera = Camera::look_at(size, size, 0.8, eye, bounds.center(), Vec3::Z).map_err(|e| e.to_string())?;
+        let pixels = all_pixels(&camera);
+        let start = Instant::now();
+        shared.pool.install(|| kernel.render_pixels(&camera, &pixels)).map_err(|e| e.to_string())?;
+        Ok(pixels.len() as f64 / start.elapsed().as_secs_f64().max(1e-9))
+    });
+    job.await.map_err(|e| WorkerError::Calibration(e.to_string()))?.map_err(WorkerError::Calibration)
+}
+
+async fn connect_and_register(
+    config: &WorkerConfig,
+    register: &Register,
+) -> Result<(Connection<TcpStream>, Registered), ProtoError> {
+    let stream = tokio::time::timeout(config.io_timeout, TcpStream::connect(&config.master))
+        .await
+        .map_err(|_| ProtoError::Timeout("connecting to the master"))??;
+    stream.set_nodelay(true)?;
+    let mut conn = framed(stream, config.frame);
+    handshake(&mut conn, Role::Worker, &[Role::Master], config.io_timeout).await?;
+    conn.send(&Message::Register(register.clone())).await?;
+    match tokio::time::timeout(config.io_timeout, recv(&mut conn)).await {
+        Err(_) => Err(ProtoError::Timeout("Registered")),
+        Ok(Ok(Message::Registered(registered))) => Ok((conn, registered)),
+        Ok(Ok(other)) => Err(ProtoError::Unexpected { expected: "Registered", got: other.kind() }),
+        Ok(Err(e)) => Err(e),
+    }
+}
+
+enum SessionEnd {
+    ShutDown,
+    MasterLost(String),
+}
+
+/// A batch that is rendering.
+struct InFlight {
+    ids: BatchIds,
+    cancelled: Arc<AtomicBool>,
+}
+
+/// What a batch task reports back.
+struct Done {
+    slot: u64,
+    ids: BatchIds,
+    pixels: u64,
+    outcome: Result<BatchDone, (ErrorCode, String)>,
+}
+
+/// One master connection's state.
+struct Session<'a> {
+    config: &'a WorkerConfig,
+    shared: &'a Arc<Shared>,
+    registered: Registered,
+    queue: VecDeque<RayBatch>,
+    in_flight: HashMap<u64, InFlight>,
+    next_slot: u64,
+    outbox: Vec<Message>,
+    draining: bool,
+    returned: Vec<u64>,
+}
+
+impl<'a> Session<'a> {
+    fn new(config: &'a WorkerConfig, shared: &'a Arc<Shared>, registered: Registered) -> Session<'a> {
+        Session {
+            config,
+            shared,
+            registered,
+            queue: VecDeque::new(),
+            in_flight: HashMap::new(),
+            next_slot: 0,
+            outbox: Vec::new(),
+            draining: false,
+            returned: Vec::new(),
+        }
+    }
+
+    async fn run<F: Future<Output = ()>>(
+        mut self,
+        mut conn: Connection<TcpStream>,
+        mut shutdown: Pin<&mut F>,
+        totals: &mut Totals,
+    ) -> SessionEnd {
+        let (done_tx, mut done_rx) = mpsc::unbounded_channel::<Done>();
+        let interval = Duration::from_millis(u64::from(self.registered.load_report_interval_ms));
+        let mut tick = tokio::time::interval_at(tokio::time::Instant::now() + interval, interval);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut last_report = (Instant::now(), totals.rays_done);
+        let mut drain_deadline = tokio::time::Instant::now();
+        loop {
+            while !self.draining && self.in_flight.len() < self.config.max_concurrent_batches {
+                let Some(batch) = self.queue.pop_front() else { break };
+                self.start(batch, &done_tx);
+            }
+            if self.draining && self.in_flight.is_empty() {
+                return self.say_goodbye(conn, "shutting down").await;
+            }
+            if let Err(e) = flush(&mut conn, &mut self.outbox).await {
+                return self.lost(format!("sending to the master: {e}"));
+            }
+            tokio::select! {
+                () = &mut shutdown, if !self.draining => {
+                    tracing::info!(
+                        in_flight = self.in_flight.len(),
+                        queued = self.queue.len(),
+                        "shutdown requested: finishing in-flight batches, handing queued ones back"
+                    );
+                    self.draining = true;
+                    drain_deadline = tokio::time::Instant::now() + self.config.drain_timeout;
+                    for batch in std::mem::take(&mut self.queue) {
+                        self.hand_back(batch.ids);
+                    }
+                }
+                () = tokio::time::sleep_until(drain_deadline), if self.draining => {
+                    tracing::warn!(in_flight = self.in_flight.len(), "drain timeout: handing unfinished batches back");
+                    let ids: Vec<BatchIds> = self.in_flight.drain().map(|(_, f)| f.ids).collect();
+                    for ids in ids {
+                        self.hand_back(ids);
+                    }
+                    return self.say_goodbye(conn, "shutting down (drain timeout)").await;
+                }
+                item = conn.next() => match item {
+                    None => return self.lost("connection closed".into()),
+                    Some(Err(e)) => {
+                        tracing::warn!("closing the master connection: {e}");
+                        if !matches!(e, ProtoError::Io(_)) {
+                            let _ = tokio::time::timeout(Duration::from_secs(1), conn.send(&error_message(&e))).await;
+                        }
+                        return self.lost(e.to_string());
+                    }
+                    Some(Ok(Err(rejected))) => {
+                        tracing::warn!("rejected a message from the master: {rejected}");
+                        let message = clip_text(rejected.to_string());
+                        match rejected.ids {
+                            Some(ids) => self.outbox.push(Message::BatchFailed(BatchFailed { ids, code: ErrorCode::InvalidField, message })),
+                            None => self.outbox.push(Message::Error(ErrorMessage { code: ErrorCode::InvalidField, message })),
+                        }
+                    }
+                    Some(Ok(Ok(message))) => self.handle(message),
+                },
+                Some(done) = done_rx.recv() => self.finish(done, totals),
+                _ = tick.tick() => {
+                    let elapsed = last_report.0.elapsed().as_secs_f64().max(1e-6);
+                    let recent = (totals.rays_done - last_report.1) as f64 / elapsed;
+                    last_report = (Instant::now(), totals.rays_done);
+                    self.outbox.push(Message::LoadReport(LoadReport {
+                        in_flight_batches: self.in_flight.len() as u32,
+                        queued_batches: self.queue.len() as u32,
+                        queued_rays: self.queue.iter().map(|b| b.pixels.len() as u64).sum(),
+                        recent_rays_per_second: recent,
+                        batches_done: totals.batches_done,
+                        rays_done: totals.rays_done,
+                    }));
+                }
+            }
+        }
+    }
+
+    /// The master connection is gone. While draining there is nobody left to hand work
+    /// back to: finish (in-flight results still reach their composers).
+    fn lost(&self, reason: String) -> SessionEnd {
+        if self.draining {
+            tracing::warn!("lost the master while shutting down: {reason}");
+            SessionEnd::ShutDown
+        } else {
+            SessionEnd::MasterLost(reason)
+        }
+    }
+
+    fn handle(&mut self, message: Message) {
+        match message {
+            Message::RayBatch(batch) if self.draining => self.hand_back(batch.ids),
+            Message::RayBatch(batch) if self.queue.len() >= self.config.max_queued_batches => {
+                let message = format!("{} batches already queued", self.queue.len());
+                self.fail(batch.ids, ErrorCode::Overloaded, message);
+            }
+            Message::RayBatch(batch) => {
+                tracing::debug!(batch = batch.ids.batch_id, pixels = batch.pixels.len(), asset = %batch.asset_id, "batch queued");
+                self.queue.push_back(batch);
+            }
+            Message::Cancel(Cancel { target }) => {
+                let matches = |ids: &BatchIds| match target {
+                    CancelTarget::Batch(id) => ids.batch_id == id,
+                    CancelTarget::Frame { session_id, frame_id } => ids.session_id == session_id && ids.frame_id == frame_id,
+                    CancelTarget::Session(session_id) => ids.session_id == session_id,
+                };
+                let (dropped, kept): (VecDeque<RayBatch>, VecDeque<RayBatch>) =
+                    std::mem::take(&mut self.queue).into_iter().partition(|b| matches(&b.ids));
+                self.queue = kept;
+                for batch in dropped {
+                    self.fail(batch.ids, ErrorCode::Cancelled, "cancelled before it started".into());
+                }
+                for flight in self.in_flight.values().filter(|f| matches(&f.ids)) {
+                    flight.cancelled.store(true, Ordering::Release);
+                }
+            }
+            Message::Error(e) => tracing::warn!(code = ?e.code, "the master reports: {}", e.message),
+            Message::Goodbye(g) => tracing::info!("the master says goodbye: {}", g.reason),
+            other => {
+                tracing::warn!(kind = %other.kind(), "unexpected message from the master");
+                self.outbox.push(Message::Error(ErrorMessage {
+                    code: ErrorCode::Unexpected,
+                    message: format!("a worker does not accept {} messages", other.kind()),
+                }));
+            }
+        }
+    }
+
+    fn start(&mut self, batch: RayBatch, done_tx: &mpsc::UnboundedSender<Done>) {
+        if let Some(deadline) = batch.deadline_unix_us {
+            let now = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64);
+            if now > deadline {
+                let late_ms = (now - deadline) / 1000;
+                self.fail(batch.ids, ErrorCode::DeadlineExpired, format!("deadline passed {late_ms} ms before the batch could start"));
+                return;
+            }
+        }
+        let slot = self.next_slot;
+        self.next_slot += 1;
+        let cancelled = Arc::new(AtomicBool::new(false));
+        self.in_flight.insert(slot, InFlight { ids: batch.ids, cancelled: cancelled.clone() });
+        let shared = self.shared.clone();
+        let done_tx = done_tx.clone();
+        tokio::spawn(async move {
+            let (ids, pixels) = (batch.ids, batch.pixels.len() as u64);
+            let outcome = render_and_deliver(&shared, batch, &cancelled).await;
+            // The session may be gone (master lost); the result went to the composer anyway.
+            let _ = done_tx.send(Done { slot, ids, pixels, outcome });
+        });
+    }
+
+    fn finish(&mut self, done: Done, totals: &mut Totals) {
+        if self.in_flight.remove(&done.slot).is_none() {
+            return;
+        }
+        match done.outcome {
+            Ok(batch_done) => {
+                totals.batches_done += 1;
+                totals.rays_done += done.pixels;
+                self.outbox.push(Message::BatchDone(batch_done));
+            }
+            Err((code, message)) => {
+                tracing::warn!(batch = done.ids.batch_id, ?code, "batch failed: {message}");
+                self.fail(done.ids, code, message);
+            }
+        }
+    }
+
+    fn fail(&mut self, ids: BatchIds, code: ErrorCode, message: String) {
+        self.outbox.push(Message::BatchFailed(BatchFailed { ids, code, message: clip_text(message) }));
+    }
+
+    /// Tells the master at once that a batch will not be rendered here, so that it can
+    /// re-issue it without waiting for the goodbye.
+    fn hand_back(&mut self, ids: BatchIds) {
+        self.returned.push(ids.batch_id);
+        self.fail(ids, ErrorCode::ShuttingDown, "the worker is shutting down".into());
+    }
+
+    async fn say_goodbye(mut self, mut conn: Connection<TcpStream>, reason: &str) -> SessionEnd {
+        self.returned.truncate(validate::MAX_RETURNED_BATCHES);
+        self.outbox.push(Message::Goodbye(Goodbye { reason: reason.into(), returned_batches: std::mem::take(&mut self.returned) }));
+        match tokio::time::timeout(self.config.io_timeout, flush(&mut conn, &mut self.outbox)).await {
+            Ok(Ok(())) => tracing::info!("said goodbye to the master"),
+            Ok(Err(e)) => tracing::warn!("could not say goodbye: {e}"),
+            Err(_) => tracing::warn!("could not say goodbye: timed out"),
+        }
+        let _ = tokio::time::timeout(Duration::from_secs(1), conn.close()).await;
+        SessionEnd::ShutDown
+    }
+}
+
+async fn flush(conn: &mut Connection<TcpStream>, outbox: &mut Vec<Message>) -> Result<(), ProtoError> {
+    if outbox.is_empty() {
+        return Ok(());
+    }
+    for message in outbox.drain(..) {
+        conn.feed(&message).await?;
+    }
+    conn.flush().await
+}
+
+/// Converts a wire camera (already checked finite and sized by the decoder).
+pub fn to_camera(camera: &WireCamera) -> Result<Camera, CameraError> {
+    Camera::from_view_projection(
+        camera.width,
+        camera.height,
+        Mat4::from_cols_array(&camera.view),
+        Mat4::from_cols_array(&camera.projection),
+    )
+}
+
+/// Loads, renders, checks and sends one batch; returns what to tell the master.
+async fn render_and_deliver(
+    shared: &Arc<Shared>,
+    batch: RayBatch,
+    cancelled: &AtomicBool,
+) -> Result<BatchDone, (ErrorCode, String)> {
+    let RayBatch { ids, asset_id, camera: wire, pixels, composer, .. } = batch;
+    let camera = to_camera(&wire).map_err(|e| (ErrorCode::InvalidField, format!("camera: {e}")))?;
+    let worker = shared.clone();
+    let (pixels, rendered, render_time) = tokio::task::spawn_blocking(move || {
+        let kernel = match worker.loader.load(&asset_id) {
+            Ok(kernel) => kernel,
+            Err(e) => return (pixels, Err((e.code(), e.to_string())), Duration::ZERO),
+        };
+        let start = Instant::now();
+        let rendered = worker.pool.install(|| kernel.render_pixels(&camera, &pixels));
+        let rendered = rendered.map_err(|e| (ErrorCode::RenderFailed, e.to_string()));
+        (pixels, rendered, start.elapsed())
+    })
+    .await
+    .map_err(|e| (ErrorCode::Internal, format!("render task: {e}")))?;
+    let (results, stats) = rendered?;
+    if cancelled.load(Ordering::Acquire) {
+        return Err((ErrorCode::Cancelled, "cancelled while rendering".into()));
+    }
+    let stats = KernelStats { rays: stats.rays, rays_hit: stats.rays_hit, queries: stats.queries };
+    let render_time_us = render_time.as_micros() as u64;
+    let count = pixels.len() as u32;
+    let result = Message::BatchResult(BatchResult {
+        ids,
+        worker_id: shared.worker_id.load(Ordering::Relaxed),
+        width: wire.width,
+        height: wire.height,
+        pixels,
+        color: results.color,
+        opacity: results.opacity,
+        depth: results.depth,
+        render_time_us,
+        stats,
+    });
+    validate::message(&result).map_err(|e| (ErrorCode::RenderFailed, format!("the kernel produced an invalid result: {e}")))?;
+    shared
+        .composers
+        .send(&composer, &result)
+        .await
+        .map_err(|e| (ErrorCode::ComposerUnreachable, format!("composer {composer}: {e}")))?;
+    tracing::debug!(batch = ids.batch_id, pixels = count, render_us = render_time_us, "batch delivered");
+    Ok(BatchDone { ids, pixels: count, render_time_us, stats })
+}
