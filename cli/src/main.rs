@@ -50,6 +50,8 @@ enum Command {
     /// Print performance figures (see BENCHMARKS.md).
     #[command(subcommand)]
     Bench(commands::bench::Command),
+    /// Run a composer: depth fusion, H.264 encoding and WebRTC streaming to viewers.
+    Composer(commands::composer::Args),
     /// Run a render worker: connect to a master and render the ray batches it sends.
     Worker(commands::worker::Args),
     /// Simulate the farm: the scheduler core (NEPHELE Algorithm 1) against baselines on
@@ -94,6 +96,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Dataset(cmd) => commands::dataset::run(cmd, &progress),
         Command::Eval(args) => commands::eval::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
+        Command::Composer(args) => commands::composer::run(args),
         Command::Worker(args) => commands::worker::run(args, cli.threads),
         Command::Simulate(args) => commands::simulate::run(args, &progress),
         Command::Bake(args) => commands::bake::run(args, &progress),

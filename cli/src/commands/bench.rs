@@ -20,6 +20,9 @@ pub enum Command {
     /// ray, and the error reached: PSNR of the timed render against a render with many more
     /// samples of the same view.
     Reference(ReferenceArgs),
+    /// The composer's stages per frame at streaming sizes: depth fusion, colour conversion
+    /// and H.264 encoding (frames/s, bitrate, PSNR of the decoded stream against its input).
+    Encode(super::bench_encode::Args),
     /// Protocol cost: encode/decode ns per pixel (packed against element-by-element), bytes
     /// on the wire per pixel, and loopback TCP throughput of batch results between two
     /// processes and between two tokio tasks (batches/s, GB/s of pixel results).
@@ -67,6 +70,7 @@ pub struct ReferenceArgs {
 pub fn run(command: Command, progress: &Progress) -> Result<()> {
     match command {
         Command::Reference(args) => reference(args, progress),
+        Command::Encode(args) => super::bench_encode::run(args, progress),
         Command::Wire(args) => super::bench_wire::run(args, progress),
         Command::WireSink(args) => super::bench_wire::sink(args),
         Command::Scheduler(args) => super::bench_scheduler::run(args, progress),
