@@ -2,7 +2,6 @@
 
 mod commands;
 mod progress;
-#[allow(dead_code)] // used by `nephele up`, which lands with the composer wiring
 mod supervise;
 
 use anyhow::Result;
@@ -70,6 +69,9 @@ enum Command {
     /// farm=ADDR` once both sockets listen. On SIGTERM or Ctrl-C it stops taking requests,
     /// says goodbye to the workers and the composer, and exits 0.
     Master(commands::master::Args),
+    /// Run the whole service locally: master, composer and render workers as child
+    /// processes; prints the URL to open; Ctrl-C stops everything.
+    Up(commands::up::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -103,6 +105,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(args) => commands::train::run(args, &progress),
         Command::Render(args) => commands::render::run(args, &progress),
         Command::Master(args) => commands::master::run(args),
+        Command::Up(args) => commands::up::run(args),
     }
 }
 

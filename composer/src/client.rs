@@ -94,6 +94,8 @@ pub struct Client {
     pictures: mpsc::UnboundedReceiver<Picture>,
     texts: mpsc::UnboundedReceiver<String>,
     pub session: u64,
+    /// The session's id in the master's HTTP API (`session_id`), where a master answered.
+    pub session_name: Option<String>,
     pub token: String,
     pub offer_sdp: String,
     pub answer_sdp: String,
@@ -197,11 +199,16 @@ impl Client {
         let answer: serde_json::Value = serde_json::from_str(&reply).map_err(|e| ClientError::Http(format!("answer is not JSON: {e}")))?;
         let field = |k: &str| answer.get(k).cloned().ok_or_else(|| ClientError::Http(format!("answer lacks '{k}': {reply}")));
         let sdp = field("sdp")?.as_str().unwrap_or_default().to_string();
-        let session = field("session")?.as_u64().unwrap_or_default();
+        // The composer answers `session` (a number), the master `session_id` (a name).
+        let session_name = answer.get("session_id").and_then(|v| v.as_str()).map(str::to_owned);
+        let session = match &session_name {
+            Some(_) => answer.get("session").and_then(serde_json::Value::as_u64).unwrap_or_default(),
+            None => field("session")?.as_u64().unwrap_or_default(),
+        };
         let token = field("token")?.as_str().unwrap_or_default().to_string();
         pc.set_remote_description(RTCSessionDescription::answer(sdp.clone())?).await?;
         tokio::time::timeout(Duration::from_secs(15), open_rx.recv()).await.map_err(|_| ClientError::Timeout("the data channel to open"))?;
-        Ok(Client { pc: Arc::clone(pc), dc, pictures, texts, session, token, offer_sdp, answer_sdp: sdp })
+        Ok(Client { pc: Arc::clone(pc), dc, pictures, texts, session, session_name, token, offer_sdp, answer_sdp: sdp })
     }
 
     /// The next decoded picture that satisfies `accept`, within `timeout`.

@@ -2,20 +2,23 @@
 //!
 //! # Pose (binary message), version 1, little-endian
 //!
+//! The browser client's format (`client/PROTOCOL.md`):
+//!
 //! | offset | type | field |
 //! | --- | --- | --- |
 //! | 0 | u8 | magic `0x50` (`'P'`) |
 //! | 1 | u8 | version, 1 |
-//! | 2 | u16 | view count `N`, 1..=[`MAX_POSE_VIEWS`] (1 flat screen, 2 WebXR stereo, N a quilt) |
+//! | 2 | u8 | view count `N`, 1..=[`MAX_POSE_VIEWS`] (1 flat screen, 2 WebXR stereo, N a quilt) |
+//! | 3 | u8 | display mode: 0 flat, 1 immersive VR, 2 quilt |
 //! | 4 | u32 | sequence number, increasing |
 //! | 8 | f64 | client timestamp, ms (`performance.now()`), echoed for latency measurements |
-//! | 16 + 132 i | u16, u16 | view i: frame width, height in pixels |
-//! | 20 + 132 i | f32 x 16 | view i: view matrix (world to camera), column-major as WebGL/WebXR give it |
-//! | 84 + 132 i | f32 x 16 | view i: OpenGL projection matrix, column-major |
+//! | 16 | u16, u16 | frame width, height of one view in pixels |
+//! | 20 + 128 i | f32 x 16 | view i: view matrix (world to camera), column-major as WebGL/WebXR give it |
+//! | 84 + 128 i | f32 x 16 | view i: OpenGL projection matrix, column-major |
 //!
-//! A message is exactly `16 + 132 N` bytes. The matrices follow the project's conventions
+//! A message is exactly `20 + 128 N` bytes. The matrices follow the project's conventions
 //! (world +Z up, camera looking down -Z); a WebXR client converts its y-up reference space
-//! into that frame before sending. Every view must have the same frame size (they are packed
+//! into that frame before sending. Every view has the same frame size (they are packed
 //! into one picture), at most [`MAX_POSE_SIDE`] on a side.
 //!
 //! A message that is malformed (wrong size, magic or version, NaN or infinity, a view matrix
@@ -39,8 +42,10 @@ use thiserror::Error;
 
 pub const POSE_MAGIC: u8 = 0x50;
 pub const POSE_VERSION: u8 = 1;
-pub const POSE_HEADER_BYTES: usize = 16;
-pub const POSE_VIEW_BYTES: usize = 4 + 64 + 64;
+pub const POSE_HEADER_BYTES: usize = 20;
+pub const POSE_VIEW_BYTES: usize = 64 + 64;
+/// Display modes: 0 flat, 1 immersive VR, 2 quilt.
+pub const MAX_POSE_MODE: u8 = 2;
 /// Most views in one pose.
 pub const MAX_POSE_VIEWS: u16 = 64;
 /// Largest frame side a pose may ask for.
@@ -56,6 +61,8 @@ pub enum PoseError {
     BadVersion(u8),
     #[error("{0} views; a pose carries 1..={MAX_POSE_VIEWS}")]
     ViewCount(u16),
+    #[error("unknown display mode {0}")]
+    BadMode(u8),
     #[error("pose message of {got} bytes; {views} views need exactly {expected}")]
     WrongSize { views: u16, expected: usize, got: usize },
     #[error("pose timestamp is not finite")]
@@ -85,6 +92,8 @@ impl ViewPose {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Pose {
     pub seq: u32,
+    /// 0 flat screen, 1 immersive VR, 2 quilt (the client's display mode).
+    pub mode: u8,
     pub client_time_ms: f64,
     pub views: Vec<ViewPose>,
 }
@@ -95,17 +104,20 @@ impl Pose {
         self.views.first().map_or((0, 0), |v| (v.width, v.height))
     }
 
-    /// The binary message of this pose.
+    /// The binary message of this pose (the browser client's format, `client/PROTOCOL.md`);
+    /// every view takes view 0's frame size.
     pub fn encode(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(POSE_HEADER_BYTES + POSE_VIEW_BYTES * self.views.len());
+        let (w, h) = self.view_size();
         out.push(POSE_MAGIC);
         out.push(POSE_VERSION);
-        out.extend_from_slice(&(self.views.len() as u16).to_le_bytes());
+        out.push(self.views.len() as u8);
+        out.push(self.mode);
         out.extend_from_slice(&self.seq.to_le_bytes());
         out.extend_from_slice(&self.client_time_ms.to_le_bytes());
+        out.extend_from_slice(&(w as u16).to_le_bytes());
+        out.extend_from_slice(&(h as u16).to_le_bytes());
         for v in &self.views {
-            out.extend_from_slice(&(v.width as u16).to_le_bytes());
-            out.extend_from_slice(&(v.height as u16).to_le_bytes());
             for m in [v.view, v.projection] {
                 for x in m.to_cols_array() {
                     out.extend_from_slice(&x.to_le_bytes());
@@ -128,9 +140,13 @@ impl Pose {
         }
         let u16_at = |o: usize| u16::from_le_bytes([bytes[o], bytes[o + 1]]);
         let f32_at = |o: usize| f32::from_le_bytes([bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]]);
-        let count = u16_at(2);
+        let count = u16::from(bytes[2]);
         if count == 0 || count > MAX_POSE_VIEWS {
             return Err(PoseError::ViewCount(count));
+        }
+        let mode = bytes[3];
+        if mode > MAX_POSE_MODE {
+            return Err(PoseError::BadMode(mode));
         }
         let expected = POSE_HEADER_BYTES + POSE_VIEW_BYTES * usize::from(count);
         if bytes.len() != expected {
@@ -143,24 +159,19 @@ impl Pose {
         if !client_time_ms.is_finite() {
             return Err(PoseError::BadTimestamp);
         }
+        let (width, height) = (u32::from(u16_at(16)), u32::from(u16_at(18)));
         let mut views = Vec::with_capacity(usize::from(count));
         for i in 0..count {
             let base = POSE_HEADER_BYTES + POSE_VIEW_BYTES * usize::from(i);
             let bad = |reason: String| PoseError::BadView { view: i, reason };
-            let (width, height) = (u32::from(u16_at(base)), u32::from(u16_at(base + 2)));
             if width == 0 || height == 0 || width > MAX_POSE_SIDE || height > MAX_POSE_SIDE {
                 return Err(bad(format!("frame size {width}x{height} outside 1..={MAX_POSE_SIDE}")));
             }
             let matrix = |o: usize| Mat4::from_cols_array(&std::array::from_fn(|k| f32_at(o + 4 * k)));
-            let view = matrix(base + 4);
-            let projection = matrix(base + 68);
+            let view = matrix(base);
+            let projection = matrix(base + 64);
             if !view.is_finite() || !projection.is_finite() {
                 return Err(bad("matrix with NaN or infinity".into()));
-            }
-            if let Some(first) = views.first().map(|v: &ViewPose| (v.width, v.height))
-                && first != (width, height)
-            {
-                return Err(bad(format!("frame size {width}x{height} differs from view 0's {}x{}", first.0, first.1)));
             }
             let pose = ViewPose { width, height, view, projection };
             pose.camera().map_err(|e| match e {
@@ -169,7 +180,7 @@ impl Pose {
             })?;
             views.push(pose);
         }
-        Ok(Pose { seq, client_time_ms, views })
+        Ok(Pose { seq, mode, client_time_ms, views })
     }
 }
 
@@ -283,7 +294,7 @@ pub fn look_at_pose(seq: u32, width: u32, height: u32, fov_y: f32, eye: glam::Ve
     let camera = Camera::look_at(width, height, fov_y, eye, target, glam::Vec3::Z)
         .map_err(|e| PoseError::BadView { view: 0, reason: e.to_string() })?;
     let view = ViewPose { width, height, view: camera.world_to_camera(), projection: camera.projection_matrix(0.05, 100.0) };
-    Ok(Pose { seq, client_time_ms: f64::from(seq) * 20.0, views: vec![view] })
+    Ok(Pose { seq, mode: 0, client_time_ms: f64::from(seq) * 20.0, views: vec![view] })
 }
 
 #[cfg(test)]
@@ -302,7 +313,7 @@ mod tests {
         right.view = Mat4::from_translation(Vec3::new(-0.064, 0.0, 0.0)) * right.view;
         p.views.push(right);
         let bytes = p.encode();
-        assert_eq!(bytes.len(), 16 + 2 * 132);
+        assert_eq!(bytes.len(), 20 + 2 * 128);
         let q = Pose::decode(&bytes).unwrap();
         assert_eq!(q, p);
         let camera = q.views[0].camera().unwrap();
@@ -325,7 +336,7 @@ mod tests {
         b[1] = 9;
         assert_eq!(Pose::decode(&b), Err(PoseError::BadVersion(9)));
         let mut b = good.clone();
-        b[2..4].copy_from_slice(&0u16.to_le_bytes());
+        b[2] = 0;
         assert_eq!(Pose::decode(&b), Err(PoseError::ViewCount(0)));
         // NaN in the view matrix, infinity in the projection.
         for offset in [20 + 4 * 5, 84 + 4 * 10] {
@@ -346,12 +357,10 @@ mod tests {
         let mut p = pose(1);
         p.views[0].projection = Mat4::from_diagonal(glam::Vec4::new(1.0, 1.0, -0.2, 1.0)); // orthographic: w = 1
         assert!(matches!(Pose::decode(&p.encode()), Err(PoseError::BadView { .. })));
-        // Views of different sizes cannot be packed.
-        let mut p = pose(1);
-        let mut other = p.views[0];
-        other.width = 320;
-        p.views.push(other);
-        assert!(matches!(Pose::decode(&p.encode()), Err(PoseError::BadView { view: 1, .. })));
+        // An unknown display mode.
+        let mut b = good.clone();
+        b[3] = 3;
+        assert_eq!(Pose::decode(&b), Err(PoseError::BadMode(3)));
     }
 
     #[test]

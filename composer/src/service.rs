@@ -77,6 +77,11 @@ pub struct ComposerConfig {
     /// Deadline after a test-pattern frame is planned.
     pub frame_budget: Duration,
     pub max_sessions: usize,
+    /// `host:port` of the master's farm listener: frames come from the farm (proto v2
+    /// `FramePlan`s and `BatchResult`s on the results listener) and poses go to the master.
+    pub master: Option<String>,
+    /// The composer's name in the master's `GET /v1/farm`.
+    pub name: String,
 }
 
 impl Default for ComposerConfig {
@@ -91,6 +96,8 @@ impl Default for ComposerConfig {
             default_view: (640, 480),
             frame_budget: Duration::from_millis(40),
             max_sessions: 64,
+            master: None,
+            name: "composer".into(),
         }
     }
 }
@@ -199,15 +206,15 @@ impl From<EncoderStats> for EncoderReport {
 
 /// Service-wide counters.
 #[derive(Debug, Default)]
-struct GlobalCounters {
-    wire_errors: AtomicU64,
-    worker_connections: AtomicU64,
+pub(crate) struct GlobalCounters {
+    pub(crate) wire_errors: AtomicU64,
+    pub(crate) worker_connections: AtomicU64,
 }
 
-struct SessionEntry {
+pub(crate) struct SessionEntry {
     token: String,
     viewer: Arc<Viewer>,
-    layout: FrameLayout,
+    pub(crate) layout: FrameLayout,
     frames: std_mpsc::SyncSender<FusedFrame>,
     keyframe: Arc<AtomicBool>,
     inbox: PoseInbox,
@@ -218,17 +225,22 @@ struct SessionEntry {
     next_frame: u64,
 }
 
-struct Shared {
-    config: ComposerConfig,
+pub(crate) struct Shared {
+    pub(crate) config: ComposerConfig,
     rtc: RtcStack,
-    compositor: StdMutex<Compositor>,
-    sessions: StdMutex<HashMap<SessionId, SessionEntry>>,
+    pub(crate) compositor: StdMutex<Compositor>,
+    pub(crate) sessions: StdMutex<HashMap<SessionId, SessionEntry>>,
     next_session: AtomicU64,
-    wake: Notify,
+    pub(crate) wake: Notify,
     events: mpsc::Sender<ViewerEvent>,
     poses: broadcast::Sender<(SessionId, Arc<Pose>)>,
-    counters: GlobalCounters,
+    pub(crate) counters: GlobalCounters,
     runtime: tokio::runtime::Handle,
+    /// Messages for the master, while a master link is up.
+    pub(crate) to_master: StdMutex<Option<mpsc::UnboundedSender<nephele_proto::Message>>>,
+    /// Worker results of the farm's tasks, by task id, until the master releases the task.
+    pub(crate) task_results: StdMutex<HashMap<u64, Vec<Arc<nephele_proto::BatchResult>>>>,
+    pub(crate) last_parts: StdMutex<crate::master_link::LastParts>,
 }
 
 /// A running composer. Dropping it does not stop it; call [`Composer::shutdown`].
@@ -246,7 +258,7 @@ impl std::fmt::Debug for Composer {
     }
 }
 
-fn lock<T>(m: &StdMutex<T>) -> std::sync::MutexGuard<'_, T> {
+pub(crate) fn lock<T>(m: &StdMutex<T>) -> std::sync::MutexGuard<'_, T> {
     // A panic while holding one of these locks leaves plain data behind; keep serving.
     m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
@@ -281,6 +293,9 @@ impl Composer {
             poses,
             counters: GlobalCounters::default(),
             runtime: tokio::runtime::Handle::current(),
+            to_master: StdMutex::new(None),
+            task_results: StdMutex::new(HashMap::new()),
+            last_parts: StdMutex::new(HashMap::new()),
         });
         let (stop, stop_rx) = watch::channel(false);
         let mut tasks = Vec::new();
@@ -301,6 +316,9 @@ impl Composer {
         tasks.push(tokio::spawn(accept_results(Arc::clone(&shared), results, stop_rx.clone())));
         tasks.push(tokio::spawn(fusion_loop(Arc::clone(&shared), stop_rx.clone())));
         tasks.push(tokio::spawn(event_loop(Arc::clone(&shared), events_rx, stop_rx.clone())));
+        if let Some(master) = shared.config.master.clone() {
+            tasks.push(tokio::spawn(crate::master_link::run(Arc::clone(&shared), master, results_addr, stop_rx.clone())));
+        }
         if shared.config.source == FrameSource::TestPattern {
             tasks.push(tokio::spawn(test_pattern_loop(Arc::clone(&shared), stop_rx)));
         }
@@ -408,16 +426,29 @@ async fn create_session(State(shared): State<Arc<Shared>>, body: axum::body::Byt
         Ok(l) => l,
         Err(e) => return error(StatusCode::BAD_REQUEST, format!("bad view size: {e}")),
     };
-    if lock(&shared.sessions).len() >= shared.config.max_sessions {
-        let mut r = error(StatusCode::SERVICE_UNAVAILABLE, "the composer is full");
-        r.headers_mut().insert("retry-after", axum::http::HeaderValue::from_static("5"));
-        return r;
-    }
     let id = request.session.unwrap_or_else(|| shared.next_session.fetch_add(1, Ordering::Relaxed));
-    if lock(&shared.compositor).open_session(id).is_err() {
-        return error(StatusCode::CONFLICT, format!("session {id} exists"));
+    match open_viewer(&shared, id, request.sdp, layout).await {
+        Ok((token, sdp)) => (StatusCode::CREATED, Json(AnswerResponse { session: id, token, kind: "answer", sdp })).into_response(),
+        Err((status, message)) => {
+            let mut r = error(status, message);
+            if status == StatusCode::SERVICE_UNAVAILABLE {
+                r.headers_mut().insert("retry-after", axum::http::HeaderValue::from_static("5"));
+            }
+            r
+        }
     }
-    let (sdp, viewer) = match shared.rtc.accept(id, request.sdp, shared.events.clone()).await {
+}
+
+/// Accepts a viewer's offer for session `id`: the peer connection, the fusion state and the
+/// media thread. Answers `(token, answer SDP)`, or the HTTP status and reason of a refusal.
+pub(crate) async fn open_viewer(shared: &Arc<Shared>, id: SessionId, offer: String, layout: FrameLayout) -> Result<(String, String), (StatusCode, String)> {
+    if lock(&shared.sessions).len() >= shared.config.max_sessions {
+        return Err((StatusCode::SERVICE_UNAVAILABLE, "the composer is full".into()));
+    }
+    if lock(&shared.compositor).open_session(id).is_err() {
+        return Err((StatusCode::CONFLICT, format!("session {id} exists")));
+    }
+    let (sdp, viewer) = match shared.rtc.accept(id, offer, shared.events.clone()).await {
         Ok(ok) => ok,
         Err(e) => {
             lock(&shared.compositor).close_session(id);
@@ -426,7 +457,7 @@ async fn create_session(State(shared): State<Arc<Shared>>, body: axum::body::Byt
                 _ => StatusCode::INTERNAL_SERVER_ERROR,
             };
             tracing::info!(session = id, "offer refused: {e}");
-            return error(status, e);
+            return Err((status, e.to_string()));
         }
     };
     let token = format!("{:032x}", rand::random::<u128>());
@@ -434,7 +465,7 @@ async fn create_session(State(shared): State<Arc<Shared>>, body: axum::body::Byt
     let (frames_tx, frames_rx) = std_mpsc::sync_channel(1);
     let keyframe = Arc::new(AtomicBool::new(true));
     let media = Arc::new(StdMutex::new((MediaCounters::default(), EncoderStats::default())));
-    spawn_media_thread(&shared, Arc::clone(&viewer), frames_rx, Arc::clone(&keyframe), Arc::clone(&media));
+    spawn_media_thread(shared, Arc::clone(&viewer), frames_rx, Arc::clone(&keyframe), Arc::clone(&media));
     lock(&shared.sessions).insert(
         id,
         SessionEntry {
@@ -452,7 +483,7 @@ async fn create_session(State(shared): State<Arc<Shared>>, body: axum::body::Byt
         },
     );
     tracing::info!(session = id, "new viewer session");
-    (StatusCode::CREATED, Json(AnswerResponse { session: id, token, kind: "answer", sdp })).into_response()
+    Ok((token, sdp))
 }
 
 async fn list_sessions(State(shared): State<Arc<Shared>>) -> Response {
@@ -478,7 +509,7 @@ async fn delete_session(State(shared): State<Arc<Shared>>, Path(id): Path<Sessio
     }
 }
 
-async fn end_session(shared: &Shared, id: SessionId) {
+pub(crate) async fn end_session(shared: &Shared, id: SessionId) {
     let entry = lock(&shared.sessions).remove(&id);
     lock(&shared.compositor).close_session(id);
     if let Some(e) = entry {
@@ -624,7 +655,11 @@ async fn accept_results(shared: Arc<Shared>, listener: TcpListener, mut stop: wa
             accepted = listener.accept() => match accepted {
                 Ok((stream, peer)) => {
                     shared.counters.worker_connections.fetch_add(1, Ordering::Relaxed);
-                    tokio::spawn(read_results(Arc::clone(&shared), stream, peer, connection_stop));
+                    if shared.config.master.is_some() {
+                        tokio::spawn(crate::master_link::read_results(Arc::clone(&shared), stream, peer, connection_stop));
+                    } else {
+                        tokio::spawn(read_results(Arc::clone(&shared), stream, peer, connection_stop));
+                    }
                 }
                 Err(e) => tracing::warn!("accepting a worker connection: {e}"),
             },
@@ -690,6 +725,12 @@ async fn event_loop(shared: Arc<Shared>, mut events: mpsc::Receiver<ViewerEvent>
             }
             ViewerEvent::Disconnected(id, state) => {
                 tracing::info!(session = id, %state, "viewer gone");
+                if lock(&shared.sessions).contains_key(&id) {
+                    crate::master_link::to_master(
+                        &shared,
+                        nephele_proto::Message::CloseStream(nephele_proto::CloseStream { session_id: id, reason: format!("viewer gone ({state})") }),
+                    );
+                }
                 end_session(&shared, id).await;
             }
             ViewerEvent::Binary(id, bytes, at) => {
@@ -703,6 +744,7 @@ async fn event_loop(shared: Arc<Shared>, mut events: mpsc::Receiver<ViewerEvent>
                         }
                         let pose = Arc::new(pose);
                         e.last_pose = Some(Arc::clone(&pose));
+                        crate::master_link::forward_pose(&shared, id, &pose);
                         let _ = shared.poses.send((id, pose));
                     }
                     Err(PoseDrop::Malformed(err)) => tracing::debug!(session = id, "pose dropped: {err}"),

@@ -138,6 +138,9 @@ async fn config(State(state): State<Arc<AppState>>) -> Response {
 #[serde(deny_unknown_fields)]
 struct OpenBody {
     sdp: String,
+    /// `"offer"` where given (WebRTC's `RTCSessionDescription` JSON carries it).
+    #[serde(rename = "type", default)]
+    kind: Option<String>,
     #[serde(default = "default_scene")]
     scene: String,
     #[serde(default = "one")]
@@ -172,6 +175,9 @@ async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Byte
         Ok(body) => body,
         Err(e) => return error(StatusCode::BAD_REQUEST, format!("malformed session request: {e}")),
     };
+    if body.kind.as_deref().is_some_and(|k| k != "offer") {
+        return error(StatusCode::BAD_REQUEST, "expected an SDP offer (\"type\": \"offer\")");
+    }
     if body.sdp.len() > MAX_SDP_BYTES {
         return error(StatusCode::BAD_REQUEST, format!("SDP offer larger than {MAX_SDP_BYTES} bytes"));
     }

@@ -61,6 +61,14 @@ pub struct Args {
     /// Most concurrent viewers; more get HTTP 503 with Retry-After.
     #[arg(long, default_value_t = 64)]
     max_sessions: usize,
+    /// The master's farm listener (`HOST:PORT`): register there, take viewer sessions, frame
+    /// plans and worker results (proto v2) from the farm and send poses back. The results
+    /// listener then speaks the farm protocol instead of the interim framing.
+    #[arg(long, value_name = "HOST:PORT")]
+    master: Option<String>,
+    /// The composer's name in the master's `GET /v1/farm`.
+    #[arg(long, default_value = "composer")]
+    name: String,
 }
 
 fn parse_port_range(text: &str) -> Result<(u16, u16), String> {
@@ -95,12 +103,18 @@ pub fn run(args: Args) -> Result<()> {
         default_view: args.view,
         frame_budget: Duration::from_millis(args.deadline_ms),
         max_sessions: args.max_sessions,
+        master: args.master,
+        name: args.name,
     };
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the async runtime")?;
     runtime.block_on(async move {
         let composer = Composer::start(config).await?;
         println!("composer: signalling on http://{}/v1/sessions, worker results on {}", composer.http_addr(), composer.results_addr());
-        tokio::signal::ctrl_c().await.context("waiting for Ctrl-C")?;
+        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("waiting for SIGTERM")?;
+        tokio::select! {
+            r = tokio::signal::ctrl_c() => r.context("waiting for Ctrl-C")?,
+            _ = term.recv() => {}
+        }
         println!("composer: stopping");
         composer.shutdown().await;
         anyhow::Ok(())

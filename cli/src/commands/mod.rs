@@ -4,6 +4,7 @@ pub mod bake;
 pub mod bench;
 pub mod bench_encode;
 pub mod composer;
+pub mod up;
 pub mod bench_wire;
 pub mod bench_scheduler;
 pub mod bench_inolf;
