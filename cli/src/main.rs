@@ -2,7 +2,6 @@
 
 mod commands;
 mod progress;
-#[allow(dead_code)] // used by `nephele up`, which lands with the composer wiring
 mod supervise;
 
 use anyhow::Result;
@@ -42,9 +41,16 @@ enum Command {
     Dataset(commands::dataset::Command),
     /// Compare predicted images against ground truth: per-image and mean PSNR and SSIM.
     Eval(commands::eval::Args),
+    /// Train an i-NGP-style radiance field on a NeRF-synthetic dataset (CPU), save it, and
+    /// print the test PSNR/SSIM.
+    Train(commands::train::Args),
+    /// Render every pose of a transforms file with a trained asset to PNG (for `nephele eval`).
+    Render(commands::render::Args),
     /// Print performance figures (see BENCHMARKS.md).
     #[command(subcommand)]
     Bench(commands::bench::Command),
+    /// Run a composer: depth fusion, H.264 encoding and WebRTC streaming to viewers.
+    Composer(commands::composer::Args),
     /// Run a render worker: connect to a master and render the ray batches it sends.
     Worker(commands::worker::Args),
     /// Simulate the farm: the scheduler core (NEPHELE Algorithm 1) against baselines on
@@ -53,6 +59,22 @@ enum Command {
     /// Headless users over WebRTC against a running master: poses every 20 ms, frames parsed,
     /// per-user frame rate and pose-to-frame latency.
     Loadgen(commands::loadgen::Args),
+    /// Bake an i-NOLF asset (.nolf) from posed RGBA images: radiance field, density cubes,
+    /// perfect spatial hash, trained heads, diffuse cubes.
+    Bake(commands::bake::Args),
+    /// Run the master: HTTP API and signalling, the live scheduler, the farm listener.
+    ///
+    /// Workers (`nephele worker --master FARM_ADDR`) and the composer connect to
+    /// `--farm-listen`; browsers open `http://HTTP_ADDR/`. The master turns each session's
+    /// poses into ray batches (NEPHELE Algorithm 1), re-issues the batches of a worker that
+    /// dies or stalls, and tells the composer which results make up each frame; `GET /v1/farm`
+    /// shows workers, load, queues and per-user FPS. It prints `listening: http=ADDR
+    /// farm=ADDR` once both sockets listen. On SIGTERM or Ctrl-C it stops taking requests,
+    /// says goodbye to the workers and the composer, and exits 0.
+    Master(commands::master::Args),
+    /// Run the whole service locally: master, composer and render workers as child
+    /// processes; prints the URL to open; Ctrl-C stops everything.
+    Up(commands::up::Args),
 }
 
 fn main() -> std::process::ExitCode {
@@ -79,9 +101,15 @@ fn run(cli: Cli) -> Result<()> {
         Command::Dataset(cmd) => commands::dataset::run(cmd, &progress),
         Command::Eval(args) => commands::eval::run(args),
         Command::Bench(cmd) => commands::bench::run(cmd, &progress),
+        Command::Composer(args) => commands::composer::run(args),
         Command::Worker(args) => commands::worker::run(args, cli.threads),
         Command::Simulate(args) => commands::simulate::run(args, &progress),
         Command::Loadgen(args) => commands::loadgen::run(args, &progress),
+        Command::Bake(args) => commands::bake::run(args, &progress),
+        Command::Train(args) => commands::train::run(args, &progress),
+        Command::Render(args) => commands::render::run(args, &progress),
+        Command::Master(args) => commands::master::run(args),
+        Command::Up(args) => commands::up::run(args),
     }
 }
 

@@ -1,3 +1,20 @@
 //! `nephele-composer`: frame assembly, depth fusion, H.264 encoding and WebRTC streaming.
 //!
-//! Empty for now: it arrives with the composer and streaming work (issue 5).
+//! The composer is the last stage of a frame (DESIGN.md, "What the service does", step 5):
+//! workers send per-pixel results of object batches straight here; [`fusion`] gathers and
+//! composites them by depth, [`yuv`] converts the fused linear picture to BT.709 YUV 4:2:0,
+//! [`encode`] encodes it with OpenH264 in a low-latency IPPP configuration, and [`webrtc`]
+//! sends it on the viewer's video track while poses come back over an RTCDataChannel
+//! ([`pose`]). [`service`] is the thin network shell (HTTP signalling, the worker-results
+//! listener of [`wire`]) around these pure cores.
+
+pub mod client;
+pub mod encode;
+pub mod fusion;
+mod master_link;
+pub mod pose;
+pub mod service;
+pub mod testpattern;
+pub mod webrtc;
+pub mod wire;
+pub mod yuv;

@@ -123,6 +123,24 @@ pub fn all_pixels(camera: &Camera) -> Vec<u32> {
     (0..camera.width() * camera.height()).collect()
 }
 
+/// A full frame's results (pixels in [`all_pixels`] order) as an image the way datasets store
+/// them: sRGB-encoded colour with straight alpha (`linear_to_srgb(color / opacity)`). `None`
+/// if `results` does not hold `width * height` pixels.
+pub fn frame_to_image(width: u32, height: u32, results: &PixelResults) -> Option<crate::image::RgbaImage> {
+    let pixels = (0..results.len())
+        .map(|i| {
+            let a = results.opacity[i].clamp(0.0, 1.0);
+            if a > 0.0 {
+                let c = results.color[i].map(|v| crate::image::linear_to_srgb((v / a).clamp(0.0, 1.0)));
+                [c[0], c[1], c[2], a]
+            } else {
+                [0.0; 4]
+            }
+        })
+        .collect();
+    crate::image::RgbaImage::from_pixels(width, height, pixels).ok()
+}
+
 /// The reference path tracer as a farm kernel: ground truth, slow, and available before any
 /// neural asset is baked. Background is transparent so that objects can be fused by depth.
 #[derive(Debug)]
@@ -201,7 +219,7 @@ mod tests {
     #[test]
     fn out_of_image_pixels_are_rejected() {
         let (kernel, camera) = kernel_and_camera();
-        let err = kernel.render_pixels(&camera, &[0, 32 * 24]).unwrap_err();
+        let err = kernel.render_pixels(&camera, &[0, 32 * 24]).expect_err("out of image");
         assert_eq!(err, KernelError::PixelOutOfImage { index: 32 * 24, width: 32, height: 24 });
         assert!(kernel.render_pixels(&camera, &[u32::MAX]).is_err());
     }

@@ -19,7 +19,10 @@
 pub mod camera;
 pub mod dataset;
 pub mod image;
+pub mod inolf;
 pub mod kernel;
 pub mod metrics;
+pub mod ngp;
+pub mod nn;
 pub mod reference;
 pub mod scenes;

@@ -56,6 +56,10 @@ pub enum OpenError {
     /// No composer (or no worker) is available.
     #[error("service unavailable: {0}")]
     Unavailable(String),
+    /// Admission control refused the session after all (a user became starved between the
+    /// [`FarmBackend::admission`] check and the open): 503 with `Retry-After`.
+    #[error("the farm is saturated (a user is starved); retry later")]
+    Refused { retry_after: Duration },
 }
 
 /// What the HTTP layer needs from the farm: the live master implements it over its TCP links
@@ -71,7 +75,7 @@ pub trait FarmBackend: Send + Sync + 'static {
     /// The session ended (closed by its client or dropped by the service).
     fn close(&self, session_id: String) -> BoxFuture<()>;
     /// The scheduler's state for `GET /v1/farm`.
-    fn farm_state(&self) -> serde_json::Value;
+    fn farm_state(&self) -> BoxFuture<serde_json::Value>;
 }
 
 /// Shared state of the HTTP handlers.
@@ -134,6 +138,9 @@ async fn config(State(state): State<Arc<AppState>>) -> Response {
 #[serde(deny_unknown_fields)]
 struct OpenBody {
     sdp: String,
+    /// `"offer"` where given (WebRTC's `RTCSessionDescription` JSON carries it).
+    #[serde(rename = "type", default)]
+    kind: Option<String>,
     #[serde(default = "default_scene")]
     scene: String,
     #[serde(default = "one")]
@@ -168,6 +175,9 @@ async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Byte
         Ok(body) => body,
         Err(e) => return error(StatusCode::BAD_REQUEST, format!("malformed session request: {e}")),
     };
+    if body.kind.as_deref().is_some_and(|k| k != "offer") {
+        return error(StatusCode::BAD_REQUEST, "expected an SDP offer (\"type\": \"offer\")");
+    }
     if body.sdp.len() > MAX_SDP_BYTES {
         return error(StatusCode::BAD_REQUEST, format!("SDP offer larger than {MAX_SDP_BYTES} bytes"));
     }
@@ -191,11 +201,8 @@ async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Byte
     };
     let view = view.clone();
     if let Admission::Refuse { retry_after } = state.backend.admission() {
-        let seconds = retry_after.as_secs_f64().ceil().max(1.0) as u64;
-        let mut response = error(StatusCode::SERVICE_UNAVAILABLE, "the farm is saturated (a user is starved); retry later");
-        response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(seconds));
-        tracing::info!(retry_after_s = seconds, "session refused by admission control");
-        return response;
+        tracing::info!(retry_after_s = retry_after.as_secs_f64(), "session refused by admission control");
+        return refused(retry_after);
     }
     let mut secret = [0u8; 16];
     if let Err(e) = getrandom::fill(&mut secret) {
@@ -211,14 +218,22 @@ async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Byte
         }
         Err(e) => {
             state.sessions().drop_session(&id);
-            let status = match e {
-                OpenError::BadOffer(_) => StatusCode::BAD_REQUEST,
-                OpenError::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
-            };
             tracing::warn!(session = %id, error = %e, "session not opened");
-            error(status, e)
+            match e {
+                OpenError::BadOffer(_) => error(StatusCode::BAD_REQUEST, e),
+                OpenError::Unavailable(_) => error(StatusCode::SERVICE_UNAVAILABLE, e),
+                OpenError::Refused { retry_after } => refused(retry_after),
+            }
         }
     }
+}
+
+/// 503 with `Retry-After` in whole seconds (at least 1).
+fn refused(retry_after: Duration) -> Response {
+    let seconds = retry_after.as_secs_f64().ceil().max(1.0) as u64;
+    let mut response = error(StatusCode::SERVICE_UNAVAILABLE, "the farm is saturated (a user is starved); retry later");
+    response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(seconds));
+    response
 }
 
 async fn list_sessions(State(state): State<Arc<AppState>>) -> Response {
@@ -250,7 +265,7 @@ async fn close_session(State(state): State<Arc<AppState>>, Path(id): Path<String
 
 async fn farm(State(state): State<Arc<AppState>>) -> Response {
     let sessions = state.sessions().len();
-    let mut body = state.backend.farm_state();
+    let mut body = state.backend.farm_state().await;
     if let Some(object) = body.as_object_mut() {
         object.insert("sessions_open".into(), json!(sessions));
     }
@@ -290,15 +305,21 @@ mod tests {
         fn open(&self, _id: String, _request: SessionRequest, offer: String) -> BoxFuture<Result<String, OpenError>> {
             self.opened.fetch_add(1, Ordering::SeqCst);
             Box::pin(async move {
-                if offer.contains("m=video") { Ok("v=0 answer".to_string()) } else { Err(OpenError::BadOffer("no video section".into())) }
+                if offer.contains("starve") {
+                    Err(OpenError::Refused { retry_after: Duration::from_millis(2500) })
+                } else if offer.contains("m=video") {
+                    Ok("v=0 answer".to_string())
+                } else {
+                    Err(OpenError::BadOffer("no video section".into()))
+                }
             })
         }
         fn close(&self, _id: String) -> BoxFuture<()> {
             self.closed.fetch_add(1, Ordering::SeqCst);
             Box::pin(async {})
         }
-        fn farm_state(&self) -> serde_json::Value {
-            json!({ "workers": [] })
+        fn farm_state(&self) -> BoxFuture<serde_json::Value> {
+            Box::pin(async { json!({ "workers": [] }) })
         }
     }
 
@@ -383,6 +404,12 @@ mod tests {
         assert_eq!(headers.get(header::RETRY_AFTER).and_then(|v| v.to_str().ok()), Some("2"));
         assert!(state.sessions().is_empty());
         assert_eq!(farm.opened.load(Ordering::SeqCst), 0);
+        // Refused by the scheduler itself (starvation began after the check): the same answer.
+        farm.refuse.store(false, Ordering::SeqCst);
+        let (status, headers, body) = call(&app, post(r#"{"sdp": "v=0\r\nm=video starve\r\n"}"#)).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+        assert_eq!(headers.get(header::RETRY_AFTER).and_then(|v| v.to_str().ok()), Some("3"));
+        assert!(state.sessions().is_empty());
     }
 
     #[tokio::test]

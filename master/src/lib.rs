@@ -1,7 +1,18 @@
-//! `nephele-master`: the control plane. HTTP API and signalling (axum), sessions, and (with
-//! the scheduler work of issue 4) the live loop that drives the pure scheduler core over the
-//! workers' TCP links.
+//! `nephele-master`: the control plane. HTTP API and signalling (axum), sessions, the scene
+//! catalog, and the live loop that drives the pure scheduler core (`nephele-scheduler`) over
+//! the workers' and the composer's TCP links.
+//!
+//! * [`http`]: the HTTP API and the [`http::FarmBackend`] trait the farm implements.
+//! * [`sessions`]: the HTTP session table (ids, tokens, validated requests).
+//! * [`scenes`]: the scene catalog (objects placed in the world, first views).
+//! * [`farm`]: the actor that owns the scheduler, and [`farm::Farm`], its handle.
+//! * [`links`]: the farm listener and one task per worker or composer connection.
+//! * [`service`]: both listeners and graceful shutdown: `nephele master`.
 
 pub mod client_files;
+pub mod farm;
 pub mod http;
+pub mod links;
+pub mod scenes;
+pub mod service;
 pub mod sessions;

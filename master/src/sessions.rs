@@ -55,7 +55,7 @@ impl SessionRequest {
         if !(1..=MAX_VIEWS).contains(&self.views) {
             return Err(RequestError::Views(self.views));
         }
-        let side_ok = |s: u32| (MIN_VIEW_SIDE..=MAX_VIEW_SIDE).contains(&s) && s % 2 == 0;
+        let side_ok = |s: u32| (MIN_VIEW_SIDE..=MAX_VIEW_SIDE).contains(&s) && s.is_multiple_of(2);
         if !(side_ok(self.width) && side_ok(self.height)) {
             return Err(RequestError::Size(self.width, self.height));
         }

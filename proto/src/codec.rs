@@ -53,6 +53,13 @@ pub fn encode_payload_unchecked<B: BufMut>(message: &Message, out: &mut B) -> Re
         Message::Cancel(m) => body(kind, m, out),
         Message::Goodbye(m) => body(kind, m, out),
         Message::Error(m) => body(kind, m, out),
+        Message::ComposerRegister(m) => body(kind, m, out),
+        Message::OpenStream(m) => body(kind, m, out),
+        Message::StreamOpened(m) => body(kind, m, out),
+        Message::ClientPose(m) => body(kind, m, out),
+        Message::FramePlan(m) => body(kind, m, out),
+        Message::ReleaseTask(m) => body(kind, m, out),
+        Message::CloseStream(m) => body(kind, m, out),
     }
 }
 
@@ -73,6 +80,13 @@ pub fn decode_payload(payload: &[u8]) -> Result<Incoming, ProtoError> {
         MessageKind::Cancel => Message::Cancel(from_body(kind, rest)?),
         MessageKind::Goodbye => Message::Goodbye(from_body(kind, rest)?),
         MessageKind::Error => Message::Error(from_body(kind, rest)?),
+        MessageKind::ComposerRegister => Message::ComposerRegister(from_body(kind, rest)?),
+        MessageKind::OpenStream => Message::OpenStream(from_body(kind, rest)?),
+        MessageKind::StreamOpened => Message::StreamOpened(from_body(kind, rest)?),
+        MessageKind::ClientPose => Message::ClientPose(from_body(kind, rest)?),
+        MessageKind::FramePlan => Message::FramePlan(from_body(kind, rest)?),
+        MessageKind::ReleaseTask => Message::ReleaseTask(from_body(kind, rest)?),
+        MessageKind::CloseStream => Message::CloseStream(from_body(kind, rest)?),
     };
     Ok(match validate::message(&message) {
         Ok(()) => Ok(message),

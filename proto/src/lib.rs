@@ -31,7 +31,8 @@ pub use messages::*;
 /// Magic of the [`Hello`] frame.
 pub const MAGIC: [u8; 4] = *b"NPHL";
 /// Version of everything after the `Hello`. Peers of different versions refuse each other.
-pub const PROTOCOL_VERSION: u16 = 1;
+/// 2: `BatchIds::task_id` and the composer ⇄ master messages.
+pub const PROTOCOL_VERSION: u16 = 2;
 
 /// The [`ErrorMessage`] that tells a peer why its connection is being closed.
 pub fn error_message(error: &ProtoError) -> Message {

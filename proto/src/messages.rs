@@ -16,6 +16,13 @@
 //! | [`Cancel`] | master → worker | drop queued batches (of a batch, frame or session) |
 //! | [`Goodbye`] | any → peer | orderly close; a worker lists the batches it hands back |
 //! | [`ErrorMessage`] | any → peer | a protocol error, sent (best effort) before closing |
+//! | [`ComposerRegister`] | composer → master | after the handshake: name and the address workers send results to; answered by [`Registered`] |
+//! | [`OpenStream`] | master → composer | a client's SDP offer for a new session |
+//! | [`StreamOpened`] | composer → master | the SDP answer (or why there is none) |
+//! | [`ClientPose`] | composer → master | one pose from a client's data channel |
+//! | [`FramePlan`] | master → composer | a frame is complete: which task results make up each view |
+//! | [`ReleaseTask`] | master → composer | a task's results are no longer needed |
+//! | [`CloseStream`] | master ⇄ composer | a session ended (closed by its client, or its peer vanished) |
 
 use std::fmt;
 
@@ -123,10 +130,17 @@ pub struct LoadReport {
 }
 
 /// Identifies a batch and the frame it belongs to; repeated in every message about it.
+///
+/// With shared rays one task (one object seen from one camera) feeds the frames of several
+/// views and sessions: the composer files results by `task_id` and a [`FramePlan`] names the
+/// tasks of each view. `session_id`, `frame_id` and `view_index` then name the first frame
+/// the batch feeds (for logs and [`CancelTarget`]s).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
 pub struct BatchIds {
     /// Unique per master; a re-issued batch keeps its id.
     pub batch_id: u64,
+    /// The scheduler's task the batch is a part of (unique per master).
+    pub task_id: u64,
     /// The user session (one user, one stream).
     pub session_id: u64,
     /// The frame of that session.
@@ -273,6 +287,99 @@ pub struct ErrorMessage {
     pub message: String,
 }
 
+/// A composer introduces itself to the master (after the handshake). The master answers
+/// with [`Registered`] (its `worker_id` is the composer's id) and names `results_address`
+/// in every [`RayBatch`] it sends, so that workers deliver their results there.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ComposerRegister {
+    /// For logs and `GET /v1/farm`: `[A-Za-z0-9._-]`, 1 to 64 bytes.
+    pub name: String,
+    /// `host:port` where the composer accepts worker connections.
+    pub results_address: String,
+}
+
+/// Master → composer: a client asks for a stream. The composer answers with
+/// [`StreamOpened`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OpenStream {
+    /// The scheduler's session id; every later message about the session carries it.
+    pub session_id: u64,
+    /// The public session id of the HTTP API (`[A-Za-z0-9._-]`, 1 to 64 bytes), for logs.
+    pub session_name: String,
+    /// The client's SDP offer (at most [`crate::validate::MAX_SDP_LEN`] bytes).
+    pub offer_sdp: String,
+    /// Views side by side in the video (1 screen, 2 headset, N quilt; 1 to 64).
+    pub views: u32,
+    /// Size of one view, pixels.
+    pub width: u32,
+    pub height: u32,
+    pub target_fps: f32,
+}
+
+/// Composer → master: the answer to an [`OpenStream`]: the SDP answer, or why the offer was
+/// refused (malformed SDP, no codec in common).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StreamOpened {
+    pub session_id: u64,
+    pub answer: Result<String, String>,
+}
+
+/// Composer → master: one pose a client sent over its data channel (already checked by the
+/// composer: size, magic, rate), one camera per view.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ClientPose {
+    pub session_id: u64,
+    /// The client's sequence number (wraps).
+    pub sequence: u32,
+    /// The client's clock (`performance.now()`, ms), echoed back for pose-to-frame latency.
+    pub client_time_ms: f64,
+    /// 1 to [`crate::validate::MAX_VIEWS`] views.
+    pub views: Vec<WireCamera>,
+}
+
+/// One object in one view of a frame, and the task whose results fill it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct PlanPart {
+    pub view: u32,
+    pub task_id: u64,
+    pub object_id: u64,
+}
+
+/// Master → composer: a frame of a session is complete (every batch of every task it needs
+/// has been rendered and delivered). The composer fuses the parts of each view by depth,
+/// front to back; a part whose results are missing at `deadline_unix_us` is filled from the
+/// previous frame. A view with no part shows nothing (no object in view).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FramePlan {
+    pub session_id: u64,
+    pub frame_id: u64,
+    /// The [`ClientPose::sequence`] and client time of the pose the frame was rendered for.
+    pub pose_sequence: u32,
+    pub client_time_ms: f64,
+    /// Size of one view, pixels.
+    pub width: u32,
+    pub height: u32,
+    /// Views in the frame (1 to [`crate::validate::MAX_VIEWS`]).
+    pub views: u32,
+    pub parts: Vec<PlanPart>,
+    /// Microseconds since the Unix epoch (master's clock); `None` for no deadline.
+    pub deadline_unix_us: Option<u64>,
+}
+
+/// Master → composer: no frame needs this task's results any more.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ReleaseTask {
+    pub task_id: u64,
+}
+
+/// Either way: a session ended (master: its client closed it or the service dropped it;
+/// composer: the peer connection failed or the client vanished).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CloseStream {
+    pub session_id: u64,
+    pub reason: String,
+}
+
 /// Every message. The frame's first payload byte is [`MessageKind::tag`].
 #[derive(Debug, Clone, PartialEq)]
 pub enum Message {
@@ -287,6 +394,13 @@ pub enum Message {
     Cancel(Cancel),
     Goodbye(Goodbye),
     Error(ErrorMessage),
+    ComposerRegister(ComposerRegister),
+    OpenStream(OpenStream),
+    StreamOpened(StreamOpened),
+    ClientPose(ClientPose),
+    FramePlan(FramePlan),
+    ReleaseTask(ReleaseTask),
+    CloseStream(CloseStream),
 }
 
 /// The type of a message, as its one-byte tag on the wire.
@@ -303,10 +417,17 @@ pub enum MessageKind {
     Cancel,
     Goodbye,
     Error,
+    ComposerRegister,
+    OpenStream,
+    StreamOpened,
+    ClientPose,
+    FramePlan,
+    ReleaseTask,
+    CloseStream,
 }
 
 impl MessageKind {
-    pub const ALL: [MessageKind; 11] = [
+    pub const ALL: [MessageKind; 18] = [
         MessageKind::Hello,
         MessageKind::Register,
         MessageKind::Registered,
@@ -318,6 +439,13 @@ impl MessageKind {
         MessageKind::Cancel,
         MessageKind::Goodbye,
         MessageKind::Error,
+        MessageKind::ComposerRegister,
+        MessageKind::OpenStream,
+        MessageKind::StreamOpened,
+        MessageKind::ClientPose,
+        MessageKind::FramePlan,
+        MessageKind::ReleaseTask,
+        MessageKind::CloseStream,
     ];
 
     /// Wire tag (0 is never used, so a zeroed buffer is not a message).
@@ -334,6 +462,13 @@ impl MessageKind {
             MessageKind::Cancel => 9,
             MessageKind::Goodbye => 10,
             MessageKind::Error => 11,
+            MessageKind::ComposerRegister => 12,
+            MessageKind::OpenStream => 13,
+            MessageKind::StreamOpened => 14,
+            MessageKind::ClientPose => 15,
+            MessageKind::FramePlan => 16,
+            MessageKind::ReleaseTask => 17,
+            MessageKind::CloseStream => 18,
         }
     }
 
@@ -354,6 +489,13 @@ impl MessageKind {
             MessageKind::Cancel => "Cancel",
             MessageKind::Goodbye => "Goodbye",
             MessageKind::Error => "Error",
+            MessageKind::ComposerRegister => "ComposerRegister",
+            MessageKind::OpenStream => "OpenStream",
+            MessageKind::StreamOpened => "StreamOpened",
+            MessageKind::ClientPose => "ClientPose",
+            MessageKind::FramePlan => "FramePlan",
+            MessageKind::ReleaseTask => "ReleaseTask",
+            MessageKind::CloseStream => "CloseStream",
         }
     }
 }
@@ -378,6 +520,13 @@ impl Message {
             Message::Cancel(_) => MessageKind::Cancel,
             Message::Goodbye(_) => MessageKind::Goodbye,
             Message::Error(_) => MessageKind::Error,
+            Message::ComposerRegister(_) => MessageKind::ComposerRegister,
+            Message::OpenStream(_) => MessageKind::OpenStream,
+            Message::StreamOpened(_) => MessageKind::StreamOpened,
+            Message::ClientPose(_) => MessageKind::ClientPose,
+            Message::FramePlan(_) => MessageKind::FramePlan,
+            Message::ReleaseTask(_) => MessageKind::ReleaseTask,
+            Message::CloseStream(_) => MessageKind::CloseStream,
         }
     }
 
@@ -415,4 +564,11 @@ from_variant!(
     Cancel => Cancel,
     Goodbye => Goodbye,
     ErrorMessage => Error,
+    ComposerRegister => ComposerRegister,
+    OpenStream => OpenStream,
+    StreamOpened => StreamOpened,
+    ClientPose => ClientPose,
+    FramePlan => FramePlan,
+    ReleaseTask => ReleaseTask,
+    CloseStream => CloseStream,
 );

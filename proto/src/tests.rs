@@ -13,8 +13,9 @@ use crate::*;
 // Strategies
 
 fn ids() -> impl Strategy<Value = BatchIds> {
-    (any::<u64>(), any::<u64>(), any::<u64>(), 0u32..64)
-        .prop_map(|(batch_id, session_id, frame_id, view_index)| BatchIds { batch_id, session_id, frame_id, view_index })
+    (any::<u64>(), any::<u64>(), any::<u64>(), any::<u64>(), 0u32..64).prop_map(
+        |(batch_id, task_id, session_id, frame_id, view_index)| BatchIds { batch_id, task_id, session_id, frame_id, view_index },
+    )
 }
 
 fn token(max: usize) -> impl Strategy<Value = String> {
@@ -99,7 +100,49 @@ fn batch_result() -> impl Strategy<Value = BatchResult> {
     )
 }
 
+/// The messages between master and composer.
+fn composer_message() -> impl Strategy<Value = Message> {
+    let sdp = || proptest::string::string_regex("v=0\r\n.{0,60}").expect("regex");
+    prop_oneof![
+        (token(64), address()).prop_map(|(name, results_address)| Message::ComposerRegister(ComposerRegister { name, results_address })),
+        (any::<u64>(), token(64), sdp(), 1u32..=64, 1u32..=256, 1u32..=256, 1.0f32..240.0).prop_map(
+            |(session_id, session_name, offer_sdp, views, width, height, target_fps)| {
+                Message::OpenStream(OpenStream { session_id, session_name, offer_sdp, views, width, height, target_fps })
+            }
+        ),
+        (any::<u64>(), prop_oneof![sdp().prop_map(Ok), text().prop_map(Err)])
+            .prop_map(|(session_id, answer)| Message::StreamOpened(StreamOpened { session_id, answer })),
+        (any::<u64>(), any::<u32>(), -1e9f64..1e9, prop::collection::vec(camera(), 1..4)).prop_map(
+            |(session_id, sequence, client_time_ms, views)| Message::ClientPose(ClientPose { session_id, sequence, client_time_ms, views })
+        ),
+        (any::<u64>(), any::<u64>(), any::<u32>(), 0.0f64..1e9, 1u32..300, 1u32..300, 1u32..=64, any::<Option<u64>>())
+            .prop_flat_map(|(session_id, frame_id, pose_sequence, client_time_ms, width, height, views, deadline_unix_us)| {
+                let part = (0..views, any::<u64>(), any::<u64>()).prop_map(|(view, task_id, object_id)| PlanPart { view, task_id, object_id });
+                prop::collection::vec(part, 0..8).prop_map(move |parts| {
+                    Message::FramePlan(FramePlan {
+                        session_id,
+                        frame_id,
+                        pose_sequence,
+                        client_time_ms,
+                        width,
+                        height,
+                        views,
+                        parts,
+                        deadline_unix_us,
+                    })
+                })
+            }),
+        any::<u64>().prop_map(|task_id| Message::ReleaseTask(ReleaseTask { task_id })),
+        (any::<u64>(), text()).prop_map(|(session_id, reason)| Message::CloseStream(CloseStream { session_id, reason })),
+    ]
+}
+
 fn message() -> impl Strategy<Value = Message> {
+    prop_oneof![3 => worker_message(), 1 => composer_message()]
+}
+
+/// The messages between master, workers and tools.
+fn worker_message() -> impl Strategy<Value = Message> {
     let role = prop_oneof![Just(Role::Master), Just(Role::Worker), Just(Role::Composer), Just(Role::Tool)];
     prop_oneof![
         role.prop_map(|r| Message::Hello(Hello::new(r))),
@@ -160,7 +203,7 @@ fn good_camera() -> WireCamera {
 
 fn good_batch() -> RayBatch {
     RayBatch {
-        ids: BatchIds { batch_id: 7, session_id: 3, frame_id: 11, view_index: 1 },
+        ids: BatchIds { batch_id: 7, task_id: 5, session_id: 3, frame_id: 11, view_index: 1 },
         asset_id: "diffuse".into(),
         camera: good_camera(),
         pixels: (0..64 * 48).step_by(7).collect(),
@@ -172,7 +215,7 @@ fn good_batch() -> RayBatch {
 fn good_result(n: usize) -> BatchResult {
     let pixels: Vec<u32> = (0..n as u32).map(|i| (i * 13) % (640 * 480)).collect();
     BatchResult {
-        ids: BatchIds { batch_id: 9, session_id: 1, frame_id: 2, view_index: 0 },
+        ids: BatchIds { batch_id: 9, task_id: 8, session_id: 1, frame_id: 2, view_index: 0 },
         worker_id: 4,
         width: 640,
         height: 480,
@@ -387,7 +430,7 @@ fn the_frame_limit_is_configurable_both_ways() {
 
 #[test]
 fn unknown_message_types_and_empty_frames_are_fatal() {
-    for tag in [0u8, 12, 99, 255] {
+    for tag in [0u8, 19, 99, 255] {
         let err = decode_one(&raw_frame(tag, &[1, 2, 3])).expect_err("unknown");
         assert!(matches!(err, ProtoError::UnknownMessageType(t) if t == tag));
         assert!(err.is_fatal());
@@ -410,8 +453,8 @@ fn wrong_versions_magic_and_roles_are_refused() {
     assert_eq!(err.code(), ErrorCode::VersionMismatch);
     assert!(matches!(decode_one(&hello(&MAGIC, 0, 2)), Err(ProtoError::VersionMismatch { theirs: 0, .. })));
     assert!(matches!(decode_one(&hello(b"HTTP", 1, 2)), Err(ProtoError::BadMagic(m)) if &m == b"HTTP"));
-    assert!(matches!(decode_one(&hello(&MAGIC, 1, 9)), Err(ProtoError::UnknownRole(9))));
-    let mut long = hello(&MAGIC, 1, 2);
+    assert!(matches!(decode_one(&hello(&MAGIC, PROTOCOL_VERSION, 9)), Err(ProtoError::UnknownRole(9))));
+    let mut long = hello(&MAGIC, PROTOCOL_VERSION, 2);
     long.push(0);
     long[0] += 1;
     assert!(matches!(decode_one(&long), Err(ProtoError::TrailingBytes { kind: MessageKind::Hello, count: 1 })));
@@ -543,6 +586,113 @@ fn names_asset_ids_and_addresses_are_checked() {
     ] {
         assert!(validate::message(&bad).is_err(), "{bad:?}");
     }
+}
+
+fn good_open() -> OpenStream {
+    OpenStream {
+        session_id: 4,
+        session_name: "s1-abc123".into(),
+        offer_sdp: "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 96\r\n".into(),
+        views: 2,
+        width: 640,
+        height: 480,
+        target_fps: 30.0,
+    }
+}
+
+fn good_plan() -> FramePlan {
+    FramePlan {
+        session_id: 4,
+        frame_id: 12,
+        pose_sequence: 99,
+        client_time_ms: 1234.5,
+        width: 64,
+        height: 48,
+        views: 2,
+        parts: vec![PlanPart { view: 0, task_id: 3, object_id: 1 }, PlanPart { view: 1, task_id: 4, object_id: 1 }],
+        deadline_unix_us: Some(1_700_000_000_000_000),
+    }
+}
+
+#[test]
+fn composer_messages_round_trip_and_bad_fields_are_rejected() {
+    let pose = ClientPose { session_id: 4, sequence: 7, client_time_ms: 16.5, views: vec![good_camera(), good_camera()] };
+    let good = [
+        Message::ComposerRegister(ComposerRegister { name: "composer-0".into(), results_address: "127.0.0.1:7100".into() }),
+        Message::OpenStream(good_open()),
+        Message::StreamOpened(StreamOpened { session_id: 4, answer: Ok("v=0\r\n".into()) }),
+        Message::StreamOpened(StreamOpened { session_id: 4, answer: Err("no H.264 in the offer".into()) }),
+        Message::ClientPose(pose.clone()),
+        Message::FramePlan(good_plan()),
+        Message::FramePlan(FramePlan { parts: vec![], deadline_unix_us: None, ..good_plan() }),
+        Message::ReleaseTask(ReleaseTask { task_id: u64::MAX }),
+        Message::CloseStream(CloseStream { session_id: 4, reason: "the client closed it".into() }),
+    ];
+    for message in &good {
+        assert_eq!(decode_one(&frame_of(message)).expect("decodes"), Ok(message.clone()), "{message:?}");
+    }
+
+    let huge_sdp = format!("v=0{}", "a".repeat(validate::MAX_SDP_LEN));
+    let bad: Vec<(Message, &str)> = vec![
+        (Message::ComposerRegister(ComposerRegister { name: "a/b".into(), results_address: "127.0.0.1:1".into() }), "composer name"),
+        (Message::ComposerRegister(ComposerRegister { name: "c".into(), results_address: "nowhere".into() }), "address"),
+        (Message::OpenStream(OpenStream { offer_sdp: huge_sdp.clone(), ..good_open() }), "offer_sdp"),
+        (Message::OpenStream(OpenStream { offer_sdp: String::new(), ..good_open() }), "offer_sdp"),
+        (Message::OpenStream(OpenStream { session_name: "../x".into(), ..good_open() }), "session name"),
+        (Message::OpenStream(OpenStream { views: 0, ..good_open() }), "views"),
+        (Message::OpenStream(OpenStream { views: 65, ..good_open() }), "views"),
+        (Message::OpenStream(OpenStream { views: 64, width: 4096, ..good_open() }), "image size"),
+        (Message::OpenStream(OpenStream { width: 0, ..good_open() }), "image size"),
+        (Message::OpenStream(OpenStream { target_fps: f32::NAN, ..good_open() }), "target_fps"),
+        (Message::OpenStream(OpenStream { target_fps: 0.0, ..good_open() }), "target_fps"),
+        (Message::StreamOpened(StreamOpened { session_id: 1, answer: Ok(huge_sdp) }), "answer sdp"),
+        (Message::StreamOpened(StreamOpened { session_id: 1, answer: Err("x".repeat(5000)) }), "answer error"),
+        (Message::ClientPose(ClientPose { views: vec![], ..pose.clone() }), "views"),
+        (Message::ClientPose(ClientPose { views: vec![good_camera(); 65], ..pose.clone() }), "views"),
+        (Message::ClientPose(ClientPose { client_time_ms: f64::NAN, ..pose.clone() }), "client_time_ms"),
+        (
+            Message::ClientPose(ClientPose {
+                views: vec![good_camera(), WireCamera { view: [f32::INFINITY; 16], ..good_camera() }],
+                ..pose.clone()
+            }),
+            "camera view matrix",
+        ),
+        (Message::ClientPose(ClientPose { views: vec![WireCamera { width: 0, ..good_camera() }], ..pose }), "image size"),
+        (
+            Message::FramePlan(FramePlan { parts: vec![PlanPart { view: 2, task_id: 1, object_id: 1 }], ..good_plan() }),
+            "part view",
+        ),
+        (Message::FramePlan(FramePlan { views: 0, parts: vec![], ..good_plan() }), "views"),
+        (Message::FramePlan(FramePlan { height: 16385, ..good_plan() }), "image size"),
+        (Message::FramePlan(FramePlan { client_time_ms: f64::INFINITY, ..good_plan() }), "client_time_ms"),
+        (Message::CloseStream(CloseStream { session_id: 1, reason: "r".repeat(5000) }), "reason"),
+    ];
+    for (message, field) in bad {
+        // We refuse to send it...
+        let err = encode_frame(&message, &mut Vec::new(), &cfg()).expect_err("invalid");
+        assert!(!err.is_fatal(), "{message:?}");
+        // ...and a peer that sends it anyway gets it rejected, the stream still in sync.
+        let mut bytes = Vec::new();
+        encode_frame_unchecked(&message, &mut bytes, &cfg()).expect("unchecked");
+        let r = rejected(&bytes);
+        assert_eq!(r.kind, message.kind());
+        let text = r.error.to_string();
+        assert!(text.contains(field), "{field:?} not in {text:?} for {message:?}");
+    }
+}
+
+#[test]
+fn batch_ids_carry_the_task() {
+    let batch = good_batch();
+    let Ok(Message::RayBatch(decoded)) = decode_one(&frame_of(&Message::RayBatch(batch.clone()))).expect("decodes") else {
+        panic!("a ray batch")
+    };
+    assert_eq!(decoded.ids.task_id, 5);
+    let result = good_result(3);
+    let Ok(Message::BatchResult(decoded)) = decode_one(&frame_of(&Message::BatchResult(result))).expect("decodes") else {
+        panic!("a batch result")
+    };
+    assert_eq!(decoded.ids.task_id, 8);
 }
 
 #[test]

@@ -4,8 +4,8 @@
 
 use crate::error::ValidationError;
 use crate::messages::{
-    BatchDone, BatchFailed, BatchResult, ErrorMessage, Goodbye, LoadReport, Message, RayBatch, Register, Registered,
-    WireCamera,
+    BatchDone, BatchFailed, BatchResult, ClientPose, CloseStream, ComposerRegister, ErrorMessage, FramePlan, Goodbye,
+    LoadReport, Message, OpenStream, RayBatch, Register, Registered, StreamOpened, WireCamera,
 };
 
 /// Largest image side (as `nephele_render::camera`).
@@ -29,6 +29,16 @@ pub const MAX_RETURNED_BATCHES: usize = 1 << 16;
 pub const MAX_THREADS: u32 = 1 << 16;
 /// Load report interval bounds, milliseconds.
 pub const LOAD_REPORT_INTERVAL_MS: (u32, u32) = (10, 60_000);
+/// Longest SDP offer or answer: 64 KiB (a browser's offer is a few kilobytes).
+pub const MAX_SDP_LEN: usize = 64 * 1024;
+/// Most views of one session (a 45-view quilt fits).
+pub const MAX_VIEWS: u32 = 64;
+/// Longest session name (the HTTP API's public session id).
+pub const MAX_SESSION_NAME_LEN: usize = 64;
+/// Highest target frame rate of a stream.
+pub const MAX_TARGET_FPS: f32 = 240.0;
+/// Most parts (object x view) in one frame plan.
+pub const MAX_PLAN_PARTS: usize = 1 << 16;
 
 /// Checks every field of `message`.
 pub fn message(message: &Message) -> Result<(), ValidationError> {
@@ -44,7 +54,74 @@ pub fn message(message: &Message) -> Result<(), ValidationError> {
         Message::BatchFailed(m) => batch_failed(m),
         Message::Goodbye(m) => goodbye(m),
         Message::Error(m) => error_message(m),
+        Message::ComposerRegister(m) => composer_register(m),
+        Message::OpenStream(m) => open_stream(m),
+        Message::StreamOpened(m) => stream_opened(m),
+        Message::ClientPose(m) => client_pose(m),
+        Message::FramePlan(m) => frame_plan(m),
+        Message::ReleaseTask(_) => Ok(()),
+        Message::CloseStream(m) => close_stream(m),
     }
+}
+
+fn composer_register(m: &ComposerRegister) -> Result<(), ValidationError> {
+    token("composer name", &m.name, MAX_NAME_LEN)?;
+    address(&m.results_address)
+}
+
+fn open_stream(m: &OpenStream) -> Result<(), ValidationError> {
+    token("session name", &m.session_name, MAX_SESSION_NAME_LEN)?;
+    count("offer_sdp", m.offer_sdp.len(), 1, MAX_SDP_LEN)?;
+    views(m.views)?;
+    image_size(m.width, m.height)?;
+    // The views travel side by side in one video frame.
+    image_size(m.views.saturating_mul(m.width), m.height)?;
+    if !(m.target_fps.is_finite() && m.target_fps > 0.0 && m.target_fps <= MAX_TARGET_FPS) {
+        return Err(ValidationError::OutOfRange { field: "target_fps", value: f64::from(m.target_fps), range: "(0, 240]" });
+    }
+    Ok(())
+}
+
+fn stream_opened(m: &StreamOpened) -> Result<(), ValidationError> {
+    match &m.answer {
+        Ok(sdp) => count("answer sdp", sdp.len(), 1, MAX_SDP_LEN),
+        Err(reason) => text("answer error", reason),
+    }
+}
+
+fn client_pose(m: &ClientPose) -> Result<(), ValidationError> {
+    finite("client_time_ms", m.client_time_ms)?;
+    count("views", m.views.len(), 1, MAX_VIEWS as usize)?;
+    m.views.iter().try_for_each(camera)
+}
+
+fn frame_plan(m: &FramePlan) -> Result<(), ValidationError> {
+    finite("client_time_ms", m.client_time_ms)?;
+    image_size(m.width, m.height)?;
+    views(m.views)?;
+    count("parts", m.parts.len(), 0, MAX_PLAN_PARTS)?;
+    if let Some(part) = m.parts.iter().find(|p| p.view >= m.views) {
+        return Err(ValidationError::OutOfRange { field: "part view", value: f64::from(part.view), range: "< views" });
+    }
+    Ok(())
+}
+
+fn close_stream(m: &CloseStream) -> Result<(), ValidationError> {
+    text("reason", &m.reason)
+}
+
+fn views(n: u32) -> Result<(), ValidationError> {
+    if !(1..=MAX_VIEWS).contains(&n) {
+        return Err(ValidationError::OutOfRange { field: "views", value: f64::from(n), range: "1..=64" });
+    }
+    Ok(())
+}
+
+fn finite(field: &'static str, value: f64) -> Result<(), ValidationError> {
+    if !value.is_finite() {
+        return Err(ValidationError::NonFinite { field });
+    }
+    Ok(())
 }
 
 fn register(m: &Register) -> Result<(), ValidationError> {

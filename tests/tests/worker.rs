@@ -305,7 +305,7 @@ fn batches(frame: &Frame, count: usize, composer: SocketAddr) -> Vec<RayBatch> {
     all.chunks(total.div_ceil(count))
         .enumerate()
         .map(|(i, chunk)| RayBatch {
-            ids: BatchIds { batch_id: i as u64 + 1, session_id: 7, frame_id: 1, view_index: 0 },
+            ids: BatchIds { batch_id: i as u64 + 1, task_id: 1, session_id: 7, frame_id: 1, view_index: 0 },
             asset_id: "diffuse".into(),
             camera: frame.wire,
             pixels: chunk.to_vec(),
@@ -527,7 +527,7 @@ fn bad_batches_are_answered_and_the_worker_carries_on() {
     let w = master.accept_worker();
     let camera = frame_camera(64, 48);
     let good = RayBatch {
-        ids: BatchIds { batch_id: 0, session_id: 1, frame_id: 1, view_index: 0 },
+        ids: BatchIds { batch_id: 0, task_id: 1, session_id: 1, frame_id: 1, view_index: 0 },
         asset_id: "diffuse".into(),
         camera,
         pixels: (0..64 * 48).collect(),
@@ -664,7 +664,7 @@ fn garbage_oversized_frames_and_wrong_versions_close_the_connection_without_a_cr
     process.assert_alive();
     let w = master.accept_worker();
     let batch = RayBatch {
-        ids: BatchIds { batch_id: 1, session_id: 1, frame_id: 1, view_index: 0 },
+        ids: BatchIds { batch_id: 1, task_id: 1, session_id: 1, frame_id: 1, view_index: 0 },
         asset_id: "diffuse".into(),
         camera: frame_camera(32, 24),
         pixels: (0..32 * 24).collect(),

@@ -2,9 +2,8 @@
 //!
 //! [`DirAssetLoader`] resolves an id in this order:
 //! 1. a file `<dir>/<id>.<ext>` for a registered format (see [`DirAssetLoader::register_format`]):
-//!    today `.glb` / `.gltf` (path-traced); `.nolf` (i-NOLF) and `.ngp` (i-NGP) are known
-//!    but their kernels land with their own issues, so they are a clear "not supported yet"
-//!    error until a handler is registered for them;
+//!    `.nolf` (i-NOLF, one network query per ray), `.ngp` (the i-NGP-style volumetric
+//!    baseline) and `.glb` / `.gltf` (path-traced);
 //! 2. a built-in scene (`nephele_render::scenes::builtin`), rendered by the path tracer at
 //!    low samples per pixel;
 //! 3. otherwise [`AssetError::Unknown`].
@@ -85,7 +84,7 @@ pub type FormatHandler = Arc<dyn Fn(&Path, &AssetOptions) -> Result<Kernel, Stri
 
 /// Extensions known to the project whose kernels are not in this build: a file with one of
 /// them is a clear "not supported yet" error rather than "unknown asset".
-pub const PENDING_FORMATS: &[&str] = &["nolf", "ngp"];
+pub const PENDING_FORMATS: &[&str] = &[];
 
 type Slot = Arc<Mutex<Option<Kernel>>>;
 
@@ -122,6 +121,16 @@ impl DirAssetLoader {
         });
         loader.register_format("glb", "pathtrace", gltf.clone());
         loader.register_format("gltf", "pathtrace", gltf);
+        let inolf: FormatHandler = Arc::new(|path, _options| {
+            let kernel = nephele_render::inolf::kernel::InolfKernel::load(path).map_err(|e| e.to_string())?;
+            Ok(Arc::new(kernel) as Kernel)
+        });
+        loader.register_format("nolf", "inolf", inolf);
+        let ngp: FormatHandler = Arc::new(|path, _options| {
+            let kernel = nephele_render::ngp::NgpKernel::load(path).map_err(|e| e.to_string())?;
+            Ok(Arc::new(kernel) as Kernel)
+        });
+        loader.register_format("ngp", "ngp", ngp);
         Ok(loader)
     }
 
@@ -251,12 +260,14 @@ mod tests {
     }
 
     #[test]
-    fn pending_formats_say_so_and_files_win_over_builtins() {
+    fn corrupt_neural_assets_are_load_errors_and_files_win_over_builtins() {
         let dir = tempfile::tempdir().expect("tempdir");
-        std::fs::write(dir.path().join("diffuse.nolf"), b"not yet").expect("write");
+        std::fs::write(dir.path().join("diffuse.nolf"), b"not an asset").expect("write");
+        std::fs::write(dir.path().join("knot.ngp"), b"NGP?").expect("write");
         let mut loader = loader(dir.path());
-        let err = loader.load("diffuse").expect_err("pending");
-        assert!(matches!(err, AssetError::Unsupported { ref extension, .. } if extension == "nolf"), "{err}");
+        let err = loader.load("diffuse").expect_err("corrupt");
+        assert!(matches!(err, AssetError::Load { .. }), "{err}");
+        assert!(matches!(loader.load("knot").expect_err("corrupt"), AssetError::Load { .. }));
         // The extension point: a handler for the format makes the file load.
         loader.register_format(
             "nolf",

@@ -20,6 +20,9 @@ pub enum Command {
     /// ray, and the error reached: PSNR of the timed render against a render with many more
     /// samples of the same view.
     Reference(ReferenceArgs),
+    /// The composer's stages per frame at streaming sizes: depth fusion, colour conversion
+    /// and H.264 encoding (frames/s, bitrate, PSNR of the decoded stream against its input).
+    Encode(super::bench_encode::Args),
     /// Protocol cost: encode/decode ns per pixel (packed against element-by-element), bytes
     /// on the wire per pixel, and loopback TCP throughput of batch results between two
     /// processes and between two tokio tasks (batches/s, GB/s of pixel results).
@@ -30,6 +33,19 @@ pub enum Command {
     /// Scheduler core: microseconds per scheduling round at 10, 100 and 1000 users with
     /// 10,000 pending tasks (NEPHELE against FIFO in the same run).
     Scheduler(super::bench_scheduler::SchedulerArgs),
+    /// Perfect spatial hashing of each scene's surface voxels at 128^3, 256^3, 512^3: table
+    /// sizes, build time, neighbour coherence, and a check of zero collisions.
+    Psh(super::bench_inolf::PshArgs),
+    /// Density texture cubes over each scene: bytes against a dense grid, and the cost of
+    /// marching the default view (cells, samples and nanoseconds per ray, rays that miss).
+    Cubes(super::bench_inolf::CubesArgs),
+    /// One stream of encoding queries (hit points from random viewpoints) answered by the PSH
+    /// encoding or the multiresolution hash grid; run it under
+    /// `valgrind --tool=cachegrind` once per `--encoding` (and once with `none` to subtract).
+    PshCache(super::bench_inolf::PshCacheArgs),
+    /// i-NOLF against the i-NGP-style baseline on held-out views of a dataset: quality,
+    /// time per frame, rays per second and speed-up, measured in one run.
+    Inolf(super::bench_inolf::InolfArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -54,9 +70,14 @@ pub struct ReferenceArgs {
 pub fn run(command: Command, progress: &Progress) -> Result<()> {
     match command {
         Command::Reference(args) => reference(args, progress),
+        Command::Encode(args) => super::bench_encode::run(args, progress),
         Command::Wire(args) => super::bench_wire::run(args, progress),
         Command::WireSink(args) => super::bench_wire::sink(args),
         Command::Scheduler(args) => super::bench_scheduler::run(args, progress),
+        Command::Psh(args) => super::bench_inolf::psh(args, progress),
+        Command::Cubes(args) => super::bench_inolf::cubes(args, progress),
+        Command::PshCache(args) => super::bench_inolf::psh_cache(args, progress),
+        Command::Inolf(args) => super::bench_inolf::inolf(args, progress),
     }
 }
 

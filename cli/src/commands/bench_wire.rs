@@ -53,7 +53,7 @@ fn sample_result(pixels: usize, batch_id: u64) -> BatchResult {
     let pixels: Vec<u32> = (start as u32..(start + pixels) as u32).collect();
     let hash = |p: u32| (p.wrapping_mul(2_654_435_761) >> 8) as f32 / (1u32 << 24) as f32;
     BatchResult {
-        ids: BatchIds { batch_id, session_id: 1, frame_id: batch_id / 16, view_index: 0 },
+        ids: BatchIds { batch_id, task_id: batch_id / 4, session_id: 1, frame_id: batch_id / 16, view_index: 0 },
         worker_id: 1,
         width,
         height,

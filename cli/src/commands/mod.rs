@@ -1,15 +1,23 @@
 //! One module per subcommand; each parses its own arguments and calls into `nephele-render`.
 
+pub mod bake;
 pub mod bench;
+pub mod bench_encode;
+pub mod composer;
+pub mod up;
 pub mod bench_wire;
 pub mod bench_scheduler;
+pub mod bench_inolf;
 pub mod dataset;
 pub mod eval;
 pub mod loadgen;
+pub mod master;
 pub mod pathtrace;
+pub mod render;
 pub mod scenes;
 pub mod worker;
 pub mod simulate;
+pub mod train;
 
 use anyhow::{Context, Result, bail};
 use glam::Vec3;

@@ -1,0 +1,411 @@
+//! `nephele bench psh | cubes | psh-cache`: figures of the i-NOLF building blocks
+//! (perfect spatial hashing, density texture cubes, cache behaviour of the PSH encoding
+//! against the multiresolution hash grid).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use glam::Vec3;
+use nephele_render::camera::Camera;
+use nephele_render::inolf::cubes::{CubeOptions, DensityCubes};
+use nephele_render::inolf::encoding::PshEncoding;
+use nephele_render::inolf::psh::{PshOptions, PshTable};
+use nephele_render::inolf::voxel::{VoxelBits, VoxelGrid, surface_bits};
+use nephele_render::kernel::{Bounds, all_pixels};
+use nephele_render::nn::{HashGrid, HashGridConfig};
+use nephele_render::scenes;
+use serde_json::json;
+
+use crate::progress::Progress;
+
+#[derive(Debug, clap::Args)]
+pub struct PshArgs {
+    /// Voxel grid sides to hash (surface voxels of each scene at that resolution).
+    #[arg(long, value_delimiter = ',', default_value = "128,256,512")]
+    resolutions: Vec<u32>,
+    /// Scenes to run (default: all built-in scenes).
+    #[arg(long, value_delimiter = ',')]
+    scenes: Vec<String>,
+    /// Also write the results as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct CubesArgs {
+    /// Coarse cells along the longest side of the scene box.
+    #[arg(long, default_value_t = 64)]
+    resolution: u32,
+    /// Samples per cube side.
+    #[arg(long, default_value_t = 8)]
+    cube_res: u32,
+    /// Image size of the marched view (the scene's default view).
+    #[arg(long, default_value = "400x400", value_parser = super::parse_size)]
+    size: (u32, u32),
+    /// Scenes to run (default: all built-in scenes).
+    #[arg(long, value_delimiter = ',')]
+    scenes: Vec<String>,
+    /// Also write the results as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum CacheEncoding {
+    /// Single-resolution perfect spatial hash, trilinear over stored corners.
+    Psh,
+    /// Multiresolution hash grid (i-NGP: 16 levels, 2^19 entries, 2 features each).
+    Hashgrid,
+    /// Build the query stream only (subtract its cost from the other two).
+    None,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct PshCacheArgs {
+    /// Which encoding answers the query stream.
+    #[arg(long, value_enum)]
+    encoding: CacheEncoding,
+    /// Scene whose surface the queries lie on.
+    #[arg(long, default_value = "glossy")]
+    scene: String,
+    /// Number of queries (hit points from random viewpoints).
+    #[arg(long, default_value_t = 200_000)]
+    queries: usize,
+    /// PSH lattice side (the occupied lattice points are the corners around the hit points).
+    #[arg(long, default_value_t = 256)]
+    lattice: u32,
+    /// Features per PSH slot.
+    #[arg(long, default_value_t = 16)]
+    features: u32,
+    /// Passes over the query stream: run with 1 and 3 and divide the difference of the
+    /// counts by 2 x queries to get the cost of a query alone, without the set-up.
+    #[arg(long, default_value_t = 1)]
+    passes: u32,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct InolfArgs {
+    /// A baked i-NOLF asset (`nephele bake`).
+    #[arg(long)]
+    asset: PathBuf,
+    /// The radiance field the asset was baked from (`nephele bake --save-field`): the
+    /// i-NGP-style baseline, rendered in the same run.
+    #[arg(long)]
+    field: PathBuf,
+    /// Dataset folder whose held-out split is rendered and scored.
+    #[arg(long)]
+    dataset: PathBuf,
+    #[arg(long, default_value = "test")]
+    split: String,
+    #[arg(long, default_value_t = 2)]
+    downscale: u32,
+    /// Score at most this many views.
+    #[arg(long, default_value_t = 8)]
+    views: usize,
+}
+
+fn scene_names(requested: &[String]) -> Vec<String> {
+    if requested.is_empty() { scenes::names().iter().map(|s| s.to_string()).collect() } else { requested.to_vec() }
+}
+
+pub fn psh(args: PshArgs, progress: &Progress) -> Result<()> {
+    println!("perfect spatial hashing of surface voxels: paper settings (table factor 1.05, sigma 1/6) and i-NOLF's coherent settings (1.5, 1)");
+    println!(
+        "{:<11} {:>5} {:>9} {:<8} {:>4} {:>4} {:>10} {:>8} {:>9} {:>8} {:>9} {:>10}",
+        "scene", "res", "voxels", "settings", "m", "r", "table KiB", "B/voxel", "build ms", "attempts", "coherence", "collisions"
+    );
+    let names = scene_names(&args.scenes);
+    let bar = progress.bar((names.len() * args.resolutions.len()) as u64, "psh", "builds");
+    let mut rows = Vec::new();
+    for name in &names {
+        let builtin = super::load_scene(name)?;
+        let (lo, hi) = builtin.scene.bounds().context("scene has no geometry")?;
+        for &res in &args.resolutions {
+            let grid = VoxelGrid::around(lo, hi, res);
+            let points = surface_bits(&builtin.scene.mesh, &grid).points();
+            for (label, options) in [("paper", PshOptions::default()), ("coherent", PshOptions::coherent())] {
+                let start = Instant::now();
+                let (table, stats) = PshTable::build(res, &points, &options)?;
+                let build_ms = start.elapsed().as_secs_f64() * 1e3;
+                let collisions = count_collisions(&table, &points);
+                let (coherent, pairs) = table.coherence();
+                let coherence = coherent as f64 / pairs.max(1) as f64;
+                let bytes = table.table_bytes();
+                println!(
+                    "{:<11} {:>5} {:>9} {:<8} {:>4} {:>4} {:>10.1} {:>8.2} {:>9.1} {:>8} {:>9.3} {:>10}",
+                    name,
+                    res,
+                    points.len(),
+                    label,
+                    table.table_side(),
+                    table.offset_side(),
+                    bytes as f64 / 1024.0,
+                    bytes as f64 / points.len().max(1) as f64,
+                    build_ms,
+                    stats.attempts,
+                    coherence,
+                    collisions
+                );
+                if collisions != 0 {
+                    bail!("{name} at {res}^3: {collisions} collisions");
+                }
+                rows.push(json!({"scene": name, "resolution": res, "voxels": points.len(), "settings": label,
+                    "m": table.table_side(), "r": table.offset_side(), "table_bytes": bytes, "build_ms": build_ms,
+                    "attempts": stats.attempts, "coherence": coherence, "collisions": collisions}));
+            }
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+    write_json(args.json, rows)
+}
+
+/// Occupied voxels that are not found or share a slot (0 for a perfect hash).
+fn count_collisions(table: &PshTable, points: &[[u32; 3]]) -> usize {
+    let mut seen = vec![false; table.slot_count()];
+    let mut bad = 0;
+    for &p in points {
+        match table.slot(p) {
+            Some(s) if !seen[s as usize] => seen[s as usize] = true,
+            _ => bad += 1,
+        }
+    }
+    bad
+}
+
+/// A density field standing in for a trained one: opaque inside the surface voxels of the
+/// mesh at the cubes' sample resolution.
+fn surface_density(bits: &VoxelBits) -> impl Fn(&[Vec3], &mut [f32]) + Sync + '_ {
+    move |points: &[Vec3], out: &mut [f32]| {
+        for (p, o) in points.iter().zip(out) {
+            *o = if bits.contains(*p) { 1000.0 } else { 0.0 };
+        }
+    }
+}
+
+fn scene_cubes(name: &str, resolution: u32, cube_res: u32) -> Result<(DensityCubes, scenes::BuiltinScene, f64)> {
+    let builtin = super::load_scene(name)?;
+    let (lo, hi) = builtin.scene.bounds().context("scene has no geometry")?;
+    let margin = Vec3::splat((hi - lo).max_element() * 0.01);
+    let bounds = Bounds { min: lo - margin, max: hi + margin };
+    let fine = resolution * (cube_res - 1);
+    let bits = surface_bits(&builtin.scene.mesh, &VoxelGrid::around(bounds.min, bounds.max, fine));
+    let start = Instant::now();
+    let options = CubeOptions { resolution, cube_res, ..CubeOptions::default() };
+    let cubes = DensityCubes::build(bounds, &options, surface_density(&bits), &|_| {})?;
+    Ok((cubes, builtin, start.elapsed().as_secs_f64()))
+}
+
+pub fn cubes(args: CubesArgs, progress: &Progress) -> Result<()> {
+    let (width, height) = args.size;
+    println!(
+        "density cubes {}^3 coarse x {}^3 samples (u8) over each scene's surface voxels; marching the default view at {width}x{height}, one thread",
+        args.resolution, args.cube_res
+    );
+    println!(
+        "{:<11} {:>8} {:>8} {:>10} {:>11} {:>7} {:>8} {:>6} {:>9} {:>11} {:>9} {:>9} {:>9}",
+        "scene", "cells", "cubes", "cubes MiB", "dense MiB", "ratio", "build s", "hit %", "cells/ray", "samples/ray", "dense/ray", "ns/ray", "ns/miss"
+    );
+    let names = scene_names(&args.scenes);
+    let bar = progress.bar(names.len() as u64, "cubes", "scenes");
+    let mut rows = Vec::new();
+    for name in &names {
+        let (cubes, builtin, build_s) = scene_cubes(name, args.resolution, args.cube_res)?;
+        let fp = cubes.cubes().footprint();
+        let (eye, target, fov_y) = builtin.default_view();
+        let camera = Camera::look_at(width, height, fov_y, eye, target, Vec3::Z)?;
+        let rays: Vec<_> = all_pixels(&camera).iter().map(|&p| camera.pixel_center_ray(p % width, p / width)).collect();
+        let start = Instant::now();
+        let hits: Vec<_> = rays.iter().map(|r| cubes.march(r.origin, r.direction, 1e-3, f32::INFINITY)).collect();
+        let total_ns = start.elapsed().as_secs_f64() * 1e9;
+        let missing: Vec<_> = rays.iter().zip(&hits).filter(|(_, h)| h.samples == 0).map(|(r, _)| *r).collect();
+        let start = Instant::now();
+        for r in &missing {
+            std::hint::black_box(cubes.march(r.origin, r.direction, 1e-3, f32::INFINITY));
+        }
+        let miss_ns = start.elapsed().as_secs_f64() * 1e9 / missing.len().max(1) as f64;
+        let n = rays.len() as f64;
+        let hit_pct = 100.0 * hits.iter().filter(|h| h.opacity > 0.5).count() as f64 / n;
+        let cells = hits.iter().map(|h| f64::from(h.cells)).sum::<f64>() / n;
+        let samples = hits.iter().map(|h| f64::from(h.samples)).sum::<f64>() / n;
+        let dense = rays.iter().map(|r| dense_samples(&cubes, r.origin, r.direction)).sum::<f64>() / n;
+        let mib = |b: u64| b as f64 / (1 << 20) as f64;
+        println!(
+            "{:<11} {:>8} {:>8} {:>10.2} {:>11.2} {:>7.1} {:>8.2} {:>6.1} {:>9.1} {:>11.1} {:>9.1} {:>9.0} {:>9.0}",
+            name,
+            fp.cells,
+            fp.occupied_cells,
+            mib(fp.bytes),
+            mib(fp.dense_bytes),
+            fp.dense_bytes as f64 / fp.bytes.max(1) as f64,
+            build_s,
+            hit_pct,
+            cells,
+            samples,
+            dense,
+            total_ns / n,
+            miss_ns
+        );
+        rows.push(json!({"scene": name, "cells": fp.cells, "cubes": fp.occupied_cells, "bytes": fp.bytes, "dense_bytes": fp.dense_bytes,
+            "build_s": build_s, "hit_fraction": hit_pct / 100.0, "cells_per_ray": cells, "samples_per_ray": samples,
+            "dense_samples_per_ray": dense, "ns_per_ray": total_ns / n, "ns_per_miss": miss_ns}));
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    write_json(args.json, rows)
+}
+
+/// Samples a uniform marcher at the cubes' step would take through the whole box.
+fn dense_samples(cubes: &DensityCubes, o: Vec3, d: Vec3) -> f64 {
+    let b = cubes.bounds();
+    let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+    for a in 0..3 {
+        if d[a] == 0.0 {
+            if o[a] < b.min[a] || o[a] > b.max[a] {
+                return 0.0;
+            }
+        } else {
+            let (ta, tb) = ((b.min[a] - o[a]) / d[a], (b.max[a] - o[a]) / d[a]);
+            t0 = t0.max(ta.min(tb));
+            t1 = t1.min(ta.max(tb));
+        }
+    }
+    f64::from((t1 - t0).max(0.0) / cubes.cubes().sample_step())
+}
+
+pub fn psh_cache(args: PshCacheArgs, progress: &Progress) -> Result<()> {
+    let bar = progress.bar(3, "query stream", "steps");
+    let (cubes, builtin, _) = scene_cubes(&args.scene, 48, 8)?;
+    bar.inc(1);
+    // Hit points of rays from random viewpoints around the object (deterministic).
+    let bounds = cubes.bounds();
+    let (center, radius) = (bounds.center(), 0.5 * bounds.size().length());
+    let mut state = 0x1234_5678_9abc_def0u64;
+    let mut next = move || {
+        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let mut stream = Vec::with_capacity(args.queries);
+    let per_view = 4096;
+    let mut views = 0;
+    while stream.len() < args.queries && views < 100_000 {
+        views += 1;
+        let (zc, phi) = (2.0 * next() - 1.0, std::f32::consts::TAU * next());
+        let dir = Vec3::new((1.0 - zc * zc).sqrt() * phi.cos(), (1.0 - zc * zc).sqrt() * phi.sin(), zc);
+        let eye = center + dir * radius * 2.5;
+        let up = if dir.z.abs() > 0.99 { Vec3::X } else { Vec3::Z };
+        let camera = Camera::look_at(64, 64, 0.8, eye, center, up)?;
+        for _ in 0..per_view {
+            let ray = camera.ray(64.0 * next(), 64.0 * next());
+            let h = cubes.march(ray.origin, ray.direction, 1e-3, f32::INFINITY);
+            if h.opacity > 0.5 && stream.len() < args.queries {
+                stream.push(ray.at(h.t));
+            }
+        }
+    }
+    bar.inc(1);
+    let _ = builtin;
+    let voxel = bounds.size().max_element() / (args.lattice - 1) as f32;
+    let mut checksum = 0.0f64;
+    let (name, bytes) = match args.encoding {
+        CacheEncoding::None => ("none", 0usize),
+        CacheEncoding::Psh => {
+            let enc = PshEncoding::from_points(&stream, bounds.min, voxel, args.lattice, args.features, &PshOptions::coherent())?;
+            bar.inc(1);
+            let mut out = vec![0.0; enc.dim()];
+            for _ in 0..args.passes {
+                for p in &stream {
+                    enc.encode(*p, &mut out);
+                    checksum += f64::from(out[0]);
+                }
+            }
+            ("psh", enc.features.len() * 4 + enc.table.table_bytes())
+        }
+        CacheEncoding::Hashgrid => {
+            let config = HashGridConfig::with_finest_resolution(16, 19, 16, 2048);
+            let grid = HashGrid::new(config, 7)?;
+            bar.inc(1);
+            let mut out = vec![0.0; grid.output_dim()];
+            let inv = 1.0 / bounds.size().max_element();
+            for _ in 0..args.passes {
+                for p in &stream {
+                    let u = (*p - bounds.min) * inv;
+                    grid.encode([u.x, u.y, u.z], &mut out);
+                    checksum += f64::from(out[0]);
+                }
+            }
+            ("hashgrid", grid.num_params() * 4)
+        }
+    };
+    bar.finish_and_clear();
+    println!(
+        "encoding {name}: {} queries on {} ({views} views), table {:.2} MiB, checksum {checksum:.6}",
+        stream.len(),
+        args.scene,
+        bytes as f64 / (1 << 20) as f64
+    );
+    Ok(())
+}
+
+fn write_json(path: Option<PathBuf>, rows: Vec<serde_json::Value>) -> Result<()> {
+    if let Some(path) = path {
+        std::fs::write(&path, serde_json::to_string_pretty(&rows)?).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// i-NOLF against the i-NGP-style baseline on held-out views: PSNR/SSIM against the images
+/// (over white, as NeRF papers), time per frame and rays per second, measured in one run.
+pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
+    use nephele_render::inolf::kernel::{DiffuseSource, InolfKernel};
+    use nephele_render::kernel::{RayKernel, frame_to_image};
+    use nephele_render::metrics::psnr_and_ssim;
+    use nephele_render::ngp::NgpKernel;
+
+    let data = nephele_render::dataset::load_split(&args.dataset, &args.split, args.downscale)?;
+    let mut inolf_cubes = InolfKernel::load(&args.asset)?;
+    let mut inolf_net = inolf_cubes.clone();
+    let has_net = inolf_net.set_diffuse_source(DiffuseSource::Network).is_ok();
+    inolf_cubes.set_diffuse_source(DiffuseSource::Cubes)?;
+    let ngp = NgpKernel::load(&args.field)?;
+    let mut kernels: Vec<(&str, &dyn RayKernel)> = vec![("i-NGP baseline", &ngp), ("i-NOLF (diffuse cubes)", &inolf_cubes)];
+    if has_net {
+        kernels.push(("i-NOLF (diffuse MLP)", &inolf_net));
+    }
+    let views: Vec<_> = data.views.iter().take(args.views.max(1)).collect();
+    let bar = progress.bar((views.len() * kernels.len()) as u64, "rendering", "frames");
+    let mut rows = Vec::new();
+    for (name, kernel) in &kernels {
+        let (mut seconds, mut rays, mut psnr, mut ssim) = (0.0f64, 0u64, 0.0f64, 0.0f64);
+        for v in &views {
+            let (w, h) = (v.image.width(), v.image.height());
+            let camera = Camera::from_fov_x(w, h, data.camera_angle_x, v.camera_to_world)?;
+            let start = Instant::now();
+            let (out, stats) = kernel.render_pixels(&camera, &all_pixels(&camera))?;
+            seconds += start.elapsed().as_secs_f64();
+            rays += stats.rays;
+            let image = frame_to_image(w, h, &out).context("frame")?;
+            let (p, s) = psnr_and_ssim(&image, &v.image, [1.0; 3])?;
+            psnr += p;
+            ssim += s;
+            bar.inc(1);
+        }
+        let n = views.len() as f64;
+        rows.push((name.to_string(), psnr / n, ssim / n, 1e3 * seconds / n, rays as f64 / seconds.max(1e-9)));
+    }
+    bar.finish_and_clear();
+    let base_ms = rows[0].3;
+    let (w, h) = (views[0].image.width(), views[0].image.height());
+    println!("{} held-out views of {w}x{h}, {} threads", views.len(), rayon::current_num_threads());
+    println!("{:<24} {:>8} {:>7} {:>10} {:>12} {:>9}", "kernel", "PSNR dB", "SSIM", "ms/frame", "rays/s", "speed-up");
+    for (name, p, s, ms, rps) in rows {
+        println!("{name:<24} {p:>8.2} {s:>7.4} {ms:>10.1} {rps:>12.0} {:>8.1}x", base_ms / ms.max(1e-9));
+    }
+    let file = std::fs::metadata(&args.asset)?.len();
+    println!("asset {:.2} MiB", file as f64 / 1048576.0);
+    Ok(())
+}

@@ -1,0 +1,140 @@
+//! `nephele master`: the control plane (HTTP API, signalling, the live scheduler).
+
+use std::io::Write;
+use std::time::Duration;
+
+use anyhow::{Context, Result, ensure};
+use nephele_master::farm::{FarmConfig, live_scheduler_config};
+use nephele_master::service::{Master, MasterConfig};
+use nephele_proto::FrameConfig;
+use nephele_scheduler::Policy;
+use serde_json::json;
+
+use super::worker::Signals;
+
+/// Runs the master: the HTTP API and web client (`--http`), and the farm listener
+/// (`--farm-listen`) where `nephele worker` processes and the composer connect.
+///
+/// The master owns the scheduler (NEPHELE Algorithm 1): it turns each session's poses into
+/// ray batches, dispatches them to workers, re-issues the batches of a worker that dies or
+/// stalls, and tells the composer which results make up each frame. `GET /v1/farm` shows
+/// the workers, their load, the queues and each session's frame rate. Once both sockets
+/// listen it prints `listening: http=ADDR farm=ADDR` on stdout. On SIGTERM or Ctrl-C it stops
+/// taking requests, says goodbye to the workers and the composer and exits 0 (a second
+/// signal exits at once).
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// HTTP API and web client address (port 0 picks a free port).
+    #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:8080")]
+    http: String,
+    /// Address workers and the composer connect to (port 0 picks a free port).
+    #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:7070")]
+    farm_listen: String,
+    /// STUN/TURN server URL offered to browsers (repeatable), e.g. `stun:stun.example.org:3478`.
+    #[arg(long = "ice-server", value_name = "URL")]
+    ice_servers: Vec<String>,
+    /// Username for the `turn:` servers among `--ice-server`.
+    #[arg(long, value_name = "NAME", requires = "ice_credential")]
+    ice_username: Option<String>,
+    /// Credential for the `turn:` servers (with `--ice-username`).
+    #[arg(long, value_name = "SECRET", requires = "ice_username")]
+    ice_credential: Option<String>,
+    /// Scheduling policy: nephele (Algorithm 1), or a baseline: round-robin, fifo,
+    /// object-per-worker.
+    #[arg(long, default_value = "nephele")]
+    policy: Policy,
+    /// Largest ray batch, pixels.
+    #[arg(long, value_name = "N")]
+    max_batch_rays: Option<u32>,
+    /// A batch not back after this long (at the least; more for long queues) is re-issued.
+    #[arg(long, value_name = "MS", default_value_t = 50)]
+    min_batch_timeout_ms: u64,
+    /// A worker silent for this long is declared lost and its batches re-issued.
+    #[arg(long, value_name = "MS", default_value_t = 2000)]
+    heartbeat_timeout_ms: u64,
+    /// How often workers report their load (the heartbeat).
+    #[arg(long, value_name = "MS", default_value_t = 200)]
+    load_report_ms: u32,
+    /// Seconds `POST /v1/sessions` waits for the composer's SDP answer.
+    #[arg(long, value_name = "S", default_value_t = 10)]
+    open_timeout_secs: u64,
+    /// Largest protocol frame accepted or sent, MiB.
+    #[arg(long, default_value_t = 64)]
+    max_frame_mib: usize,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    ensure!(
+        (10..=60_000).contains(&args.load_report_ms),
+        "--load-report-ms must be between 10 and 60000"
+    );
+    ensure!(args.heartbeat_timeout_ms > u64::from(args.load_report_ms), "--heartbeat-timeout-ms must exceed --load-report-ms");
+    let ice_servers: Vec<serde_json::Value> = args
+        .ice_servers
+        .iter()
+        .map(|url| {
+            let mut server = json!({ "urls": [url] });
+            if url.starts_with("turn") && let (Some(user), Some(secret)) = (&args.ice_username, &args.ice_credential) {
+                server["username"] = json!(user);
+                server["credential"] = json!(secret);
+            }
+            server
+        })
+        .collect();
+    let mut scheduler = nephele_scheduler::SchedulerConfig { policy: args.policy, ..live_scheduler_config() };
+    if args.policy != Policy::Nephele {
+        let baseline = nephele_scheduler::SchedulerConfig::for_policy(args.policy);
+        scheduler.sharing = baseline.sharing;
+        scheduler.history_capacity = baseline.history_capacity;
+        scheduler.admission_control = baseline.admission_control;
+    }
+    if let Some(n) = args.max_batch_rays {
+        scheduler.max_batch_rays = n;
+    }
+    scheduler.min_batch_timeout = Duration::from_millis(args.min_batch_timeout_ms);
+    scheduler.heartbeat_timeout = Some(Duration::from_millis(args.heartbeat_timeout_ms));
+    scheduler.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let config = MasterConfig {
+        http: args.http,
+        farm: args.farm_listen,
+        farm_config: FarmConfig {
+            scheduler,
+            load_report_interval_ms: args.load_report_ms,
+            open_timeout: Duration::from_secs(args.open_timeout_secs.max(1)),
+            ice_servers: json!(ice_servers),
+        },
+        frame: FrameConfig { max_frame: args.max_frame_mib.saturating_mul(1 << 20) },
+    };
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("master")
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let result = runtime.block_on(async move {
+        let master = Master::bind(config).await?;
+        let mut out = std::io::stdout().lock();
+        writeln!(out, "listening: http={} farm={}", master.http_addr(), master.farm_addr())?;
+        out.flush()?;
+        drop(out);
+        tracing::info!("web client at http://{}/", master.http_addr());
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let mut signals = Signals::new()?;
+        tokio::spawn(async move {
+            signals.next().await;
+            let _ = tx.send(());
+            signals.next().await;
+            tracing::warn!("second signal: exiting now");
+            std::process::exit(130);
+        });
+        master
+            .run(async move {
+                let _ = rx.await;
+            })
+            .await
+            .map_err(anyhow::Error::from)
+    });
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    result
+}

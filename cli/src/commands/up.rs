@@ -1,0 +1,144 @@
+//! `nephele up`: the whole service on one machine, as child processes of this executable.
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::path::PathBuf;
+use std::process::Command;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+
+use crate::supervise::{Supervisor, stop_flag};
+
+/// Runs the service locally: one `nephele master`, one `nephele composer --master ...` and
+/// `--workers` × `nephele worker --master ...`, on free loopback ports (the master's HTTP
+/// address excepted), waits until the master sees the composer and every worker, prints the
+/// URL to open, and stops everything on Ctrl-C (or as soon as any process dies).
+///
+/// No baked neural assets ship with Nephele: the built-in scenes' objects are path traced
+/// by the workers (at `--spp` samples per pixel, low by default for interactivity). Put
+/// `.nolf` assets in `--assets` to serve neural ones.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The master's HTTP address: the viewer page, `POST /v1/sessions`, `GET /v1/farm`.
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    http: SocketAddr,
+    /// Render workers to start.
+    #[arg(long, default_value_t = 2)]
+    workers: usize,
+    /// Scene the printed URL opens (`nephele scenes`; the master's catalog).
+    #[arg(long, default_value = "default")]
+    scene: String,
+    /// Path-tracing samples per pixel of the workers (built-in scenes are path traced).
+    #[arg(long, default_value_t = 1)]
+    spp: u32,
+    /// Asset directory for the workers (default: an empty temporary directory).
+    #[arg(long, value_name = "DIR")]
+    assets: Option<PathBuf>,
+    /// How long to wait for every process to join the farm, seconds.
+    #[arg(long, default_value_t = 120)]
+    ready_secs: u64,
+}
+
+fn free_port() -> Result<SocketAddr> {
+    let listener = TcpListener::bind("127.0.0.1:0").context("finding a free port")?;
+    listener.local_addr().context("finding a free port")
+}
+
+/// A minimal blocking `GET`, enough for the master's JSON endpoints.
+fn http_get(addr: SocketAddr, path: &str) -> Result<String> {
+    let mut stream = TcpStream::connect_timeout(&addr, Duration::from_secs(2))?;
+    stream.set_read_timeout(Some(Duration::from_secs(5)))?;
+    write!(stream, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n")?;
+    let mut text = String::new();
+    stream.read_to_string(&mut text)?;
+    let (head, body) = text.split_once("\r\n\r\n").context("malformed HTTP answer")?;
+    if !head.starts_with("HTTP/1.1 200") {
+        bail!("{path}: {}", head.lines().next().unwrap_or_default());
+    }
+    Ok(body.to_owned())
+}
+
+/// `(composer registered, workers registered)` from the master's `GET /v1/farm`.
+fn farm_members(http: SocketAddr) -> Option<(bool, usize)> {
+    let farm: serde_json::Value = serde_json::from_str(&http_get(http, "/v1/farm").ok()?).ok()?;
+    let workers = farm.get("workers").and_then(|w| w.as_array()).map_or(0, Vec::len);
+    Some((farm.get("composer").is_some_and(|c| !c.is_null()), workers))
+}
+
+pub fn run(args: Args) -> Result<()> {
+    if args.workers == 0 {
+        bail!("--workers must be at least 1");
+    }
+    let stop = stop_flag()?;
+    let exe = std::env::current_exe().context("locating the nephele executable")?;
+    let farm = free_port()?;
+    let (composer_http, composer_results) = (free_port()?, free_port()?);
+    let assets = match &args.assets {
+        Some(dir) => dir.clone(),
+        None => {
+            let dir = std::env::temp_dir().join(format!("nephele-up-{}", std::process::id()));
+            std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+            dir
+        }
+    };
+    let mut supervisor = Supervisor::new();
+    let mut master = Command::new(&exe);
+    master.args(["master", "--http", &args.http.to_string(), "--farm-listen", &farm.to_string()]);
+    supervisor.spawn("master", master)?;
+    let mut composer = Command::new(&exe);
+    composer.args([
+        "composer",
+        "--master",
+        &farm.to_string(),
+        "--http",
+        &composer_http.to_string(),
+        "--results",
+        &composer_results.to_string(),
+    ]);
+    supervisor.spawn("composer", composer)?;
+    for i in 0..args.workers {
+        let mut worker = Command::new(&exe);
+        worker.args(["worker", "--master", &farm.to_string(), "--name", &format!("worker-{i}"), "--spp", &args.spp.to_string()]);
+        worker.arg("--assets").arg(&assets);
+        supervisor.spawn(&format!("worker-{i}"), worker)?;
+    }
+    // Wait until the farm is whole (workers calibrate before they register).
+    let started = Instant::now();
+    loop {
+        if stop.load(Ordering::SeqCst) {
+            supervisor.shutdown(Duration::from_secs(10));
+            return Ok(());
+        }
+        if let Some((name, status)) = supervisor.exited()? {
+            supervisor.shutdown(Duration::from_secs(10));
+            bail!("{name} exited while starting ({status}); everything stopped");
+        }
+        if let Some((true, n)) = farm_members(args.http)
+            && n >= args.workers
+        {
+            break;
+        }
+        if started.elapsed() > Duration::from_secs(args.ready_secs) {
+            supervisor.shutdown(Duration::from_secs(10));
+            bail!("the farm did not assemble within {} s; everything stopped", args.ready_secs);
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    println!("nephele up: master, composer and {} workers ready", args.workers);
+    println!("open http://{}/?scene={}", args.http, args.scene);
+    let exited = supervisor.watch(&stop)?;
+    let killed = supervisor.shutdown(Duration::from_secs(10));
+    if args.assets.is_none() {
+        let _ = std::fs::remove_dir(&assets);
+    }
+    if let Some((name, status)) = exited {
+        bail!("{name} exited ({status}); stopped the others");
+    }
+    if !killed.is_empty() {
+        bail!("had to kill {} after the grace period", killed.join(", "));
+    }
+    println!("nephele up: stopped");
+    Ok(())
+}

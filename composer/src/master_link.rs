@@ -1,0 +1,249 @@
+//! The composer's side of the farm (proto v2): the link to the master and the workers'
+//! results.
+//!
+//! * **Master link**: the composer connects to the master's farm listener, says `Hello`
+//!   (role composer) and `ComposerRegister { name, results_address }`. The master sends
+//!   `OpenStream` (answered with `StreamOpened`: the SDP answer or why not), `FramePlan`
+//!   (which tasks fill which view of a frame), `ReleaseTask` and `CloseStream`; the
+//!   composer sends each accepted data-channel pose as `ClientPose` and `CloseStream` when a
+//!   viewer vanishes. A lost link is re-established every second until shutdown.
+//! * **Results listener**: workers connect, say `Hello` (role worker) and send
+//!   `BatchResult`s, filed by `ids.task_id` until the master releases the task.
+//! * **Frames**: a plan's parts are fused by depth with the existing [`Compositor`]. Results
+//!   race the plan (the worker reports `BatchDone` to the master on another connection), so
+//!   a plan waits up to [`PLAN_GRACE`] (or its deadline) for tasks with no results yet; a part
+//!   still missing then takes the previous frame's pixels of that object in that view.
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use futures_util::SinkExt;
+use nephele_proto::stream::{framed, handshake, recv};
+use nephele_proto::{ClientPose, CloseStream, ComposerRegister, FrameConfig, FramePlan, Message, Role, StreamOpened, WireCamera};
+use nephele_render::kernel::PixelResults;
+use tokio::net::TcpStream;
+use tokio::sync::{mpsc, watch};
+
+use crate::fusion::{self, BatchKey, PlannedBatch, SessionId};
+use crate::pose::Pose;
+use crate::service::{Shared, end_session, layout_for, lock, open_viewer};
+
+/// How long a frame plan waits for results that have not reached the composer yet.
+pub const PLAN_GRACE: Duration = Duration::from_millis(100);
+const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// Sends `message` to the master if a link is up (dropped otherwise).
+pub(crate) fn to_master(shared: &Shared, message: Message) {
+    if let Some(tx) = lock(&shared.to_master).as_ref() {
+        let _ = tx.send(message);
+    }
+}
+
+/// An accepted data-channel pose, as the master's `ClientPose`.
+pub(crate) fn forward_pose(shared: &Shared, session: SessionId, pose: &Pose) {
+    if shared.config.master.is_none() {
+        return;
+    }
+    let views = pose
+        .views
+        .iter()
+        .map(|v| WireCamera { width: v.width, height: v.height, view: v.view.to_cols_array(), projection: v.projection.to_cols_array() })
+        .collect();
+    to_master(shared, Message::ClientPose(ClientPose { session_id: session, sequence: pose.seq, client_time_ms: pose.client_time_ms, views }));
+}
+
+/// Keeps a link to the master up until `stop`.
+pub(crate) async fn run(shared: Arc<Shared>, master: String, results: SocketAddr, mut stop: watch::Receiver<bool>) {
+    loop {
+        match link(&shared, &master, results, &mut stop).await {
+            Ok(()) => return,
+            Err(e) => tracing::warn!(%master, "master link: {e}; reconnecting"),
+        }
+        *lock(&shared.to_master) = None;
+        tokio::select! {
+            _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+            _ = stop.wait_for(|s| *s) => return,
+        }
+    }
+}
+
+async fn link(shared: &Arc<Shared>, master: &str, results: SocketAddr, stop: &mut watch::Receiver<bool>) -> Result<(), String> {
+    let stream = TcpStream::connect(master).await.map_err(|e| format!("connecting: {e}"))?;
+    let _ = stream.set_nodelay(true);
+    let mut conn = framed(stream, FrameConfig::default());
+    handshake(&mut conn, Role::Composer, &[Role::Master], HANDSHAKE_TIMEOUT).await.map_err(|e| format!("handshake: {e}"))?;
+    let register = ComposerRegister { name: shared.config.name.clone(), results_address: results.to_string() };
+    conn.send(&Message::ComposerRegister(register)).await.map_err(|e| format!("registering: {e}"))?;
+    match tokio::time::timeout(HANDSHAKE_TIMEOUT, recv(&mut conn)).await {
+        Ok(Ok(Message::Registered(r))) => tracing::info!(%master, id = r.worker_id, "registered with the master"),
+        Ok(Ok(other)) => return Err(format!("expected Registered, got {}", other.kind().name())),
+        Ok(Err(e)) => return Err(format!("registering: {e}")),
+        Err(_) => return Err("no answer to the registration".into()),
+    }
+    let (tx, mut rx) = mpsc::unbounded_channel();
+    *lock(&shared.to_master) = Some(tx);
+    loop {
+        tokio::select! {
+            incoming = recv(&mut conn) => match incoming {
+                Ok(message) => handle(shared, message),
+                Err(e) => return Err(e.to_string()),
+            },
+            Some(out) = rx.recv() => conn.send(&out).await.map_err(|e| e.to_string())?,
+            _ = stopped(stop) => return Ok(()),
+        }
+    }
+}
+
+fn handle(shared: &Arc<Shared>, message: Message) {
+    match message {
+        Message::OpenStream(open) => {
+            let shared = Arc::clone(shared);
+            tokio::spawn(async move {
+                let answer = match layout_for(open.width, open.height, open.views.min(u32::from(u16::MAX)) as u16) {
+                    Err(e) => Err(format!("bad view size: {e}")),
+                    Ok(layout) => open_viewer(&shared, open.session_id, open.offer_sdp, layout).await.map(|(_, sdp)| sdp).map_err(|(_, e)| e),
+                };
+                if let Err(e) = &answer {
+                    tracing::info!(session = open.session_id, "stream refused: {e}");
+                }
+                to_master(&shared, Message::StreamOpened(StreamOpened { session_id: open.session_id, answer }));
+            });
+        }
+        Message::FramePlan(plan) => {
+            let shared = Arc::clone(shared);
+            tokio::spawn(async move {
+                let start = Instant::now();
+                let grace_end = start + PLAN_GRACE.min(until_unix_us(plan.deadline_unix_us).unwrap_or(PLAN_GRACE));
+                while Instant::now() < grace_end && !all_present(&shared, &plan) {
+                    tokio::time::sleep(Duration::from_millis(2)).await;
+                }
+                if let Err(e) = fuse_plan(&shared, &plan) {
+                    tracing::debug!(session = plan.session_id, frame = plan.frame_id, "frame plan refused: {e}");
+                }
+            });
+        }
+        Message::ReleaseTask(release) => {
+            lock(&shared.task_results).remove(&release.task_id);
+        }
+        Message::CloseStream(CloseStream { session_id, reason }) => {
+            tracing::info!(session = session_id, %reason, "the master closed the stream");
+            lock(&shared.last_parts).retain(|k, _| k.0 != session_id);
+            let shared = Arc::clone(shared);
+            tokio::spawn(async move { end_session(&shared, session_id).await });
+        }
+        other => tracing::debug!("unexpected message from the master: {}", other.kind().name()),
+    }
+}
+
+/// Resolves once `stop` is set (or its sender is gone). The guard `wait_for` returns is not
+/// `Send`; it is dropped here so that callers can `select!` on this across awaits.
+async fn stopped(stop: &mut watch::Receiver<bool>) {
+    let _ = stop.wait_for(|s| *s).await;
+}
+
+/// Time left until a deadline on the master's clock (microseconds since the Unix epoch).
+fn until_unix_us(deadline: Option<u64>) -> Option<Duration> {
+    let now = SystemTime::now().duration_since(UNIX_EPOCH).ok()?.as_micros() as u64;
+    deadline.map(|d| Duration::from_micros(d.saturating_sub(now)))
+}
+
+fn all_present(shared: &Shared, plan: &FramePlan) -> bool {
+    let results = lock(&shared.task_results);
+    plan.parts.iter().all(|p| results.get(&p.task_id).is_some_and(|r| !r.is_empty()))
+}
+
+/// Fuses a frame plan from the stored task results (see the module docs).
+fn fuse_plan(shared: &Shared, plan: &FramePlan) -> Result<(), String> {
+    let views = u16::try_from(plan.views).map_err(|_| format!("{} views", plan.views))?;
+    let layout = layout_for(plan.width, plan.height, views)?;
+    if (layout.view_width(), layout.view_height()) != (plan.width, plan.height) {
+        return Err(format!("views of {}x{} do not fit the encoder", plan.width, plan.height));
+    }
+    let (session, frame) = (plan.session_id, plan.frame_id);
+    let mut planned = Vec::new();
+    let mut arrived = Vec::new();
+    let mut missing = false;
+    {
+        let results = lock(&shared.task_results);
+        let mut last = lock(&shared.last_parts);
+        for (i, part) in plan.parts.iter().enumerate() {
+            let view = u16::try_from(part.view).map_err(|_| format!("view {}", part.view))?;
+            let object = u32::try_from(i).map_err(|_| "too many parts".to_string())?;
+            let key = (session, part.view, part.object_id);
+            match results.get(&part.task_id).filter(|r| !r.is_empty()) {
+                Some(batches) => {
+                    let mut covered = Vec::new();
+                    for (j, r) in batches.iter().enumerate() {
+                        if (r.width, r.height) != (plan.width, plan.height) {
+                            return Err(format!("task {} rendered {}x{}, the plan says {}x{}", part.task_id, r.width, r.height, plan.width, plan.height));
+                        }
+                        let key = BatchKey { object, batch: u32::try_from(j).map_err(|_| "too many batches".to_string())? };
+                        planned.push(PlannedBatch { key, view, pixels: r.pixels.clone().into() });
+                        covered.extend_from_slice(&r.pixels);
+                        let results = PixelResults { color: r.color.clone(), opacity: r.opacity.clone(), depth: r.depth.clone() };
+                        arrived.push(fusion::BatchResult { session, frame, view, key, pixels: r.pixels.clone(), results });
+                    }
+                    last.insert(key, covered.into());
+                }
+                None => {
+                    // Never arrived: plan the object's pixels of the previous frame without a
+                    // result, so the compositor fills them from that frame.
+                    if let Some(pixels) = last.get(&key) {
+                        planned.push(PlannedBatch { key: BatchKey { object, batch: 0 }, view, pixels: Arc::clone(pixels) });
+                        missing = true;
+                    }
+                }
+            }
+        }
+    }
+    let deadline = Instant::now() + if missing { Duration::ZERO } else { PLAN_GRACE };
+    let plan = fusion::FramePlan { session, frame, layout, background: [0.0; 3], deadline, batches: planned };
+    {
+        let mut compositor = lock(&shared.compositor);
+        compositor.plan_frame(plan).map_err(|e| e.to_string())?;
+        for batch in arrived {
+            if let Err(e) = compositor.add_batch(batch) {
+                tracing::debug!(session, frame, "batch refused: {e}");
+            }
+        }
+    }
+    shared.wake.notify_one();
+    Ok(())
+}
+
+/// A worker's connection to the results listener: `Hello`, then `BatchResult`s.
+pub(crate) async fn read_results(shared: Arc<Shared>, stream: TcpStream, peer: SocketAddr, mut stop: watch::Receiver<bool>) {
+    let _ = stream.set_nodelay(true);
+    let mut conn = framed(stream, FrameConfig::default());
+    if let Err(e) = handshake(&mut conn, Role::Composer, &[Role::Worker, Role::Tool], HANDSHAKE_TIMEOUT).await {
+        shared.counters.wire_errors.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        tracing::debug!(%peer, "worker handshake: {e}");
+        return;
+    }
+    loop {
+        let message = tokio::select! {
+            m = recv(&mut conn) => m,
+            _ = stop.wait_for(|s| *s) => return,
+        };
+        match message {
+            Ok(Message::BatchResult(result)) => {
+                lock(&shared.task_results).entry(result.ids.task_id).or_default().push(Arc::new(result));
+            }
+            Ok(Message::Goodbye(_)) => break,
+            Ok(other) => tracing::debug!(%peer, "unexpected message from a worker: {}", other.kind().name()),
+            Err(e) => {
+                if !matches!(e, nephele_proto::ProtoError::Closed) {
+                    shared.counters.wire_errors.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    tracing::debug!(%peer, "worker connection: {e}");
+                }
+                break;
+            }
+        }
+    }
+    tracing::debug!(%peer, "worker connection closed");
+}
+
+/// Pixel sets of each (session, view, object) in the last frame that had them.
+pub(crate) type LastParts = HashMap<(SessionId, u32, u64), Arc<[u32]>>;

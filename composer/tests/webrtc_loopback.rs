@@ -1,0 +1,196 @@
+//! A WebRTC client built on the same stack negotiates with a running composer on loopback,
+//! receives H.264 over RTP and decodes it, sends poses and control over the data channel;
+//! worker results sent over TCP come out as the picture; bad signalling gets clear errors.
+
+use std::time::Duration;
+
+use glam::Vec3;
+use nephele_composer::client::{Client, ClientOptions, http_request};
+use nephele_composer::fusion::{BatchKey, BatchResult, FrameLayout, PlannedBatch};
+use nephele_composer::pose::{Control, Pose, look_at_pose};
+use nephele_composer::service::{Composer, ComposerConfig, FrameSource};
+use nephele_composer::wire::{self, PlanBody};
+use nephele_render::kernel::PixelResults;
+use tokio::io::AsyncWriteExt;
+use tokio::net::TcpStream;
+
+const WAIT: Duration = Duration::from_secs(15);
+
+async fn http(addr: std::net::SocketAddr, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> (u16, String) {
+    http_request(addr, method, path, headers, body).await.unwrap()
+}
+
+async fn connect(composer: &Composer, extra: &str) -> Client {
+    let client = Client::connect(composer.http_addr(), ClientOptions { extra_json: extra.into(), ..Default::default() }).await.unwrap();
+    let sdp = &client.answer_sdp;
+    assert!(sdp.contains("H264/90000") && sdp.contains("packetization-mode=1"), "{sdp}");
+    assert!(sdp.contains("profile-level-id=42e01f"), "{sdp}");
+    assert!(sdp.contains("a=candidate:"), "the answer carries its candidates (no trickle)");
+    client
+}
+
+fn config(source: FrameSource) -> ComposerConfig {
+    ComposerConfig {
+        http_addr: "127.0.0.1:0".parse().unwrap(),
+        results_addr: "127.0.0.1:0".parse().unwrap(),
+        source,
+        fps: 30.0,
+        default_view: (160, 120),
+        ..ComposerConfig::default()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_negotiates_receives_h264_and_sends_poses() {
+    let composer = Composer::start(config(FrameSource::TestPattern)).await.unwrap();
+    let mut poses = composer.poses();
+    let mut client = connect(&composer, "").await;
+
+    // The first decodable picture is an IDR of the default view size.
+    let first = client.next_picture(WAIT, |_| true).await.unwrap();
+    assert!(first.idr, "the stream starts with an IDR");
+    assert_eq!((first.width, first.height), (160, 120));
+
+    // A stereo pose of 96x64 per eye: the composer receives it, and the picture becomes
+    // 192x64 side by side (a new encoder, so a new IDR).
+    let mut pose = look_at_pose(1, 96, 64, 0.9, Vec3::new(0.0, -3.0, 1.0), Vec3::ZERO).unwrap();
+    let mut right = pose.views[0];
+    right.view = glam::Mat4::from_translation(Vec3::new(-0.064, 0.0, 0.0)) * right.view;
+    pose.views.push(right);
+    client.send_pose(&pose).await.unwrap();
+    let (session, received) = tokio::time::timeout(WAIT, poses.recv()).await.unwrap().unwrap();
+    assert_eq!((session, received.seq, received.views.len()), (client.session, 1, 2));
+    let stereo = client.next_picture(WAIT, |p| p.width == 192).await.unwrap();
+    assert_eq!((stereo.width, stereo.height, stereo.idr), (192, 64, true));
+
+    // Malformed poses are dropped and counted; ping gets a pong; a keyframe request works.
+    client.send_binary(vec![0x50, 1, 1, 0]).await.unwrap();
+    let mut nan = Pose::decode(&pose.encode()).unwrap().encode();
+    nan[20..24].copy_from_slice(&f32::NAN.to_le_bytes());
+    tokio::time::sleep(Duration::from_millis(30)).await;
+    client.send_binary(nan).await.unwrap();
+    client.send_control(&Control::Ping { t: 42.5 }).await.unwrap();
+    let pong = client.next_text(WAIT).await.unwrap();
+    assert_eq!(pong, r#"{"type":"pong","t":42.5}"#);
+    client.send_text(r#"{"type":"keyframe"}"#).await.unwrap();
+    client.next_picture(WAIT, |p| p.idr && p.width == 192).await.unwrap();
+    let report = composer.sessions().into_iter().find(|r| r.session == client.session).unwrap();
+    assert_eq!((report.poses.accepted, report.poses.malformed), (1, 2), "{report:?}");
+    assert!(report.connected && report.media.frames_sent >= 3, "{report:?}");
+    assert!(report.encoder.keyframes >= 2, "{report:?}");
+
+    // The session list over HTTP; deleting needs the token.
+    let (status, list) = http(composer.http_addr(), "GET", "/v1/sessions", &[], "").await;
+    assert_eq!(status, 200);
+    assert!(list.contains(&format!("\"session\":{}", client.session)), "{list}");
+    let path = format!("/v1/sessions/{}", client.session);
+    let (status, _) = http(composer.http_addr(), "DELETE", &path, &[("Authorization", "Bearer nope")], "").await;
+    assert_eq!(status, 401);
+    let bearer = format!("Bearer {}", client.token);
+    let (status, _) = http(composer.http_addr(), "DELETE", &path, &[("Authorization", &bearer)], "").await;
+    assert_eq!(status, 204);
+    let (status, _) = http(composer.http_addr(), "DELETE", &path, &[("Authorization", &bearer)], "").await;
+    assert_eq!(status, 404);
+    assert!(composer.sessions().is_empty());
+    client.close().await;
+    composer.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_offers_get_a_clear_error() {
+    let composer = Composer::start(config(FrameSource::Workers)).await.unwrap();
+    let addr = composer.http_addr();
+    let cases = [
+        (r#"{"type":"offer","sdp":"hello"}"#, "malformed SDP"),
+        (r#"{"type":"offer","sdp":"v=0\r\no=- 1 1 IN IP4 0.0.0.0\r\ns=-\r\nt=0 0\r\nm=audio 9 UDP/TLS/RTP/SAVPF 111\r\n"}"#, "H.264"),
+        (r#"{"type":"offer","sdp":"v=0\r\nm=video 9 garbage\r\n"}"#, "malformed SDP"),
+        (r#"{"type":"answer","sdp":"v=0"}"#, "expected an SDP offer"),
+        (r#"not json"#, "expected JSON"),
+    ];
+    for (body, words) in cases {
+        let (status, reply) = http(addr, "POST", "/v1/sessions", &[], body).await;
+        assert_eq!(status, 400, "{body} → {reply}");
+        assert!(reply.contains(words), "{body} → {reply}");
+    }
+    assert!(composer.sessions().is_empty());
+    composer.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn worker_results_over_tcp_become_the_streamed_picture() {
+    let composer = Composer::start(config(FrameSource::Workers)).await.unwrap();
+    let mut client = connect(&composer, r#""width":64,"height":32"#).await;
+    let mut worker = TcpStream::connect(composer.results_addr()).await.unwrap();
+    let layout = FrameLayout::mono(64, 32).unwrap();
+    let all: Vec<u32> = (0..64 * 32).collect();
+    // Two workers' batches per frame: left half white, right half black, on a black
+    // background; then the halves swap. Mean luma tells which frame arrived.
+    let left: Vec<u32> = all.iter().copied().filter(|p| p % 64 < 32).collect();
+    let right: Vec<u32> = all.iter().copied().filter(|p| p % 64 >= 32).collect();
+    let session = client.session;
+    let batch = |frame: u64, object: u32, pixels: &[u32], value: f32| BatchResult {
+        session,
+        frame,
+        view: 0,
+        key: BatchKey { object, batch: 0 },
+        pixels: pixels.to_vec(),
+        results: PixelResults {
+            color: vec![[value; 3]; pixels.len()],
+            opacity: vec![1.0; pixels.len()],
+            depth: vec![1.0 + object as f32; pixels.len()],
+        },
+    };
+    let mut means = Vec::new();
+    for frame in 0..6u64 {
+        let bright_left = frame < 3;
+        let plan = PlanBody {
+            session: client.session,
+            frame,
+            layout,
+            background: [0.0; 3],
+            batches: vec![
+                PlannedBatch { key: BatchKey { object: 0, batch: 0 }, view: 0, pixels: left.clone().into() },
+                PlannedBatch { key: BatchKey { object: 1, batch: 0 }, view: 0, pixels: right.clone().into() },
+            ],
+        };
+        worker.write_all(&wire::encode_plan(&plan, Duration::from_millis(200))).await.unwrap();
+        let (l, r) = if bright_left { (1.0, 0.0) } else { (0.0, 1.0) };
+        worker.write_all(&wire::encode_result(&batch(frame, 1, &right, r))).await.unwrap();
+        worker.write_all(&wire::encode_result(&batch(frame, 0, &left, l))).await.unwrap();
+        let p = client.next_picture(WAIT, |_| true).await.unwrap();
+        assert_eq!((p.width, p.height), (64, 32));
+        means.push(p.mean_y);
+    }
+    // Half white (235) and half black (16): mean about 125.5 either way, and the decoded
+    // pictures are complete frames, not the background (16).
+    for m in &means {
+        assert!((*m - 125.5).abs() < 6.0, "{means:?}");
+    }
+    // A malformed message is skipped without losing the connection.
+    worker.write_all(&[3, 0, 0, 0, 99, 1, 2]).await.unwrap();
+    let plan = PlanBody { session: client.session, frame: 10, layout, background: [1.0; 3], batches: vec![] };
+    worker.write_all(&wire::encode_plan(&plan, Duration::ZERO)).await.unwrap();
+    let white = client.next_picture(WAIT, |p| p.mean_y > 200.0).await.unwrap();
+    assert!(white.mean_y > 230.0, "{white:?}");
+    assert_eq!(composer.wire_errors(), 1);
+    let report = composer.sessions().remove(0);
+    assert_eq!(report.fusion.frames_complete, 7, "{report:?}");
+    client.close().await;
+    composer.shutdown().await;
+}
+
+/// Chromium hides its host addresses behind mDNS `.local` names. The composer (mDNS off)
+/// ignores those candidates and still connects: the client reaches the composer's own
+/// candidates and shows up as peer-reflexive.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_with_mdns_candidates_still_connects() {
+    let composer = Composer::start(config(FrameSource::TestPattern)).await.unwrap();
+    let options = ClientOptions { mdns_candidates: true, ..Default::default() };
+    let mut client = Client::connect(composer.http_addr(), options).await.unwrap();
+    let candidates: Vec<&str> = client.offer_sdp.lines().filter(|l| l.starts_with("a=candidate:")).collect();
+    assert!(!candidates.is_empty() && candidates.iter().all(|c| c.contains(".local")), "{candidates:?}");
+    let first = client.next_picture(WAIT, |_| true).await.unwrap();
+    assert!(first.idr && first.width == 160);
+    client.close().await;
+    composer.shutdown().await;
+}

@@ -1,0 +1,181 @@
+//! Baking (NEPHELE section 4.3): the diffuse branch is view-independent, so after training
+//! it is sampled once into diffuse texture cubes around the hit surfaces, and the asset
+//! keeps the density cubes, the diffuse cubes, the PSH tables and features and the specular
+//! MLP (plus the diffuse network, for the "+ diffuse MLP" variant and for re-baking).
+
+use glam::Vec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::asset::{Asset, Tensor};
+use super::cubes::{CubeError, DensityCubes, SparseCubes, dilate, EMPTY_CELL};
+use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError};
+use crate::kernel::Bounds;
+use crate::nn::{HashGrid, Mlp, MlpWorkspace};
+
+/// The asset's meta section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InolfMeta {
+    /// Always "inolf".
+    pub format: String,
+    pub shape: HeadsShape,
+    /// Box the diffuse hash grid's unit cube maps to.
+    pub grid_bounds: [[f32; 3]; 2],
+    /// Free-form description of the bake (source, steps, losses).
+    #[serde(default)]
+    pub bake: serde_json::Value,
+}
+
+/// Diffuse colour and tint are stored as `sqrt(value)` in 8 bits: finer steps in the darks,
+/// where sRGB is most sensitive.
+#[inline]
+pub fn encode_diffuse(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0).sqrt() * 255.0).round() as u8
+}
+
+/// Inverse of [`encode_diffuse`] for an interpolated code in `[0, 1]`.
+#[inline]
+pub fn decode_diffuse(code: f32) -> f32 {
+    code * code
+}
+
+/// Per-thread buffers of the bake: grid inputs, outputs, encoder scratch.
+type BakeScratch = (Vec<[f32; 3]>, Vec<f32>, (Vec<f32>, MlpWorkspace));
+
+/// Samples the diffuse branch into cubes of `cube_res^3` on the density cubes' coarse grid,
+/// in the cells that hold density and lie within `margin` cells of a hit point.
+pub fn bake_diffuse_cubes(model: &InolfModel, cubes: &DensityCubes, hits: &[Vec3], margin: u32, cube_res: u32) -> Result<SparseCubes, ModelError> {
+    let grid = cubes.cubes();
+    let dims = grid.dims();
+    let (nx, ny) = (dims[0] as usize, dims[1] as usize);
+    let cells = grid.index().len();
+    let mut marks = vec![false; cells];
+    for p in hits {
+        if let Some(c) = grid.cell_of(*p) {
+            marks[c[0] as usize + nx * (c[1] as usize + ny * c[2] as usize)] = true;
+        }
+    }
+    let marks = dilate(&marks, dims, margin);
+    let todo: Vec<usize> = (0..cells).filter(|&c| marks[c] && grid.index()[c] != EMPTY_CELL).collect();
+    let res = cube_res as usize;
+    let step = grid.cell() / (cube_res - 1).max(1) as f32;
+    let min = grid.min();
+    let baked: Vec<Result<Vec<u8>, ModelError>> = todo
+        .par_iter()
+        .map_init(
+            || (Vec::new(), Vec::new(), (Vec::new(), MlpWorkspace::new())),
+            |(points, out, scratch): &mut BakeScratch, &c| {
+                let g = [(c % nx) * (res - 1), ((c / nx) % ny) * (res - 1), (c / (nx * ny)) * (res - 1)];
+                points.clear();
+                for k in 0..res {
+                    for j in 0..res {
+                        for i in 0..res {
+                            let p = min + Vec3::new((g[0] + i) as f32, (g[1] + j) as f32, (g[2] + k) as f32) * step;
+                            points.push(model.grid_input(p));
+                        }
+                    }
+                }
+                out.resize(points.len() * DIFFUSE_OUT, 0.0);
+                model.diffuse_batch(points, out, scratch)?;
+                Ok(out.iter().map(|&v| encode_diffuse(v)).collect())
+            },
+        )
+        .collect();
+    let mut index = vec![EMPTY_CELL; cells];
+    let mut data = Vec::new();
+    for (n, (&c, cube)) in todo.iter().zip(baked).enumerate() {
+        index[c] = n as u32;
+        data.extend_from_slice(&cube?);
+    }
+    SparseCubes::from_parts(min, grid.cell(), dims, cube_res, DIFFUSE_OUT as u32, index, data).map_err(|e: CubeError| ModelError::Shape(e.to_string()))
+}
+
+/// Assembles the asset. `keep_diffuse_network` also stores the hash grid and diffuse MLP.
+pub fn to_asset(model: &InolfModel, cubes: DensityCubes, diffuse: Option<SparseCubes>, keep_diffuse_network: bool, bake: serde_json::Value) -> Result<Asset, ModelError> {
+    let meta = InolfMeta {
+        format: "inolf".into(),
+        shape: model.shape,
+        grid_bounds: [model.bounds.min.to_array(), model.bounds.max.to_array()],
+        bake,
+    };
+    let flat = |name: &str, data: &[f32]| Tensor { name: name.into(), shape: vec![data.len() as u32], data: data.to_vec() };
+    let mut tensors = vec![flat("specular.mlp", model.specular.params())];
+    if keep_diffuse_network || diffuse.is_none() {
+        tensors.push(flat("diffuse.grid", model.grid.params()));
+        tensors.push(flat("diffuse.mlp", model.diffuse.params()));
+    }
+    Ok(Asset {
+        meta: serde_json::to_string(&meta).map_err(|e| ModelError::Shape(e.to_string()))?,
+        density: cubes,
+        diffuse,
+        psh: Some(model.psh.clone()),
+        tensors,
+    })
+}
+
+/// The networks read back from an asset.
+#[derive(Debug, Clone)]
+pub struct LoadedHeads {
+    pub meta: InolfMeta,
+    pub grid_bounds: Bounds,
+    pub specular: Mlp,
+    /// Present when the asset kept the diffuse network.
+    pub diffuse: Option<(HashGrid, Mlp)>,
+}
+
+/// Checks the meta section and the tensors against each other and rebuilds the networks.
+pub fn load_heads(asset: &Asset) -> Result<LoadedHeads, ModelError> {
+    let bad = |m: String| ModelError::Shape(m);
+    let meta: InolfMeta = serde_json::from_str(&asset.meta).map_err(|e| bad(format!("meta: {e}")))?;
+    if meta.format != "inolf" {
+        return Err(bad(format!("asset format {:?} is not inolf", meta.format)));
+    }
+    let psh = asset.psh.as_ref().ok_or_else(|| bad("no PSH section".into()))?;
+    if !(1..=5).contains(&meta.shape.sh_degree) {
+        return Err(bad(format!("SH degree {}", meta.shape.sh_degree)));
+    }
+    let [lo, hi] = meta.grid_bounds.map(Vec3::from);
+    if !(lo.is_finite() && hi.is_finite() && (hi - lo).min_element() > 0.0) {
+        return Err(bad("grid bounds".into()));
+    }
+    let tensor = |name: &str| asset.tensors.iter().find(|t| t.name == name);
+    // Sizes are checked against the tensors present in the file before any network is
+    // allocated, so a hostile meta section cannot ask for a huge grid.
+    let data = |name: &str, expected: usize| -> Result<&[f32], ModelError> {
+        let t = tensor(name).ok_or_else(|| bad(format!("tensor {name} missing")))?;
+        if t.data.len() != expected {
+            return Err(bad(format!("tensor {name} has {} values, the shape needs {expected}", t.data.len())));
+        }
+        Ok(&t.data)
+    };
+    let specular_config = meta.shape.specular_mlp(psh.feature_dim);
+    specular_config.validate()?;
+    let weights = data("specular.mlp", specular_config.num_params())?;
+    let mut specular = Mlp::zeros(specular_config)?;
+    specular.params_mut().copy_from_slice(weights);
+    let diffuse = if tensor("diffuse.mlp").is_some() {
+        let grid_config = meta.shape.grid();
+        grid_config.validate()?;
+        let mlp_config = meta.shape.diffuse_mlp();
+        mlp_config.validate()?;
+        let grid_weights = data("diffuse.grid", grid_config.num_params())?;
+        let mlp_weights = data("diffuse.mlp", mlp_config.num_params())?;
+        let mut grid = HashGrid::zeros(grid_config)?;
+        grid.params_mut().copy_from_slice(grid_weights);
+        let mut mlp = Mlp::zeros(mlp_config)?;
+        mlp.params_mut().copy_from_slice(mlp_weights);
+        Some((grid, mlp))
+    } else {
+        None
+    };
+    if diffuse.is_none() && asset.diffuse.is_none() {
+        return Err(bad("neither diffuse cubes nor a diffuse network".into()));
+    }
+    if let Some(d) = &asset.diffuse {
+        let c = asset.density.cubes();
+        if d.channels() != DIFFUSE_OUT as u32 || d.dims() != c.dims() || d.cell() != c.cell() || d.min() != c.min() {
+            return Err(bad("diffuse cubes do not match the density grid".into()));
+        }
+    }
+    Ok(LoadedHeads { grid_bounds: Bounds { min: lo, max: hi }, meta, specular, diffuse })
+}

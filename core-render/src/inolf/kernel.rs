@@ -1,0 +1,203 @@
+//! The i-NOLF CPU kernel: one small-network query per ray that hits.
+//!
+//! Per batch of pixels (rayon, 1024 pixels per task): generate the rays, march them through
+//! the density cubes (a ray that misses every occupied cell costs a slab test and a few DDA
+//! steps, and nothing else), compact the hitting rays, look their diffuse colour and tint up
+//! in the diffuse cubes (or run the diffuse network), build the specular MLP's input rows
+//! (PSH features, SH of the direction, coarse opacity) in one contiguous batch and run the
+//! specular MLP once over it, then combine (eq. 7).
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use super::asset::Asset;
+use super::bake::{decode_diffuse, load_heads};
+use super::cubes::{DensityCubes, SparseCubes};
+use super::encoding::PshEncoding;
+use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT, combine, specular_activation};
+use super::train::{HIT_OPACITY, RAY_NEAR};
+use crate::camera::Camera;
+use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
+use crate::nn::{HashGrid, Mlp, MlpWorkspace, sh_coefficient_count, sh_encode};
+
+/// Where the diffuse colour and tint come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DiffuseSource {
+    /// Baked diffuse texture cubes (the default when present).
+    Cubes,
+    /// The hash grid and diffuse MLP (one more network query per ray).
+    Network,
+}
+
+/// An i-NOLF object ready to render.
+#[derive(Debug, Clone)]
+pub struct InolfKernel {
+    density: DensityCubes,
+    diffuse_cubes: Option<SparseCubes>,
+    diffuse_net: Option<(HashGrid, Mlp)>,
+    grid_bounds: Bounds,
+    psh: PshEncoding,
+    specular: Mlp,
+    shape: HeadsShape,
+    source: DiffuseSource,
+}
+
+/// Why an asset file could not be opened as a kernel.
+#[derive(Debug, thiserror::Error)]
+pub enum LoadError {
+    #[error(transparent)]
+    Asset(#[from] super::asset::AssetError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+}
+
+/// Pixels per rayon task.
+const CHUNK: usize = 1024;
+
+impl InolfKernel {
+    /// From a loaded asset (meta, tensors and sections checked against each other).
+    pub fn from_asset(asset: Asset) -> Result<InolfKernel, ModelError> {
+        let heads = load_heads(&asset)?;
+        let psh = asset.psh.ok_or_else(|| ModelError::Shape("no PSH section".into()))?;
+        let source = if asset.diffuse.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
+        Ok(InolfKernel {
+            density: asset.density,
+            diffuse_cubes: asset.diffuse,
+            diffuse_net: heads.diffuse,
+            grid_bounds: heads.grid_bounds,
+            psh,
+            specular: heads.specular,
+            shape: heads.meta.shape,
+            source,
+        })
+    }
+
+    /// Loads and validates a `.nolf` file (first bytes [`super::asset::MAGIC`]).
+    pub fn load(path: &std::path::Path) -> Result<InolfKernel, LoadError> {
+        Ok(InolfKernel::from_asset(Asset::load(path)?)?)
+    }
+
+    /// From a model in memory (tests, and rendering right after training).
+    pub fn from_model(model: &InolfModel, density: DensityCubes, diffuse_cubes: Option<SparseCubes>) -> InolfKernel {
+        let source = if diffuse_cubes.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
+        InolfKernel {
+            density,
+            diffuse_cubes,
+            diffuse_net: Some((model.grid.clone(), model.diffuse.clone())),
+            grid_bounds: model.bounds,
+            psh: model.psh.clone(),
+            specular: model.specular.clone(),
+            shape: model.shape,
+            source,
+        }
+    }
+
+    /// Chooses the diffuse source; fails if that part is not in the asset.
+    pub fn set_diffuse_source(&mut self, source: DiffuseSource) -> Result<(), ModelError> {
+        let ok = match source {
+            DiffuseSource::Cubes => self.diffuse_cubes.is_some(),
+            DiffuseSource::Network => self.diffuse_net.is_some(),
+        };
+        if !ok {
+            return Err(ModelError::Shape(format!("the asset has no {source:?} diffuse part")));
+        }
+        self.source = source;
+        Ok(())
+    }
+
+    pub fn diffuse_source(&self) -> DiffuseSource {
+        self.source
+    }
+
+    pub fn density(&self) -> &DensityCubes {
+        &self.density
+    }
+
+    /// Renders one chunk of pixels into the given output slices.
+    fn render_chunk(&self, camera: &Camera, pixels: &[u32], color: &mut [[f32; 3]], opacity: &mut [f32], depth: &mut [f32]) -> Result<u64, ModelError> {
+        let width = camera.width();
+        let mut hits: Vec<(usize, Vec3, Vec3, f32)> = Vec::with_capacity(pixels.len());
+        for (k, &p) in pixels.iter().enumerate() {
+            let ray = camera.pixel_center_ray(p % width, p / width);
+            let h = self.density.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+            if h.opacity >= HIT_OPACITY {
+                hits.push((k, ray.at(h.t), ray.direction, h.opacity));
+            }
+        }
+        if hits.is_empty() {
+            return Ok(0);
+        }
+        let n = hits.len();
+        // Diffuse colour and tint.
+        let mut diffuse = vec![0.0f32; n * DIFFUSE_OUT];
+        match (self.source, &self.diffuse_cubes, &self.diffuse_net) {
+            (DiffuseSource::Cubes, Some(cubes), _) => {
+                for (row, h) in diffuse.chunks_exact_mut(DIFFUSE_OUT).zip(&hits) {
+                    cubes.sample(h.1, row);
+                    row.iter_mut().for_each(|v| *v = decode_diffuse(*v));
+                }
+            }
+            (_, _, Some((grid, mlp))) => {
+                let size = self.grid_bounds.size();
+                let points: Vec<[f32; 3]> = hits.iter().map(|h| ((h.1 - self.grid_bounds.min) / size).to_array()).collect();
+                let mut enc = vec![0.0; n * grid.output_dim()];
+                grid.encode_batch(&points, &mut enc)?;
+                mlp.infer(&enc, &mut diffuse, &mut MlpWorkspace::new())?;
+            }
+            _ => return Err(ModelError::Shape("no diffuse part".into())),
+        }
+        // Specular branch: one MLP query per hitting ray, as one batch.
+        let f = self.psh.dim();
+        let sh = sh_coefficient_count(self.shape.sh_degree);
+        let s_in = f + sh + 1;
+        let mut input = vec![0.0f32; n * s_in];
+        for (row, h) in input.chunks_exact_mut(s_in).zip(&hits) {
+            self.psh.encode(h.1, &mut row[..f]);
+            sh_encode(h.2.to_array(), self.shape.sh_degree, &mut row[f..f + sh]);
+            row[f + sh] = h.3;
+        }
+        let mut specular = vec![0.0f32; n * SPECULAR_OUT];
+        self.specular.infer(&input, &mut specular, &mut MlpWorkspace::new())?;
+        for (raw, h) in specular.chunks_exact_mut(SPECULAR_OUT).zip(&hits) {
+            specular_activation(raw, h.3);
+        }
+        for (i, h) in hits.iter().enumerate() {
+            let (c, a) = combine(&diffuse[i * DIFFUSE_OUT..(i + 1) * DIFFUSE_OUT], &specular[i * SPECULAR_OUT..(i + 1) * SPECULAR_OUT]);
+            let k = h.0;
+            let d = camera.view_depth(h.1);
+            if a > 0.0 && a.is_finite() && d.is_finite() && d > 0.0 && c.iter().all(|v| v.is_finite()) {
+                color[k] = c.map(|v| v.max(0.0));
+                opacity[k] = a.clamp(0.0, 1.0);
+                depth[k] = d;
+            }
+        }
+        Ok(n as u64)
+    }
+}
+
+impl RayKernel for InolfKernel {
+    fn kind(&self) -> &'static str {
+        "inolf"
+    }
+
+    fn bounds(&self) -> Bounds {
+        self.density.bounds()
+    }
+
+    fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
+        validate_pixels(camera, pixels)?;
+        let mut out = PixelResults::with_len(pixels.len());
+        let hit_counts: Vec<Result<u64, ModelError>> = pixels
+            .par_chunks(CHUNK)
+            .zip(out.color.par_chunks_mut(CHUNK))
+            .zip(out.opacity.par_chunks_mut(CHUNK))
+            .zip(out.depth.par_chunks_mut(CHUNK))
+            .map(|(((p, c), o), d)| self.render_chunk(camera, p, c, o, d))
+            .collect();
+        let mut rays_hit = 0;
+        for h in hit_counts {
+            rays_hit += h.map_err(|e| KernelError::Failed(e.to_string()))?;
+        }
+        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries: rays_hit }))
+    }
+}

@@ -1,0 +1,262 @@
+//! The scene catalog: what a client may ask for in `POST /v1/sessions`.
+//!
+//! A scene is a list of objects, each an asset (an id the workers' asset loader resolves:
+//! a built-in scene name or a file in their asset directory) placed at a translation in the
+//! world. Objects are instances shared by every scene and session that places the same asset
+//! at the same spot, so that the scheduler can share their rays across users. World bounds
+//! come from the asset's geometry shifted by the translation; a worker renders the asset in
+//! its own coordinates, so the master moves the camera instead (see
+//! [`crate::farm::wire_camera`]).
+//!
+//! Built in: `default`, three objects side by side (the matte knot on the left, the glossy
+//! pair on the right, the glass shell behind them; see [`default_layout`]), and one
+//! single-object scene per built-in object scene (`diffuse`, `glossy`, `furry`, `shell`,
+//! `assembly`, `furnace`).
+
+use glam::Vec3;
+use nephele_render::kernel::Bounds;
+use nephele_render::scenes::{self, Framing};
+use thiserror::Error;
+
+use crate::http::SceneView;
+
+/// The built-in objects (scenes framed as objects, not interiors).
+pub const BUILTIN_OBJECTS: [&str; 6] = ["diffuse", "glossy", "furry", "shell", "assembly", "furnace"];
+
+/// The `default` scene's objects: left, right, behind.
+pub const DEFAULT_OBJECTS: [&str; 3] = ["diffuse", "glossy", "shell"];
+
+/// Free space between the boxes of the `default` scene's objects, metres.
+pub const DEFAULT_GAP: f32 = 0.2;
+
+/// Vertical field of view of the composed scenes' first view, degrees.
+const SCENE_FOV_Y_DEG: f32 = 40.0;
+
+/// An object instance: an asset at a place.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlacedObject {
+    /// Catalog-wide id (the scheduler's `ObjectId`).
+    pub id: u32,
+    pub asset: String,
+    pub translation: Vec3,
+    /// World-space box around the object's matter.
+    pub bounds: Bounds,
+}
+
+/// A named scene: object ids into the catalog and a good first view.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SceneDef {
+    pub name: String,
+    pub objects: Vec<u32>,
+    pub view: SceneView,
+}
+
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum CatalogError {
+    #[error("asset {asset:?}: {reason}")]
+    Asset { asset: String, reason: String },
+    #[error("scene {0:?} is defined twice")]
+    Duplicate(String),
+    #[error("scene {0:?} has no objects")]
+    Empty(String),
+}
+
+/// Every scene and object the master knows.
+#[derive(Debug, Clone, Default)]
+pub struct Catalog {
+    objects: Vec<PlacedObject>,
+    scenes: Vec<SceneDef>,
+}
+
+impl Catalog {
+    /// An empty catalog; add scenes with [`Catalog::add_scene`].
+    pub fn new() -> Catalog {
+        Catalog::default()
+    }
+
+    /// The built-in scenes (builds each built-in object once to measure its bounds).
+    pub fn builtin() -> Result<Catalog, CatalogError> {
+        let mut catalog = Catalog::new();
+        let mut framed = Vec::new();
+        for name in BUILTIN_OBJECTS {
+            let scene = scenes::builtin(name).map_err(|e| CatalogError::Asset { asset: name.into(), reason: e.to_string() })?;
+            let bounds = mesh_bounds(name, &scene.scene)?;
+            framed.push((name, bounds, scene.framing, scene.default_view()));
+        }
+        let bounds_of = |asset: &str| {
+            framed.iter().find(|f| f.0 == asset).map(|f| f.1).ok_or_else(|| CatalogError::Asset { asset: asset.into(), reason: "not built in".into() })
+        };
+        let boxes = [bounds_of(DEFAULT_OBJECTS[0])?, bounds_of(DEFAULT_OBJECTS[1])?, bounds_of(DEFAULT_OBJECTS[2])?];
+        let placed = DEFAULT_OBJECTS.iter().zip(default_layout(&boxes, DEFAULT_GAP)).zip(boxes).map(|((a, t), b)| (a.to_string(), t, b)).collect();
+        catalog.add_scene("default", placed, None)?;
+        for (name, bounds, framing, (eye, target, fov_y)) in &framed {
+            // Object scenes come with their own first view; keep it.
+            let view = matches!(framing, Framing::Object { .. })
+                .then(|| SceneView { eye: eye.to_array(), target: target.to_array(), fov_y_deg: fov_y.to_degrees() });
+            catalog.add_scene(name, vec![(name.to_string(), Vec3::ZERO, *bounds)], view)?;
+        }
+        Ok(catalog)
+    }
+
+    /// Adds a scene of `(asset, translation, bounds in the asset's own coordinates)`. Objects
+    /// already placed identically by another scene are reused. Without `view`, a first view
+    /// is framed around the scene's bounds.
+    pub fn add_scene(&mut self, name: &str, objects: Vec<(String, Vec3, Bounds)>, view: Option<SceneView>) -> Result<(), CatalogError> {
+        if self.scenes.iter().any(|s| s.name == name) {
+            return Err(CatalogError::Duplicate(name.into()));
+        }
+        if objects.is_empty() {
+            return Err(CatalogError::Empty(name.into()));
+        }
+        let mut ids = Vec::with_capacity(objects.len());
+        for (asset, translation, local) in objects {
+            nephele_proto::validate::asset_id(&asset).map_err(|e| CatalogError::Asset { asset: asset.clone(), reason: e.to_string() })?;
+            let bounds = Bounds { min: local.min + translation, max: local.max + translation };
+            let existing = self.objects.iter().find(|o| o.asset == asset && o.translation == translation && o.bounds == bounds);
+            let id = match existing {
+                Some(o) => o.id,
+                None => {
+                    let id = self.objects.len() as u32 + 1;
+                    self.objects.push(PlacedObject { id, asset, translation, bounds });
+                    id
+                }
+            };
+            if !ids.contains(&id) {
+                ids.push(id);
+            }
+        }
+        let view = view.unwrap_or_else(|| {
+            let boxes: Vec<Bounds> = ids.iter().filter_map(|id| self.object(*id)).map(|o| o.bounds).collect();
+            frame_view(&boxes)
+        });
+        self.scenes.push(SceneDef { name: name.into(), objects: ids, view });
+        Ok(())
+    }
+
+    pub fn scenes(&self) -> &[SceneDef] {
+        &self.scenes
+    }
+
+    pub fn scene(&self, name: &str) -> Option<&SceneDef> {
+        self.scenes.iter().find(|s| s.name == name)
+    }
+
+    pub fn objects(&self) -> &[PlacedObject] {
+        &self.objects
+    }
+
+    pub fn object(&self, id: u32) -> Option<&PlacedObject> {
+        self.objects.iter().find(|o| o.id == id)
+    }
+}
+
+/// Translations that put three objects (boxes in their own coordinates) side by side on the
+/// ground plane z = 0 (each box's centre at z = its own): the first left of the origin, the
+/// second right of it, the third behind both (+Y), centred, `gap` metres between boxes. The
+/// built-in objects are about 2.5 m across, so this is roughly x = -1.4, x = +1.4, y = +2.7.
+pub fn default_layout(boxes: &[Bounds; 3], gap: f32) -> [Vec3; 3] {
+    let [left, right, back] = boxes;
+    let t_left = Vec3::new(-0.5 * gap - left.max.x, -left.center().y, 0.0);
+    let t_right = Vec3::new(0.5 * gap - right.min.x, -right.center().y, 0.0);
+    let front_back = (left.max.y + t_left.y).max(right.max.y + t_right.y);
+    let t_back = Vec3::new(-back.center().x, front_back + gap - back.min.y, 0.0);
+    [t_left, t_right, t_back]
+}
+
+fn mesh_bounds(name: &str, scene: &nephele_render::reference::Scene) -> Result<Bounds, CatalogError> {
+    let (min, max) = scene.bounds().ok_or_else(|| CatalogError::Asset { asset: name.into(), reason: "the scene has no geometry".into() })?;
+    if !(min.is_finite() && max.is_finite()) {
+        return Err(CatalogError::Asset { asset: name.into(), reason: "non-finite bounds".into() });
+    }
+    Ok(Bounds { min, max })
+}
+
+/// A first view of boxes: from the front-right and above (azimuth -60 degrees, 25 degrees
+/// up, as the built-in scenes' default views), far enough for their bounding sphere to fit
+/// the vertical field of view with a 10 % margin.
+pub fn frame_view(boxes: &[Bounds]) -> SceneView {
+    let (min, max) = boxes.iter().fold((Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)), |(lo, hi), b| (lo.min(b.min), hi.max(b.max)));
+    let (center, radius) = if min.is_finite() && max.is_finite() { (0.5 * (min + max), 0.5 * (max - min).length()) } else { (Vec3::ZERO, 1.0) };
+    let half = (0.5 * SCENE_FOV_Y_DEG).to_radians();
+    let distance = 1.1 * radius.max(1e-3) / half.sin();
+    let (azimuth, elevation) = ((-60f32).to_radians(), 25f32.to_radians());
+    let dir = Vec3::new(elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin());
+    SceneView { eye: (center + dir * distance).to_array(), target: center.to_array(), fov_y_deg: SCENE_FOV_Y_DEG }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit() -> Bounds {
+        Bounds { min: Vec3::splat(-0.5), max: Vec3::splat(0.5) }
+    }
+
+    #[test]
+    fn objects_are_shifted_and_shared_between_scenes() {
+        let mut catalog = Catalog::new();
+        catalog.add_scene("a", vec![("x".into(), Vec3::new(2.0, 0.0, 0.0), unit()), ("y".into(), Vec3::ZERO, unit())], None).expect("a");
+        catalog.add_scene("b", vec![("x".into(), Vec3::new(2.0, 0.0, 0.0), unit())], None).expect("b");
+        catalog.add_scene("c", vec![("x".into(), Vec3::ZERO, unit())], None).expect("c");
+        assert_eq!(catalog.objects().len(), 3, "x at 2 is one instance, x at 0 another");
+        let a = catalog.scene("a").expect("a");
+        let b = catalog.scene("b").expect("b");
+        assert_eq!(a.objects[0], b.objects[0]);
+        let x = catalog.object(a.objects[0]).expect("x");
+        assert_eq!(x.bounds.min, Vec3::new(1.5, -0.5, -0.5));
+        assert_eq!(x.translation, Vec3::new(2.0, 0.0, 0.0));
+        assert!(catalog.add_scene("a", vec![("x".into(), Vec3::ZERO, unit())], None).is_err());
+        assert!(catalog.add_scene("d", vec![], None).is_err());
+        assert!(catalog.add_scene("e", vec![("../x".into(), Vec3::ZERO, unit())], None).is_err());
+    }
+
+    #[test]
+    fn the_framed_view_sees_every_box() {
+        let boxes = [
+            Bounds { min: Vec3::new(-2.0, -0.5, -0.5), max: Vec3::new(-1.0, 0.5, 0.5) },
+            Bounds { min: Vec3::new(1.0, 1.0, -0.5), max: Vec3::new(2.0, 2.0, 0.5) },
+        ];
+        let view = frame_view(&boxes);
+        let camera = nephele_render::camera::Camera::look_at(
+            200,
+            200,
+            view.fov_y_deg.to_radians(),
+            Vec3::from(view.eye),
+            Vec3::from(view.target),
+            Vec3::Z,
+        )
+        .expect("camera");
+        for b in &boxes {
+            for corner in b.corners() {
+                let p = camera.project(corner).expect("in front");
+                assert!((0.0..200.0).contains(&p.x) && (0.0..200.0).contains(&p.y), "{corner} -> {p}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_builtin_catalog_has_the_default_scene_and_one_per_object() {
+        let catalog = Catalog::builtin().expect("catalog");
+        let names: Vec<&str> = catalog.scenes().iter().map(|s| s.name.as_str()).collect();
+        assert_eq!(names[0], "default");
+        for object in BUILTIN_OBJECTS {
+            assert!(names.contains(&object), "{object}");
+        }
+        let default = catalog.scene("default").expect("default");
+        assert_eq!(default.objects.len(), 3);
+        let diffuse_in_default = catalog.object(default.objects[0]).expect("object");
+        let diffuse = catalog.object(catalog.scene("diffuse").expect("diffuse").objects[0]).expect("object");
+        assert_eq!(diffuse_in_default.asset, "diffuse");
+        assert_ne!(diffuse_in_default.id, diffuse.id, "placed elsewhere: another instance");
+        assert!(diffuse_in_default.bounds.max.x < 0.0 && diffuse_in_default.translation.x < -0.5, "{diffuse_in_default:?}");
+        // Side by side: the three boxes of the default scene do not overlap.
+        let boxes: Vec<Bounds> = default.objects.iter().map(|id| catalog.object(*id).expect("o").bounds).collect();
+        for i in 0..3 {
+            for j in i + 1..3 {
+                let (a, b) = (boxes[i], boxes[j]);
+                let overlap = a.min.cmplt(b.max).all() && b.min.cmplt(a.max).all();
+                assert!(!overlap, "{a:?} and {b:?} overlap");
+            }
+        }
+    }
+}

@@ -1,0 +1,103 @@
+//! The whole service across processes: `nephele up --workers 2` (master, composer, two
+//! workers), a WebRTC client that opens its session through the MASTER's `POST
+//! /v1/sessions`, sends poses in the browser client's format and receives H.264 rendered by
+//! the farm; then DELETE and SIGINT stop everything with no child left behind.
+
+use std::io::{BufRead, BufReader};
+use std::net::{SocketAddr, TcpListener};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use nephele_composer::client::{Client, ClientOptions, http_request};
+use nephele_composer::pose::look_at_pose;
+use nephele_tests::nephele_bin;
+
+fn free_port() -> SocketAddr {
+    TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).expect("a free port")
+}
+
+fn children_of(pid: u32) -> Vec<u32> {
+    let out = Command::new("pgrep").args(["-P", &pid.to_string()]).output().expect("pgrep");
+    String::from_utf8_lossy(&out.stdout).lines().filter_map(|l| l.trim().parse().ok()).collect()
+}
+
+fn alive(pid: u32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| !s.contains(") Z "))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nephele_up_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {
+    let http = free_port();
+    let mut up = Command::new(nephele_bin())
+        .args(["--quiet", "up", "--http", &http.to_string(), "--workers", "2", "--spp", "1", "--ready-secs", "40"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("starting nephele up");
+    let stdout = up.stdout.take().expect("piped stdout");
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+    // Drain every line (the children share the pipe), reporting the URL line.
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            if line.contains("open http://") {
+                let _ = ready_tx.send(line);
+            }
+        }
+    });
+    let url = ready_rx.recv_timeout(Duration::from_secs(45)).expect("nephele up prints the URL once the farm is whole");
+    assert!(url.contains(&http.to_string()), "{url}");
+    let children = children_of(up.id());
+    assert_eq!(children.len(), 4, "master, composer, two workers: {children:?}");
+
+    let (w, h) = (64, 48);
+    let options = ClientOptions { extra_json: format!(r#""scene":"default","width":{w},"height":{h}"#), ..Default::default() };
+    let mut client = Client::connect(http, options).await.expect("a session through the master");
+    let name = client.session_name.clone().expect("the master's session_id");
+
+    // Poses in the browser client's format; frames must follow: an IDR, then more.
+    let (eye, target) = (glam::Vec3::new(0.0, -6.0, 2.0), glam::Vec3::ZERO);
+    let started = Instant::now();
+    let (mut seq, mut idr, mut after) = (0u32, false, 0u32);
+    while started.elapsed() < Duration::from_secs(30) && after < 5 {
+        seq += 1;
+        let pose = look_at_pose(seq, w, h, 0.8, eye, target).expect("a valid pose");
+        client.send_pose(&pose).await.expect("sending a pose");
+        if let Ok(picture) = client.next_picture(Duration::from_millis(50), |_| true).await {
+            assert_eq!((picture.width, picture.height), (w as usize, h as usize));
+            if idr {
+                after += 1;
+            } else {
+                assert!(picture.idr, "the first picture is an IDR");
+                idr = true;
+            }
+        }
+    }
+    assert!(idr && after >= 5, "an IDR then 5 more frames within 30 s: idr {idr}, after {after}");
+
+    let (status, farm) = http_request(http, "GET", "/v1/farm", &[], "").await.expect("GET /v1/farm");
+    assert_eq!(status, 200, "{farm}");
+    let farm: serde_json::Value = serde_json::from_str(&farm).expect("JSON");
+    assert_eq!(farm["workers"].as_array().map(Vec::len), Some(2), "{farm}");
+    assert!(!farm["composer"].is_null(), "{farm}");
+    let sessions = farm["sessions"].as_array().expect("sessions");
+    assert!(sessions.iter().any(|s| s["id"].as_str() == Some(name.as_str())), "{farm}");
+
+    let auth = format!("Bearer {}", client.token);
+    let (status, body) = http_request(http, "DELETE", &format!("/v1/sessions/{name}"), &[("authorization", &auth)], "").await.expect("DELETE");
+    assert_eq!(status, 204, "{body}");
+    client.close().await;
+
+    let pid = up.id();
+    assert!(Command::new("kill").args(["-INT", &pid.to_string()]).status().expect("kill").success());
+    let deadline = Instant::now() + Duration::from_secs(15);
+    let status = loop {
+        if let Some(status) = up.try_wait().expect("waiting for nephele up") {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "nephele up did not stop within 15 s of SIGINT");
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(status.success(), "nephele up exited with {status}");
+    let left: Vec<u32> = children.into_iter().filter(|&c| alive(c)).collect();
+    assert!(left.is_empty(), "children still running: {left:?}");
+}
