@@ -501,7 +501,7 @@ impl FarmBackend for TestFarm {
         })
     }
 
-    fn farm_state(&self) -> serde_json::Value {
+    fn farm_state(&self) -> nephele_master::http::BoxFuture<serde_json::Value> {
         let state = self.shared.state();
         let sessions: Vec<serde_json::Value> = state
             .peers
@@ -511,7 +511,8 @@ impl FarmBackend for TestFarm {
                 json!({ "id": id, "connected": p.connected.load(Ordering::SeqCst), "poses": poses, "frames_sent": p.frames_sent.load(Ordering::SeqCst) })
             })
             .collect();
-        json!({ "workers": [], "test_farm": sessions })
+        let value = json!({ "workers": [], "test_farm": sessions });
+        Box::pin(async move { value })
     }
 }
 
