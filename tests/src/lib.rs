@@ -1,10 +1,12 @@
 //! Helpers for the cross-process tests in `tests/tests/` (they run the real `nephele` binary)
 //! and the browser end-to-end tests: [`browser`] (headless Chromium over WebDriver),
-//! [`client`] (the client page's state), [`farm`] (an in-process farm with a real WebRTC peer).
+//! [`client`] (the client page's state), [`farm`] (an in-process farm with a real WebRTC peer),
+//! [`service`] (the whole service under `nephele up`).
 
 pub mod browser;
 pub mod client;
 pub mod farm;
+pub mod service;
 
 use std::path::PathBuf;
 use std::process::{Command, Output};

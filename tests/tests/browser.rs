@@ -4,8 +4,9 @@
 //! (`nephele_tests::farm`). Needs Debian's `chromium` and `chromium-driver`: `scripts/test`
 //! installs them; without them these tests fail and say so.
 //!
-//! The full-service test swaps [`Service::start`] for one that runs `nephele up`; the
-//! browser-side checks (`nephele_tests::client`) stay.
+//! The last test runs the whole service instead (`nephele up`: master, composer and two
+//! path-tracing workers as separate processes) with the same browser-side checks
+//! (`nephele_tests::client`).
 
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
@@ -13,6 +14,7 @@ use std::time::{Duration, Instant};
 use nephele_tests::browser::Browser;
 use nephele_tests::client;
 use nephele_tests::farm::{FIRST_VIEW, Pose, TestFarm, grey_for_azimuth};
+use nephele_tests::service::UpService;
 
 /// One browser at a time: two Chromiums decoding video on a 2-core box would make the timing
 /// checks flaky.
@@ -186,4 +188,51 @@ fn a_busy_farm_makes_the_client_wait_and_retry() {
     // The refused POST is logged by Chromium as a failed resource load (503): expected here.
     let unexpected: Vec<_> = client::page_errors(&errors).into_iter().filter(|e| !e.message.contains("503")).collect();
     assert!(unexpected.is_empty(), "JavaScript errors: {errors:?}");
+}
+
+/// The end-to-end test: the real service (`nephele up`), the real client page in
+/// headless Chromium. Frames are decoded (`getStats()`), a scripted pose change changes the
+/// picture, and a second tab is a second user that `GET /v1/farm` lists beside the first.
+#[test]
+fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_second_user() {
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let up = UpService::start(2);
+    let url = format!("http://{}/?scene=default&width={WIDTH}&height={HEIGHT}", up.http);
+    let browser = Browser::start().expect("headless Chromium");
+    browser.goto(&url).expect("open the client");
+    client::wait_streaming(&browser, Duration::from_secs(30)).expect("the data channel opens");
+    let first = client::session_id(&browser).expect("session id").expect("a session");
+    wait_for("decoded frames", Duration::from_secs(30), || client::frames_decoded(&browser).ok().filter(|&n| n >= 5));
+    let stats = client::inbound_video_stats(&browser).expect("getStats");
+    assert_eq!((stats["frameWidth"].as_u64(), stats["frameHeight"].as_u64()), (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))), "{stats}");
+
+    // Close to the scene, then far away: the farm renders the new pose and the picture follows.
+    let whole = [0.0, 0.0, 1.0, 1.0];
+    let settle = |radius: f64| {
+        client::set_orbit(&browser, 0.6, 0.35, radius).expect("setOrbit");
+        let decoded = client::frames_decoded(&browser).expect("getStats");
+        wait_for("frames of the new pose", Duration::from_secs(20), || client::frames_decoded(&browser).ok().filter(|&n| n >= decoded + 10));
+        client::mean_grey(&browser, whole).expect("reading the picture back").expect("a picture")
+    };
+    let near = settle(3.0);
+    let far = settle(80.0);
+    eprintln!("mean grey of the whole picture: {near:.1} at 3 m, {far:.1} at 80 m");
+    assert!((near - far).abs() > 5.0, "moving the camera from 3 m to 80 m left the picture at grey {near:.1} -> {far:.1}");
+
+    // A second tab is a second user with its own stream.
+    let first_tab = browser.window().expect("tab");
+    browser.new_tab().expect("second tab");
+    browser.goto(&url).expect("open the client again");
+    client::wait_streaming(&browser, Duration::from_secs(30)).expect("second tab streams");
+    let second = client::session_id(&browser).expect("session id").expect("a session");
+    assert_ne!(first, second);
+    wait_for("decoded frames in the second tab", Duration::from_secs(30), || client::frames_decoded(&browser).ok().filter(|&n| n >= 5));
+    let farm = browser.eval_promise("fetch('/v1/farm').then((r) => r.json())").expect("GET /v1/farm");
+    let sessions: Vec<&str> = farm["sessions"].as_array().expect("sessions").iter().filter_map(|s| s["id"].as_str()).collect();
+    assert!(sessions.contains(&first.as_str()) && sessions.contains(&second.as_str()), "{farm}");
+    browser.close_tab().expect("close the second tab");
+    browser.switch_to(&first_tab).expect("back to the first tab");
+    assert_eq!(client::state(&browser).expect("state"), "streaming");
+    let errors = browser.console_log().expect("console log");
+    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
 }

@@ -3,50 +3,18 @@
 //! /v1/sessions`, sends poses in the browser client's format and receives H.264 rendered by
 //! the farm; then DELETE and SIGINT stop everything with no child left behind.
 
-use std::io::{BufRead, BufReader};
-use std::net::{SocketAddr, TcpListener};
-use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use nephele_composer::client::{Client, ClientOptions, http_request};
 use nephele_composer::pose::look_at_pose;
-use nephele_tests::nephele_bin;
-
-fn free_port() -> SocketAddr {
-    TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).expect("a free port")
-}
-
-fn children_of(pid: u32) -> Vec<u32> {
-    let out = Command::new("pgrep").args(["-P", &pid.to_string()]).output().expect("pgrep");
-    String::from_utf8_lossy(&out.stdout).lines().filter_map(|l| l.trim().parse().ok()).collect()
-}
-
-fn alive(pid: u32) -> bool {
-    std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| !s.contains(") Z "))
-}
+use nephele_tests::service::{UpService, alive, children_of};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nephele_up_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {
-    let http = free_port();
-    let mut up = Command::new(nephele_bin())
-        .args(["--quiet", "up", "--http", &http.to_string(), "--workers", "2", "--spp", "1", "--ready-secs", "40"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("starting nephele up");
-    let stdout = up.stdout.take().expect("piped stdout");
-    let (ready_tx, ready_rx) = std::sync::mpsc::channel();
-    // Drain every line (the children share the pipe), reporting the URL line.
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-            if line.contains("open http://") {
-                let _ = ready_tx.send(line);
-            }
-        }
-    });
-    let url = ready_rx.recv_timeout(Duration::from_secs(45)).expect("nephele up prints the URL once the farm is whole");
-    assert!(url.contains(&http.to_string()), "{url}");
-    let children = children_of(up.id());
+    let mut up = UpService::start(2);
+    let http = up.http;
+    assert!(up.url_line.contains(&http.to_string()), "{}", up.url_line);
+    let children = children_of(up.pid());
     assert_eq!(children.len(), 4, "master, composer, two workers: {children:?}");
 
     let (w, h) = (64, 48);
@@ -87,16 +55,7 @@ async fn nephele_up_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {
     assert_eq!(status, 204, "{body}");
     client.close().await;
 
-    let pid = up.id();
-    assert!(Command::new("kill").args(["-INT", &pid.to_string()]).status().expect("kill").success());
-    let deadline = Instant::now() + Duration::from_secs(15);
-    let status = loop {
-        if let Some(status) = up.try_wait().expect("waiting for nephele up") {
-            break status;
-        }
-        assert!(Instant::now() < deadline, "nephele up did not stop within 15 s of SIGINT");
-        std::thread::sleep(Duration::from_millis(50));
-    };
+    let status = up.interrupt(Duration::from_secs(15)).expect("nephele up stops within 15 s of SIGINT");
     assert!(status.success(), "nephele up exited with {status}");
     let left: Vec<u32> = children.into_iter().filter(|&c| alive(c)).collect();
     assert!(left.is_empty(), "children still running: {left:?}");

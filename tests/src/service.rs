@@ -1,0 +1,90 @@
+//! The whole service as a user starts it: `nephele up` (master, composer and workers as
+//! child processes on loopback), for the cross-process and browser end-to-end tests.
+
+use std::io::{BufRead, BufReader};
+use std::net::{SocketAddr, TcpListener};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+use crate::nephele_bin;
+
+/// A running `nephele up`. Dropping it sends SIGINT and reaps it (and kills it if it hangs).
+#[derive(Debug)]
+pub struct UpService {
+    child: Option<Child>,
+    /// The master's HTTP address (the client page, `/v1/sessions`, `/v1/farm`).
+    pub http: SocketAddr,
+    /// The URL line `nephele up` printed once the farm was whole.
+    pub url_line: String,
+}
+
+/// A loopback port that was free a moment ago.
+pub fn free_port() -> SocketAddr {
+    TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).expect("a free port")
+}
+
+/// Child processes of `pid` (from `pgrep -P`).
+pub fn children_of(pid: u32) -> Vec<u32> {
+    let out = Command::new("pgrep").args(["-P", &pid.to_string()]).output().expect("pgrep");
+    String::from_utf8_lossy(&out.stdout).lines().filter_map(|l| l.trim().parse().ok()).collect()
+}
+
+/// Whether `pid` is a live (not zombie) process.
+pub fn alive(pid: u32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| !s.contains(") Z "))
+}
+
+impl UpService {
+    /// Starts `nephele up --workers N --spp 1` on a free HTTP port and waits (up to 45 s) for
+    /// the URL it prints once the composer and every worker have joined the master.
+    pub fn start(workers: usize) -> UpService {
+        let http = free_port();
+        let mut child = Command::new(nephele_bin())
+            .args(["--quiet", "up", "--http", &http.to_string(), "--workers", &workers.to_string(), "--spp", "1", "--ready-secs", "40"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("starting nephele up");
+        let stdout = child.stdout.take().expect("piped stdout");
+        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+        // Drain every line (the children share the pipe), reporting the URL line.
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if line.contains("open http://") {
+                    let _ = ready_tx.send(line);
+                }
+            }
+        });
+        let mut service = UpService { child: Some(child), http, url_line: String::new() };
+        service.url_line = ready_rx.recv_timeout(Duration::from_secs(45)).expect("nephele up prints the URL once the farm is whole");
+        service
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().map_or(0, Child::id)
+    }
+
+    /// Sends SIGINT (Ctrl-C) and waits up to `limit` for the exit status.
+    pub fn interrupt(&mut self, limit: Duration) -> Option<ExitStatus> {
+        let mut child = self.child.take()?;
+        let _ = Command::new("kill").args(["-INT", &child.id().to_string()]).status();
+        let deadline = Instant::now() + limit;
+        loop {
+            if let Ok(Some(status)) = child.try_wait() {
+                return Some(status);
+            }
+            if Instant::now() >= deadline {
+                let _ = child.kill();
+                let _ = child.wait();
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for UpService {
+    fn drop(&mut self) {
+        self.interrupt(Duration::from_secs(15));
+    }
+}
