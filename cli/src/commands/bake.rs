@@ -12,7 +12,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use glam::Vec3;
 use nephele_render::dataset;
-use nephele_render::inolf::bake::{bake_diffuse_cubes, to_asset};
+use nephele_render::inolf::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
 use nephele_render::inolf::cubes::{CubeOptions, DensityCubes};
 use nephele_render::inolf::encoding::PshEncoding;
 use nephele_render::inolf::model::{HeadsShape, InolfModel};
@@ -136,24 +136,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let t = Instant::now();
     let cube_options = CubeOptions { resolution: args.cubes, cube_res: args.cube_res, ..CubeOptions::default() };
     let bar = progress.bar(1, "density cubes", "cells");
-    // The network's density, cut to zero outside the field's own occupancy grid (the
-    // calibrated notion of "empty" the baseline marches with) and below the threshold.
-    let occupancy = field.occupancy();
-    let res = occupancy.resolution();
-    let threshold = args.density_threshold;
-    let density = |points: &[Vec3], out: &mut [f32]| {
-        let mut scratch = FieldScratch::new();
-        if field.density_batch(points, out, &mut scratch).is_err() {
-            out.iter_mut().for_each(|v| *v = 0.0);
-        }
-        for (p, o) in points.iter().zip(out.iter_mut()) {
-            let u = field.to_unit(*p) * res as f32;
-            let cell = [u.x, u.y, u.z].map(|c| (c.max(0.0) as u32).min(res - 1));
-            if *o < threshold || !occupancy.get(occupancy.index(cell[0], cell[1], cell[2])) {
-                *o = 0.0;
-            }
-        }
-    };
+    let density = field_density_for_cubes(&field, args.density_threshold);
     let cubes = DensityCubes::build(bounds, &cube_options, density, &|p| {
         bar.set_length(p.total);
         bar.set_position(p.done);

@@ -11,6 +11,7 @@ use super::asset::{Asset, Tensor};
 use super::cubes::{CubeError, DensityCubes, SparseCubes, dilate, EMPTY_CELL};
 use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError};
 use crate::kernel::Bounds;
+use crate::ngp::{FieldScratch, RadianceField};
 use crate::nn::{HashGrid, Mlp, MlpWorkspace};
 
 /// The asset's meta section.
@@ -29,6 +30,28 @@ pub struct InolfMeta {
 /// Diffuse colour and tint are stored as `sqrt(value)` in 8 bits: finer steps in the darks,
 /// where sRGB is most sensitive.
 #[inline]
+/// The density the cubes are built from (NEPHELE section 4: density texture cubes baked
+/// from the radiance field): the field's density network, cut to zero outside its own
+/// occupancy grid (the calibrated notion of "empty" the baseline marches with) and below
+/// `threshold` (per unit length). Batched, for [`DensityCubes::build`].
+pub fn field_density_for_cubes(field: &RadianceField, threshold: f32) -> impl Fn(&[Vec3], &mut [f32]) + Sync + '_ {
+    move |points: &[Vec3], out: &mut [f32]| {
+        let occupancy = field.occupancy();
+        let res = occupancy.resolution();
+        let mut scratch = FieldScratch::new();
+        if field.density_batch(points, out, &mut scratch).is_err() {
+            out.iter_mut().for_each(|v| *v = 0.0);
+        }
+        for (p, o) in points.iter().zip(out.iter_mut()) {
+            let u = field.to_unit(*p) * res as f32;
+            let cell = [u.x, u.y, u.z].map(|c| (c.max(0.0) as u32).min(res - 1));
+            if *o < threshold || !occupancy.get(occupancy.index(cell[0], cell[1], cell[2])) {
+                *o = 0.0;
+            }
+        }
+    }
+}
+
 pub fn encode_diffuse(v: f32) -> u8 {
     (v.clamp(0.0, 1.0).sqrt() * 255.0).round() as u8
 }
