@@ -10,7 +10,6 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use glam::Vec3;
 use nephele_render::dataset;
 use nephele_render::inolf::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
 use nephele_render::inolf::cubes::{CubeOptions, DensityCubes};
@@ -19,7 +18,7 @@ use nephele_render::inolf::model::{HeadsShape, InolfModel};
 use nephele_render::inolf::psh::PshOptions;
 use nephele_render::inolf::train::{TrainOptions, collect_hit_points, train, training_views};
 use nephele_render::kernel::Bounds;
-use nephele_render::ngp::{FieldConfig, FieldScratch, RadianceField, TrainConfig, Trainer, load_field, save_field};
+use nephele_render::ngp::{FieldConfig, RadianceField, TrainConfig, Trainer, load_field, save_field};
 use serde_json::json;
 
 use crate::progress::Progress;
