@@ -11,6 +11,7 @@
 pub mod client;
 pub mod encode;
 pub mod fusion;
+pub mod latency;
 mod master_link;
 pub mod pose;
 pub mod service;

@@ -27,6 +27,7 @@ use tokio::net::TcpStream;
 use tokio::sync::{mpsc, watch};
 
 use crate::fusion::{self, BatchKey, PlannedBatch, SessionId};
+use crate::latency::FrameTiming;
 use crate::pose::Pose;
 use crate::service::{Shared, end_session, layout_for, lock, open_viewer};
 
@@ -51,6 +52,7 @@ pub(crate) fn forward_pose(shared: &Shared, session: SessionId, pose: &Pose) {
         .iter()
         .map(|v| WireCamera { width: v.width, height: v.height, view: v.view.to_cols_array(), projection: v.projection.to_cols_array() })
         .collect();
+    lock(&shared.latency).pose_received(session, pose.seq, Instant::now());
     to_master(shared, Message::ClientPose(ClientPose { session_id: session, sequence: pose.seq, client_time_ms: pose.client_time_ms, views }));
 }
 
@@ -119,7 +121,7 @@ fn handle(shared: &Arc<Shared>, message: Message) {
                 while Instant::now() < grace_end && !all_present(&shared, &plan) {
                     tokio::time::sleep(Duration::from_millis(2)).await;
                 }
-                if let Err(e) = fuse_plan(&shared, &plan) {
+                if let Err(e) = fuse_plan(&shared, &plan, start) {
                     tracing::debug!(session = plan.session_id, frame = plan.frame_id, "frame plan refused: {e}");
                 }
             });
@@ -155,7 +157,8 @@ fn all_present(shared: &Shared, plan: &FramePlan) -> bool {
 }
 
 /// Fuses a frame plan from the stored task results (see the module docs).
-fn fuse_plan(shared: &Shared, plan: &FramePlan) -> Result<(), String> {
+fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Result<(), String> {
+    let results_complete = Instant::now();
     let views = u16::try_from(plan.views).map_err(|_| format!("{} views", plan.views))?;
     let layout = layout_for(plan.width, plan.height, views)?;
     if (layout.view_width(), layout.view_height()) != (plan.width, plan.height) {
@@ -199,6 +202,12 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan) -> Result<(), String> {
         }
     }
     let deadline = Instant::now() + if missing { Duration::ZERO } else { PLAN_GRACE };
+    {
+        let mut latency = lock(&shared.latency);
+        let pose_received = latency.pose_time(session, plan.pose_sequence);
+        let timing = FrameTiming { pose_sequence: plan.pose_sequence, client_time_ms: plan.client_time_ms, pose_received, plan_received, results_complete };
+        latency.frame_planned(session, frame, timing);
+    }
     let plan = fusion::FramePlan { session, frame, layout, background: [0.0; 3], deadline, batches: planned };
     {
         let mut compositor = lock(&shared.compositor);

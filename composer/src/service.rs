@@ -241,6 +241,8 @@ pub(crate) struct Shared {
     /// Worker results of the farm's tasks, by task id, until the master releases the task.
     pub(crate) task_results: StdMutex<HashMap<u64, Vec<Arc<nephele_proto::BatchResult>>>>,
     pub(crate) last_parts: StdMutex<crate::master_link::LastParts>,
+    /// Poses received, frames planned and the stages of frames sent (farm mode).
+    pub(crate) latency: StdMutex<crate::latency::LatencyTracker>,
 }
 
 /// A running composer. Dropping it does not stop it; call [`Composer::shutdown`].
@@ -296,6 +298,7 @@ impl Composer {
             to_master: StdMutex::new(None),
             task_results: StdMutex::new(HashMap::new()),
             last_parts: StdMutex::new(HashMap::new()),
+            latency: StdMutex::new(crate::latency::LatencyTracker::default()),
         });
         let (stop, stop_rx) = watch::channel(false);
         let mut tasks = Vec::new();
@@ -492,6 +495,9 @@ async fn list_sessions(State(shared): State<Arc<Shared>>) -> Response {
         "wire_errors": shared.counters.wire_errors.load(Ordering::Relaxed),
         "worker_connections": shared.counters.worker_connections.load(Ordering::Relaxed),
         "unknown_session_batches": lock(&shared.compositor).unknown_session_batches(),
+        // Pose received to frame sent and its stages, over the last frames of all sessions
+        // (farm mode only: standalone frames have no pose of the farm behind them).
+        "latency_ms": lock(&shared.latency).report(),
     });
     Json(body).into_response()
 }
@@ -512,6 +518,7 @@ async fn delete_session(State(shared): State<Arc<Shared>>, Path(id): Path<Sessio
 pub(crate) async fn end_session(shared: &Shared, id: SessionId) {
     let entry = lock(&shared.sessions).remove(&id);
     lock(&shared.compositor).close_session(id);
+    lock(&shared.latency).session_ended(id);
     if let Some(e) = entry {
         // Dropping the entry drops the frame sender: the media thread ends.
         e.viewer.close().await;
@@ -529,6 +536,7 @@ fn spawn_media_thread(
     media: Arc<StdMutex<(MediaCounters, EncoderStats)>>,
 ) {
     let runtime = shared.runtime.clone();
+    let shared = Arc::clone(shared);
     let fps = shared.config.fps;
     let bitrate = shared.config.bitrate_bps;
     let session = viewer.session();
@@ -587,6 +595,14 @@ fn spawn_media_thread(
             };
             let sent = runtime.block_on(viewer.send_frame(&encoded, frame_time));
             let t3 = Instant::now();
+            let timing = lock(&shared.latency).take_frame(session, frame.frame);
+            if let (Some(timing), Ok(())) = (timing, &sent) {
+                lock(&shared.latency).frame_sent(crate::latency::Stages::of(&timing, t0, t1, t2, t3));
+                // Tells the viewer which of its poses this frame shows (the client's and
+                // `nephele loadgen`'s pose-to-frame latency).
+                let note = serde_json::json!({ "type": "frame", "t": timing.client_time_ms, "seq": timing.pose_sequence });
+                let _ = runtime.block_on(viewer.send_text(note.to_string()));
+            }
             let mut m = lock(&media);
             m.1 = enc.stats();
             let c = &mut m.0;

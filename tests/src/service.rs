@@ -16,6 +16,8 @@ pub struct UpService {
     pub http: SocketAddr,
     /// The URL line `nephele up` printed once the farm was whole.
     pub url_line: String,
+    /// The composer's HTTP address (`GET /v1/sessions`: counters and latency), as printed.
+    pub composer_http: Option<SocketAddr>,
 }
 
 /// A loopback port that was free a moment ago.
@@ -50,13 +52,23 @@ impl UpService {
         // Drain every line (the children share the pipe), reporting the URL line.
         std::thread::spawn(move || {
             for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                if line.contains("open http://") {
+                if line.contains("open http://") || line.starts_with("composer counters") {
                     let _ = ready_tx.send(line);
                 }
             }
         });
-        let mut service = UpService { child: Some(child), http, url_line: String::new() };
-        service.url_line = ready_rx.recv_timeout(Duration::from_secs(45)).expect("nephele up prints the URL once the farm is whole");
+        let mut service = UpService { child: Some(child), http, url_line: String::new(), composer_http: None };
+        let deadline = Instant::now() + Duration::from_secs(45);
+        while service.url_line.is_empty() {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let line = ready_rx.recv_timeout(left).expect("nephele up prints the URL once the farm is whole");
+            if line.contains("open http://") {
+                service.url_line = line;
+            } else {
+                // "composer counters and latency: http://ADDR/v1/sessions"
+                service.composer_http = line.split("http://").nth(1).and_then(|rest| rest.split('/').next()).and_then(|a| a.parse().ok());
+            }
+        }
         service
     }
 

@@ -50,6 +50,20 @@ async fn nephele_up_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {
     let sessions = farm["sessions"].as_array().expect("sessions");
     assert!(sessions.iter().any(|s| s["id"].as_str() == Some(name.as_str())), "{farm}");
 
+    // The composer timed every frame from the pose it received to the frame it sent.
+    let composer = up.composer_http.expect("nephele up prints the composer's address");
+    let (status, body) = http_request(composer, "GET", "/v1/sessions", &[], "").await.expect("composer GET /v1/sessions");
+    assert_eq!(status, 200, "{body}");
+    let report: serde_json::Value = serde_json::from_str(&body).expect("JSON");
+    let latency = &report["latency_ms"];
+    assert!(latency["pose_to_sent"]["count"].as_u64().is_some_and(|n| n >= 3), "{latency}");
+    for stage in ["pose_to_sent", "scheduling", "rendering", "fusion", "yuv", "encode", "send"] {
+        let p50 = latency[stage]["p50"].as_f64().unwrap_or(-1.0);
+        assert!((0.0..10_000.0).contains(&p50), "{stage}: {latency}");
+    }
+    let total = latency["pose_to_sent"]["p50"].as_f64().unwrap_or(0.0);
+    assert!(total >= latency["encode"]["p50"].as_f64().unwrap_or(0.0), "{latency}");
+
     let auth = format!("Bearer {}", client.token);
     let (status, body) = http_request(http, "DELETE", &format!("/v1/sessions/{name}"), &[("authorization", &auth)], "").await.expect("DELETE");
     assert_eq!(status, 204, "{body}");

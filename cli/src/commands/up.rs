@@ -127,6 +127,7 @@ pub fn run(args: Args) -> Result<()> {
         std::thread::sleep(Duration::from_millis(200));
     }
     println!("nephele up: master, composer and {} workers ready", args.workers);
+    println!("composer counters and latency: http://{composer_http}/v1/sessions");
     println!("open http://{}/?scene={}", args.http, args.scene);
     let exited = supervisor.watch(&stop)?;
     let killed = supervisor.shutdown(Duration::from_secs(10));
