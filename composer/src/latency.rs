@@ -2,10 +2,12 @@
 //! sent (issue 5's latency split), measured on the composer's clock.
 //!
 //! In a farm the composer sees every step of a frame: it forwards the viewer's pose to the
-//! master (`pose`), receives the master's `FramePlan` for it (`plan`: scheduling, dispatch
-//! and two loopback hops), waits until the workers' results of every part are in or the
-//! plan's grace runs out (`results`: rendering), fuses them by depth and hands the picture
-//! to the viewer's media thread (`fused`), converts it to YUV 4:2:0, encodes it and sends it.
+//! master, and receives the master's `FramePlan` for it once the farm has rendered it (the
+//! master schedules the pose's ray tasks, the workers render them and send their results
+//! here, and the master plans the frame when every task reports done: the `farm` stage);
+//! then it waits for any results still on their way (`results_wait`), fuses them by depth
+//! and hands the picture to the viewer's media thread (`fusion`), converts it to YUV 4:2:0,
+//! encodes it and sends it.
 
 use std::collections::{HashMap, VecDeque};
 use std::time::Instant;
@@ -37,10 +39,11 @@ pub struct Stages {
     /// Pose received → frame sent (`None` when the pose was not seen, e.g. a plan for an
     /// older pose whose receipt fell out of the window).
     pub total: Option<f64>,
-    /// Pose received → plan received: the master's scheduling and dispatch, two hops.
-    pub scheduling: Option<f64>,
-    /// Plan received → every part's results in (or the grace over): the workers' rendering.
-    pub rendering: f64,
+    /// Pose received → plan received: the master's scheduling, the workers' rendering, their
+    /// done reports and the plan (four loopback hops).
+    pub farm: Option<f64>,
+    /// Plan received → every part's results in at the composer (or the grace over).
+    pub results_wait: f64,
     /// Results in → picture at the media thread: depth fusion and the hand-off.
     pub fusion: f64,
     pub yuv: f64,
@@ -55,8 +58,8 @@ impl Stages {
         let ms = |a: Instant, b: Instant| b.saturating_duration_since(a).as_secs_f64() * 1e3;
         Stages {
             total: timing.pose_received.map(|p| ms(p, t3)),
-            scheduling: timing.pose_received.map(|p| ms(p, timing.plan_received)),
-            rendering: ms(timing.plan_received, timing.results_complete),
+            farm: timing.pose_received.map(|p| ms(p, timing.plan_received)),
+            results_wait: ms(timing.plan_received, timing.results_complete),
             fusion: ms(timing.results_complete, t0),
             yuv: ms(t0, t1),
             encode: ms(t1, t2),
@@ -87,8 +90,8 @@ impl Percentiles {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
 pub struct LatencyReport {
     pub pose_to_sent: Percentiles,
-    pub scheduling: Percentiles,
-    pub rendering: Percentiles,
+    pub farm: Percentiles,
+    pub results_wait: Percentiles,
     pub fusion: Percentiles,
     pub yuv: Percentiles,
     pub encode: Percentiles,
@@ -149,8 +152,8 @@ impl LatencyTracker {
         let s = &self.sent;
         LatencyReport {
             pose_to_sent: Percentiles::of(s.iter().filter_map(|x| x.total)),
-            scheduling: Percentiles::of(s.iter().filter_map(|x| x.scheduling)),
-            rendering: Percentiles::of(s.iter().map(|x| x.rendering)),
+            farm: Percentiles::of(s.iter().filter_map(|x| x.farm)),
+            results_wait: Percentiles::of(s.iter().map(|x| x.results_wait)),
             fusion: Percentiles::of(s.iter().map(|x| x.fusion)),
             yuv: Percentiles::of(s.iter().map(|x| x.yuv)),
             encode: Percentiles::of(s.iter().map(|x| x.encode)),
@@ -178,16 +181,16 @@ mod tests {
         let timing = tracker.take_frame(1, 3).expect("planned");
         assert!(tracker.take_frame(1, 3).is_none());
         let stages = Stages::of(&timing, at(31), at(33), at(40), at(41));
-        assert_eq!(stages, Stages { total: Some(41.0), scheduling: Some(2.0), rendering: 28.0, fusion: 1.0, yuv: 2.0, encode: 7.0, send: 1.0 });
+        assert_eq!(stages, Stages { total: Some(41.0), farm: Some(2.0), results_wait: 28.0, fusion: 1.0, yuv: 2.0, encode: 7.0, send: 1.0 });
         for _ in 0..98 {
             tracker.frame_sent(stages);
         }
         for _ in 0..2 {
-            tracker.frame_sent(Stages { total: None, rendering: 100.0, ..stages });
+            tracker.frame_sent(Stages { total: None, results_wait: 100.0, ..stages });
         }
         let r = tracker.report();
-        assert_eq!((r.pose_to_sent.count, r.rendering.count), (98, 100));
-        assert_eq!((r.rendering.p50, r.rendering.p99), (Some(28.0), Some(100.0)));
+        assert_eq!((r.pose_to_sent.count, r.results_wait.count), (98, 100));
+        assert_eq!((r.results_wait.p50, r.results_wait.p99), (Some(28.0), Some(100.0)));
         assert_eq!(r.encode.p50, Some(7.0));
         tracker.session_ended(1);
         assert_eq!(tracker.pose_time(1, 7), None);

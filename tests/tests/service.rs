@@ -57,7 +57,7 @@ async fn nephele_up_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {
     let report: serde_json::Value = serde_json::from_str(&body).expect("JSON");
     let latency = &report["latency_ms"];
     assert!(latency["pose_to_sent"]["count"].as_u64().is_some_and(|n| n >= 3), "{latency}");
-    for stage in ["pose_to_sent", "scheduling", "rendering", "fusion", "yuv", "encode", "send"] {
+    for stage in ["pose_to_sent", "farm", "results_wait", "fusion", "yuv", "encode", "send"] {
         let p50 = latency[stage]["p50"].as_f64().unwrap_or(-1.0);
         assert!((0.0..10_000.0).contains(&p50), "{stage}: {latency}");
     }
