@@ -194,3 +194,51 @@ async fn a_client_with_mdns_candidates_still_connects() {
     client.close().await;
     composer.shutdown().await;
 }
+
+/// Bad clients do not disturb good ones: poses sent far faster than every 20 ms are dropped
+/// and counted (a token bucket), and a client that vanishes without `DELETE` loses its
+/// session, while another viewer's stream goes on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flooding_client_is_rate_limited_and_a_vanished_one_dropped_without_disturbing_others() {
+    let composer = Composer::start(config(FrameSource::TestPattern)).await.unwrap();
+    let mut calm = connect(&composer, "").await;
+    let flood = connect(&composer, "").await;
+    calm.next_picture(WAIT, |_| true).await.unwrap();
+    let report_of = |session: u64| composer.sessions().into_iter().find(|r| r.session == session);
+
+    let sent = 200u32;
+    for seq in 1..=sent {
+        let pose = look_at_pose(seq, 160, 120, 0.9, Vec3::new(0.0, -3.0, 1.0), Vec3::ZERO).unwrap();
+        flood.send_pose(&pose).await.unwrap();
+    }
+    for _ in 0..5 {
+        calm.next_picture(WAIT, |_| true).await.unwrap();
+    }
+    let start = std::time::Instant::now();
+    let flooded = loop {
+        let r = report_of(flood.session).expect("the flooding session still exists");
+        if r.poses.received == u64::from(sent) || start.elapsed() > WAIT {
+            break r;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    let p = flooded.poses;
+    assert_eq!(p.received, u64::from(sent), "{p:?}");
+    assert!(p.rate_limited >= 100 && p.accepted >= 1, "{p:?}");
+    assert_eq!(p.accepted + p.rate_limited + p.stale + p.malformed, p.received, "{p:?}");
+
+    // Vanish: the peer connection goes away, no DELETE.
+    flood.close().await;
+    let start = std::time::Instant::now();
+    while report_of(flood.session).is_some() {
+        assert!(start.elapsed() < Duration::from_secs(20), "the vanished client's session is still there");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    for _ in 0..5 {
+        calm.next_picture(WAIT, |_| true).await.unwrap();
+    }
+    let calm_report = report_of(calm.session).expect("the calm session");
+    assert!(calm_report.connected && calm_report.poses.rate_limited == 0, "{calm_report:?}");
+    calm.close().await;
+    composer.shutdown().await;
+}
