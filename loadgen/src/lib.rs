@@ -213,7 +213,8 @@ struct ControlStats {
     pose_to_frame_ms: Vec<f64>,
 }
 
-fn h264_codec() -> RTCRtpCodecParameters {
+/// H.264 as Chromium offers it (constrained baseline, packetization mode 1), video only.
+pub fn h264_codec() -> RTCRtpCodecParameters {
     let feedback = |typ: &str, parameter: &str| RTCPFeedback { typ: typ.into(), parameter: parameter.into() };
     RTCRtpCodecParameters {
         capability: RTCRtpCodecCapability {
@@ -231,6 +232,11 @@ fn h264_codec() -> RTCRtpCodecParameters {
 /// The client's WebRTC API: H.264 video (as Chromium offers it) and data channels over IPv4
 /// UDP host candidates, loopback included, no multicast DNS.
 pub fn client_api() -> Result<API, LoadError> {
+    Ok(rtc_api()?)
+}
+
+/// [`client_api`] with webrtc-rs's own error (also the in-process test farm's API).
+pub fn rtc_api() -> Result<API, webrtc::Error> {
     let mut media = MediaEngine::default();
     media.register_codec(h264_codec(), RTPCodecType::Video)?;
     let registry = register_default_interceptors(Registry::new(), &mut media)?;

@@ -22,30 +22,20 @@ use openh264::OpenH264API;
 use openh264::encoder::{Encoder, EncoderConfig, FrameRate, IntraFramePeriod, Profile, RateControlMode, UsageType};
 use openh264::formats::YUVBuffer;
 use serde_json::json;
-use webrtc::api::interceptor_registry::register_default_interceptors;
-use webrtc::api::media_engine::{MIME_TYPE_H264, MediaEngine};
-use webrtc::api::setting_engine::SettingEngine;
-use webrtc::api::{API, APIBuilder};
+use webrtc::api::API;
 use webrtc::data_channel::RTCDataChannel;
 use webrtc::data_channel::data_channel_message::DataChannelMessage;
-use webrtc::ice::mdns::MulticastDnsMode;
-use webrtc::ice::network_type::NetworkType;
-use webrtc::interceptor::registry::Registry;
 use webrtc::media::Sample;
 use webrtc::peer_connection::RTCPeerConnection;
 use webrtc::peer_connection::configuration::RTCConfiguration;
 use webrtc::peer_connection::peer_connection_state::RTCPeerConnectionState;
 use webrtc::peer_connection::sdp::session_description::RTCSessionDescription;
-use webrtc::rtp_transceiver::RTCPFeedback;
-use webrtc::rtp_transceiver::rtp_codec::{RTCRtpCodecCapability, RTCRtpCodecParameters, RTPCodecType};
 use webrtc::track::track_local::TrackLocal;
 use webrtc::track::track_local::track_local_static_sample::TrackLocalStaticSample;
 
 /// The scene every test session asks for, and its first view (as `POST /v1/sessions` returns).
 pub const SCENE: &str = "default";
 pub const FIRST_VIEW: SceneView = SceneView { eye: [0.0, -4.0, 2.0], target: [0.0, 0.0, 0.5], fov_y_deg: 40.0 };
-/// H.264 constrained baseline 3.1, packetization mode 1: what Chromium decodes.
-pub const H264_FMTP: &str = "level-asymmetry-allowed=1;packetization-mode=1;profile-level-id=42e01f";
 /// Frame rate of the test stream.
 pub const FPS: u32 = 30;
 
@@ -185,33 +175,7 @@ pub enum FarmError {
     Io(#[from] std::io::Error),
 }
 
-fn h264_codec() -> RTCRtpCodecParameters {
-    let feedback = |typ: &str, parameter: &str| RTCPFeedback { typ: typ.into(), parameter: parameter.into() };
-    RTCRtpCodecParameters {
-        capability: RTCRtpCodecCapability {
-            mime_type: MIME_TYPE_H264.to_owned(),
-            clock_rate: 90_000,
-            channels: 0,
-            sdp_fmtp_line: H264_FMTP.to_owned(),
-            rtcp_feedback: vec![feedback("ccm", "fir"), feedback("nack", ""), feedback("nack", "pli")],
-        },
-        payload_type: 102,
-        ..Default::default()
-    }
-}
-
-/// A webrtc-rs API for H.264 video and data channels over IPv4 UDP host candidates (loopback
-/// included), without multicast DNS.
-pub fn rtc_api() -> Result<API, webrtc::Error> {
-    let mut media = MediaEngine::default();
-    media.register_codec(h264_codec(), RTPCodecType::Video)?;
-    let registry = register_default_interceptors(Registry::new(), &mut media)?;
-    let mut settings = SettingEngine::default();
-    settings.set_include_loopback_candidate(true);
-    settings.set_network_types(vec![NetworkType::Udp4]);
-    settings.set_ice_multicast_dns_mode(MulticastDnsMode::Disabled);
-    Ok(APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build())
-}
+pub use nephele_loadgen::{h264_codec, rtc_api};
 
 impl TestFarm {
     /// A farm that answers offers with a real peer; `stream_video` also sends the H.264 stream.
