@@ -163,8 +163,8 @@ impl EncodedFrame {
     }
 }
 
-/// Running totals of an encoder.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+/// Running totals of an encoder (`GET /v1/sessions` reports them).
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct EncoderStats {
     pub frames: u64,
     pub keyframes: u64,

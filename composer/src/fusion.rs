@@ -292,8 +292,8 @@ pub struct FrameReport {
     pub deadline_hit: bool,
 }
 
-/// Per-session counters, since the session opened.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+/// Per-session counters, since the session opened (`GET /v1/sessions` reports them).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
 pub struct SessionCounters {
     pub frames_planned: u64,
     /// Frames fused with every planned batch.

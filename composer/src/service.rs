@@ -145,63 +145,11 @@ pub struct SessionReport {
     pub height: u32,
     pub views: u16,
     pub age_s: f64,
-    pub fusion: FusionReport,
+    pub fusion: SessionCounters,
     pub poses: PoseCounters,
     pub media: MediaCounters,
-    pub encoder: EncoderReport,
+    pub encoder: EncoderStats,
     pub control_malformed: u64,
-}
-
-#[derive(Debug, Clone, Copy, Default, Serialize)]
-pub struct FusionReport {
-    pub frames_planned: u64,
-    pub frames_complete: u64,
-    pub frames_deadline: u64,
-    pub frames_superseded: u64,
-    pub batches_received: u64,
-    pub batches_missing: u64,
-    pub batches_late: u64,
-    pub batches_rejected: u64,
-    pub pixels_filled: u64,
-}
-
-impl From<SessionCounters> for FusionReport {
-    fn from(c: SessionCounters) -> Self {
-        FusionReport {
-            frames_planned: c.frames_planned,
-            frames_complete: c.frames_complete,
-            frames_deadline: c.frames_deadline,
-            frames_superseded: c.frames_superseded,
-            batches_received: c.batches_received,
-            batches_missing: c.batches_missing,
-            batches_late: c.batches_late,
-            batches_rejected: c.batches_rejected,
-            pixels_filled: c.pixels_filled,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Copy, Default, Serialize)]
-pub struct EncoderReport {
-    pub frames: u64,
-    pub keyframes: u64,
-    pub skipped: u64,
-    pub bytes: u64,
-    pub vbv_peak_ms: f64,
-    pub vbv_overflows: u64,
-}
-
-impl From<EncoderStats> for EncoderReport {
-    fn from(s: EncoderStats) -> Self {
-        EncoderReport {
-            frames: s.frames,
-            keyframes: s.keyframes,
-            skipped: s.skipped,
-            bytes: s.bytes,
-            vbv_peak_ms: s.vbv_peak_ms,
-            vbv_overflows: s.vbv_overflows,
-        }
-    }
 }
 
 /// Service-wide counters.
@@ -378,10 +326,10 @@ fn reports(shared: &Shared) -> Vec<SessionReport> {
                 height: e.layout.height(),
                 views: e.layout.views(),
                 age_s: e.created.elapsed().as_secs_f64(),
-                fusion: compositor.counters(id).map(FusionReport::from).unwrap_or_default(),
+                fusion: compositor.counters(id).unwrap_or_default(),
                 poses: e.inbox.counters(),
                 media,
-                encoder: encoder.into(),
+                encoder,
                 control_malformed: e.control_malformed,
             }
         })
