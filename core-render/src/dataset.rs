@@ -318,6 +318,21 @@ pub struct View {
     pub depth: Option<FloatImage>,
 }
 
+/// Splits `views` into the kept ones and a held-out set of every `every`-th view (views
+/// `every - 1`, `2 every - 1`, ...), for datasets without a test split (`every` <= 1 holds
+/// nothing out). `nephele train`, `bake` and `bench inolf` share this rule, so a bake with
+/// `--holdout-every N` never sees the views `bench inolf --holdout-every N` scores.
+pub fn split_holdout(views: Vec<View>, every: usize) -> (Vec<View>, Vec<View>) {
+    if every <= 1 {
+        return (views, Vec::new());
+    }
+    let (mut kept, mut held) = (Vec::new(), Vec::new());
+    for (i, v) in views.into_iter().enumerate() {
+        if i % every == every - 1 { held.push(v) } else { kept.push(v) }
+    }
+    (kept, held)
+}
+
 /// One split of a dataset, loaded.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Dataset {
@@ -657,6 +672,18 @@ pub fn sample_views_on_sphere(
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn holdout_takes_every_nth_view() {
+        let view = |i: usize| View { name: format!("r_{i}"), camera_to_world: Mat4::IDENTITY, image: RgbaImage::new(1, 1), depth: None };
+        let names = |v: &[View]| v.iter().map(|v| v.name.clone()).collect::<Vec<_>>();
+        let (kept, held) = split_holdout((0..7).map(view).collect(), 3);
+        assert_eq!(names(&held), ["r_2", "r_5"]);
+        assert_eq!(names(&kept), ["r_0", "r_1", "r_3", "r_4", "r_6"]);
+        let (kept, held) = split_holdout((0..3).map(view).collect(), 0);
+        assert_eq!((kept.len(), held.len()), (3, 0));
+    }
+
     use super::*;
 
     /// The lego scene shipped with the repository (required: the test fails without it).

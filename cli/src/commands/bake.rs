@@ -41,6 +41,10 @@ pub struct Args {
     /// Use at most this many views (evenly spaced); 0 = all.
     #[arg(long, default_value_t = 0)]
     max_views: usize,
+    /// Leave out every Nth view of the split (score them with `nephele bench inolf
+    /// --holdout-every N`); 0 = train on all.
+    #[arg(long, default_value_t = 0)]
+    holdout_every: usize,
     /// Use a trained radiance field instead of training one.
     #[arg(long)]
     field: Option<PathBuf>,
@@ -87,6 +91,11 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let start = Instant::now();
     let mut data = dataset::load_split(&args.dataset, &args.split, args.downscale)
         .with_context(|| format!("loading the {} split of {}", args.split, args.dataset.display()))?;
+    let (kept, held) = dataset::split_holdout(std::mem::take(&mut data.views), args.holdout_every);
+    if !held.is_empty() {
+        println!("bake: {} views held out (every {}th)", held.len(), args.holdout_every);
+    }
+    data.views = kept;
     let keep = evenly(data.views.len(), args.max_views);
     data.views = keep.iter().map(|&i| data.views[i].clone()).collect();
     if data.views.is_empty() {

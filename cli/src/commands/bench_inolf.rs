@@ -103,6 +103,10 @@ pub struct InolfArgs {
     /// Score at most this many views.
     #[arg(long, default_value_t = 8)]
     views: usize,
+    /// Score only every Nth view of the split: the views `nephele bake --holdout-every N`
+    /// left out (for datasets with no test split, such as the shared lego); 0 = all.
+    #[arg(long, default_value_t = 0)]
+    holdout_every: usize,
 }
 
 fn scene_names(requested: &[String]) -> Vec<String> {
@@ -366,7 +370,11 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     use nephele_render::metrics::psnr_and_ssim;
     use nephele_render::ngp::NgpKernel;
 
-    let data = nephele_render::dataset::load_split(&args.dataset, &args.split, args.downscale)?;
+    let mut data = nephele_render::dataset::load_split(&args.dataset, &args.split, args.downscale)?;
+    if args.holdout_every > 1 {
+        data.views = nephele_render::dataset::split_holdout(std::mem::take(&mut data.views), args.holdout_every).1;
+        anyhow::ensure!(!data.views.is_empty(), "no view left out by --holdout-every {}", args.holdout_every);
+    }
     let mut inolf_cubes = InolfKernel::load(&args.asset)?;
     let mut inolf_net = inolf_cubes.clone();
     let has_net = inolf_net.set_diffuse_source(DiffuseSource::Network).is_ok();

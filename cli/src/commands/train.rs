@@ -86,10 +86,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         let test = dataset::load_split(&args.dataset, "test", args.downscale).context("loading the test split")?;
         (train, test, "test split")
     } else if args.holdout_every > 1 {
-        let (mut kept, mut held) = (Vec::new(), Vec::new());
-        for (i, v) in train.views.into_iter().enumerate() {
-            if i % args.holdout_every == args.holdout_every - 1 { held.push(v) } else { kept.push(v) }
-        }
+        let (kept, held) = dataset::split_holdout(train.views, args.holdout_every);
         let angle = train.camera_angle_x;
         (Dataset { camera_angle_x: angle, views: kept }, Dataset { camera_angle_x: angle, views: held }, "held-out training views")
     } else {
