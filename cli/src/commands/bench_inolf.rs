@@ -107,6 +107,11 @@ pub struct InolfArgs {
     /// left out (for datasets with no test split, such as the shared lego); 0 = all.
     #[arg(long, default_value_t = 0)]
     holdout_every: usize,
+    /// The distance curve (NEPHELE fig. 14): the first view's camera moved along its line to
+    /// the object's centre, at these multiples of its distance; frame time of the baseline
+    /// and of i-NOLF at each. Empty to skip.
+    #[arg(long, value_delimiter = ',', default_value = "3,2,1.5,1,0.75,0.5")]
+    distances: Vec<f32>,
 }
 
 fn scene_names(requested: &[String]) -> Vec<String> {
@@ -415,5 +420,39 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     }
     let file = std::fs::metadata(&args.asset)?.len();
     println!("asset {:.2} MiB", file as f64 / 1048576.0);
+
+    // Distance curve: one camera, moved towards the object's centre.
+    if !args.distances.is_empty() {
+        let first = views[0];
+        let bounds = ngp.field().bounds();
+        let centre = 0.5 * (bounds.min + bounds.max);
+        let eye = first.camera_to_world.w_axis.truncate();
+        println!();
+        println!("distance curve: the first view's camera moved towards the object's centre, {w}x{h}");
+        println!("{:>8} {:>9} {:>9} {:>14} {:>14} {:>9}", "factor", "distance", "covered", "baseline ms", "i-NOLF ms", "speed-up");
+        for &factor in &args.distances {
+            anyhow::ensure!(factor.is_finite() && factor > 0.0, "--distances: {factor} is not a positive factor");
+            let mut c2w = first.camera_to_world;
+            let moved = centre + (eye - centre) * factor;
+            c2w.w_axis = moved.extend(1.0);
+            let camera = Camera::from_fov_x(w, h, data.camera_angle_x, c2w)?;
+            let pixels = all_pixels(&camera);
+            let time = |kernel: &dyn RayKernel| -> Result<(f64, f64)> {
+                let start = Instant::now();
+                let (out, _) = kernel.render_pixels(&camera, &pixels)?;
+                let ms = 1e3 * start.elapsed().as_secs_f64();
+                let covered = out.opacity.iter().filter(|&&a| a > 0.5).count() as f64 / out.opacity.len().max(1) as f64;
+                Ok((ms, covered))
+            };
+            let (base_ms, _) = time(&ngp)?;
+            let (inolf_ms, covered) = time(&inolf_cubes)?;
+            println!(
+                "{factor:>8.2} {:>9.3} {:>8.1}% {base_ms:>14.1} {inolf_ms:>14.1} {:>8.1}x",
+                (moved - centre).length(),
+                100.0 * covered,
+                base_ms / inolf_ms.max(1e-9)
+            );
+        }
+    }
     Ok(())
 }
