@@ -543,9 +543,15 @@ fn spawn_media_thread(
             };
             let sent = runtime.block_on(viewer.send_frame(&encoded, frame_time));
             let t3 = Instant::now();
-            let timing = lock(&shared.latency).take_frame(session, frame.frame);
-            if let (Some(timing), Ok(())) = (timing, &sent) {
-                lock(&shared.latency).frame_sent(crate::latency::Stages::of(&timing, t0, t1, t2, t3));
+            let timing = {
+                let mut latency = lock(&shared.latency);
+                let timing = latency.take_frame(session, frame.frame).filter(|_| sent.is_ok());
+                if let Some(t) = &timing {
+                    latency.frame_sent(crate::latency::Stages::of(t, t0, t1, t2, t3));
+                }
+                timing
+            };
+            if let Some(timing) = timing {
                 // Tells the viewer which of its poses this frame shows (the client's and
                 // `nephele loadgen`'s pose-to-frame latency).
                 let note = serde_json::json!({ "type": "frame", "t": timing.client_time_ms, "seq": timing.pose_sequence });

@@ -224,19 +224,9 @@ pub fn load_field(path: &Path) -> Result<RadianceField, NgpError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nn::HashGridConfig;
 
     fn tiny_field() -> RadianceField {
-        let config = FieldConfig {
-            grid: HashGridConfig { levels: 4, log2_table_size: 10, base_resolution: 4, per_level_scale: 2.0 },
-            density_hidden: 16,
-            geo_features: 7,
-            color_hidden: 16,
-            color_hidden_layers: 1,
-            sh_degree: 2,
-            steps_per_diagonal: 64,
-            occupancy_resolution: 16,
-        };
+        let config = super::super::small_test_config();
         RadianceField::new(config, Vec3::new(-1.0, -1.0, -0.5), 2.0, 3).expect("field")
     }
 

@@ -48,3 +48,18 @@ pub(crate) fn check_len(what: &'static str, expected: usize, actual: usize) -> R
 
 #[cfg(test)]
 mod tests;
+
+/// The smallest field the unit tests of this module train and round-trip.
+#[cfg(test)]
+pub(crate) fn small_test_config() -> FieldConfig {
+    FieldConfig {
+        grid: crate::nn::HashGridConfig { levels: 4, log2_table_size: 10, base_resolution: 4, per_level_scale: 2.0 },
+        density_hidden: 16,
+        geo_features: 7,
+        color_hidden: 16,
+        color_hidden_layers: 1,
+        sh_degree: 2,
+        steps_per_diagonal: 64,
+        occupancy_resolution: 16,
+    }
+}

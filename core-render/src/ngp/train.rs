@@ -602,7 +602,6 @@ fn train_ray(field: &RadianceField, ray: &RayTask, n_rays: usize, b: &mut RayBuf
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::nn::HashGridConfig;
 
     /// Loss and gradients of one ray through an untrained (foggy, never terminating) field.
     fn ray_loss(field: &RadianceField, ray: &RayTask) -> (f64, TaskOut) {
@@ -617,16 +616,7 @@ mod tests {
 
     #[test]
     fn ray_gradients_match_finite_differences() {
-        let config = FieldConfig {
-            grid: HashGridConfig { levels: 4, log2_table_size: 10, base_resolution: 4, per_level_scale: 2.0 },
-            density_hidden: 16,
-            geo_features: 7,
-            color_hidden: 16,
-            color_hidden_layers: 1,
-            sh_degree: 2,
-            steps_per_diagonal: 64,
-            occupancy_resolution: 16,
-        };
+        let config = super::super::small_test_config();
         let mut field = RadianceField::new(config, Vec3::splat(-1.0), 2.0, 8).expect("field");
         // Larger hash features than the default 1e-4 so that their gradients matter.
         let mut rng = Rng::new(1, 2);

@@ -42,26 +42,18 @@ pub enum NnError {
 
 /// Small deterministic generator for weight initialisation (SplitMix64); weights must not
 /// depend on thread scheduling or on another module's random streams.
+/// The scenes' SplitMix64 under a seed of its own, so the streams never coincide.
 #[derive(Debug, Clone)]
-pub(crate) struct InitRng(u64);
+pub(crate) struct InitRng(crate::scenes::rng::HashRng);
 
 impl InitRng {
     pub(crate) fn new(seed: u64) -> Self {
-        InitRng(seed ^ 0x6E65_7068_656C_6531)
-    }
-
-    pub(crate) fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        InitRng(crate::scenes::rng::HashRng::new(seed ^ 0x6E65_7068_656C_6531))
     }
 
     /// Uniform in `[-bound, bound)`.
     pub(crate) fn uniform(&mut self, bound: f32) -> f32 {
-        let unit = (self.next_u64() >> 40) as f32 * (1.0 / 16_777_216.0);
-        (2.0 * unit - 1.0) * bound
+        (2.0 * self.0.next_f32() - 1.0) * bound
     }
 }
 

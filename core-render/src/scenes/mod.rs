@@ -20,7 +20,7 @@
 //! Every scene is deterministic: the same name always builds the same triangles.
 
 mod objects;
-mod rng;
+pub(crate) mod rng;
 mod room;
 pub mod shapes;
 
