@@ -76,9 +76,12 @@ pub struct LoadConfig {
     /// How long each user streams once connected.
     pub duration: Duration,
     pub scene: String,
-    /// Size of the one view each user asks for.
+    /// Size of each view a user asks for.
     pub width: u16,
     pub height: u16,
+    /// Interpupillary distance, metres: `Some` makes every user a stereo (WebXR-like) one,
+    /// two views of `width x height` per pose, streamed side by side; `None` is one flat view.
+    pub stereo_ipd: Option<f32>,
     pub target_fps: f32,
     /// Pose period (the client's is 20 ms).
     pub pose_interval: Duration,
@@ -102,6 +105,7 @@ impl Default for LoadConfig {
             scene: "default".into(),
             width: 640,
             height: 480,
+            stereo_ipd: None,
             target_fps: 30.0,
             pose_interval: Duration::from_millis(20),
             ping_interval: Duration::from_secs(1),
@@ -122,6 +126,11 @@ impl LoadConfig {
         }
         if self.width < 16 || self.height < 16 || self.width % 2 != 0 || self.height % 2 != 0 {
             return bad(format!("view size {}x{} must be even and at least 16x16", self.width, self.height));
+        }
+        if let Some(ipd) = self.stereo_ipd
+            && !(ipd.is_finite() && (0.0..=1.0).contains(&ipd))
+        {
+            return bad(format!("interpupillary distance {ipd} m must be in [0, 1]"));
         }
         if self.pose_interval < Duration::from_millis(1) || self.ping_interval < Duration::from_millis(10) {
             return bad("pose interval must be at least 1 ms and ping interval at least 10 ms".into());
@@ -331,7 +340,7 @@ async fn stream_user(
     tokio::time::timeout(config.connect_timeout, gathered.recv()).await.map_err(|_| LoadError::Timeout("ICE gathering"))?;
     let offer_sdp = pc.local_description().await.ok_or(LoadError::Timeout("the local description"))?.sdp;
     let body = json!({
-        "sdp": offer_sdp, "scene": config.scene, "views": 1,
+        "sdp": offer_sdp, "scene": config.scene, "views": if config.stereo_ipd.is_some() { 2 } else { 1 },
         "width": config.width, "height": config.height, "target_fps": config.target_fps,
     })
     .to_string();
@@ -375,7 +384,9 @@ async fn stream_user(
                 _ = tokio::time::sleep_until(end) => break,
                 _ = poses.tick() => {
                     let t = open.elapsed().as_secs_f32();
-                    let message = pose::encode(sequence, ms_since(clock), config.width, config.height, pose::MODE_FLAT, &[orbit.view_at(t, aspect)]);
+                    let mode = if config.stereo_ipd.is_some() { pose::MODE_XR } else { pose::MODE_FLAT };
+                    let views = orbit.views_at(t, aspect, config.stereo_ipd);
+                    let message = pose::encode(sequence, ms_since(clock), config.width, config.height, mode, &views);
                     // A full send buffer drops this pose, like the browser's unreliable channel.
                     if dc.send(&Bytes::from(message)).await.is_ok() {
                         sequence = sequence.wrapping_add(1);

@@ -6,6 +6,8 @@ use glam::{Mat4, Vec3};
 pub const MAGIC: u8 = 0x50;
 pub const VERSION: u8 = 1;
 pub const MODE_FLAT: u8 = 0;
+/// Immersive VR: one view per eye, as a WebXR headset sends them.
+pub const MODE_XR: u8 = 1;
 pub const HEADER_BYTES: usize = 20;
 pub const VIEW_BYTES: usize = 128;
 
@@ -42,6 +44,24 @@ impl ScriptedOrbit {
         let offset = self.eye - self.target;
         let turned = glam::Quat::from_rotation_z(self.speed * t) * offset;
         (look_at(self.target + turned, self.target, Vec3::Z), perspective(self.fov_y_deg.to_radians(), aspect, 0.05, 1000.0))
+    }
+
+    /// The two eyes of a head at the orbit's camera `t` seconds in, `ipd` metres apart
+    /// (left, then right, as WebXR lists them): the head's world-to-camera matrix with the
+    /// eye's offset along the head's right axis, and the same projection for both.
+    pub fn stereo_views_at(&self, t: f32, aspect: f32, ipd: f32) -> [(Mat4, Mat4); 2] {
+        let (head, projection) = self.view_at(t, aspect);
+        // An eye at +x (head space) sees the world shifted by -x.
+        let eye = |x: f32| (Mat4::from_translation(Vec3::new(-x, 0.0, 0.0)) * head, projection);
+        [eye(-0.5 * ipd), eye(0.5 * ipd)]
+    }
+
+    /// The views of one pose message: one flat view, or a stereo pair when `ipd` is given.
+    pub fn views_at(&self, t: f32, aspect: f32, ipd: Option<f32>) -> Vec<(Mat4, Mat4)> {
+        match ipd {
+            Some(ipd) => self.stereo_views_at(t, aspect, ipd).to_vec(),
+            None => vec![self.view_at(t, aspect)],
+        }
     }
 }
 
@@ -106,5 +126,24 @@ mod tests {
         let (view, _) = orbit.view_at(std::f32::consts::PI, 1.0); // a quarter turn
         let eye = view.inverse().transform_point3(Vec3::ZERO);
         assert!((eye - Vec3::new(0.0, 4.0, 1.0)).length() < 1e-4, "{eye}");
+    }
+
+    #[test]
+    fn stereo_eyes_are_ipd_apart_across_the_gaze_around_the_head() {
+        let orbit = ScriptedOrbit { eye: Vec3::new(0.0, -4.0, 0.0), target: Vec3::ZERO, fov_y_deg: 40.0, speed: 0.5 };
+        let (head, projection) = orbit.view_at(0.0, 1.0);
+        let [left, right] = orbit.stereo_views_at(0.0, 1.0, 0.064);
+        let position = |m: Mat4| m.inverse().transform_point3(Vec3::ZERO);
+        let (l, r, h) = (position(left.0), position(right.0), position(head));
+        // Looking along +y with +z up, the right eye is at +x.
+        assert!((l - Vec3::new(-0.032, -4.0, 0.0)).length() < 1e-5, "{l}");
+        assert!((r - Vec3::new(0.032, -4.0, 0.0)).length() < 1e-5, "{r}");
+        assert!(((l + r) * 0.5 - h).length() < 1e-5);
+        assert_eq!((left.1, right.1), (projection, projection));
+        // Both eyes look the same way (parallel axes, as WebXR's views are).
+        let gaze = |m: Mat4| m.inverse().transform_vector3(-Vec3::Z);
+        assert!((gaze(left.0) - gaze(right.0)).length() < 1e-6);
+        let pose = encode(1, 0.0, 64, 64, MODE_XR, &orbit.views_at(0.0, 1.0, Some(0.064)));
+        assert_eq!((pose.len(), pose[2], pose[3]), (HEADER_BYTES + 2 * VIEW_BYTES, 2, MODE_XR));
     }
 }

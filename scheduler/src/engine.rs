@@ -1258,20 +1258,26 @@ impl Scheduler {
     /// light worker is converted (it finishes its light batches, then serves only this task)
     /// if `convert`.
     /// Workers that last rendered the same object are preferred by the switch cost.
+    /// `exclude` (the workers a re-issued batch already failed or timed out on) is a
+    /// preference, as in [`Self::place_light`]: when every candidate is excluded the batch
+    /// goes back to one of them rather than waiting for a worker that may never come.
     fn place_heavy(&self, task: TaskId, object: ObjectId, wanted: usize, convert: bool, exclude: &[WorkerId]) -> Option<(WorkerId, Mode)> {
         let mode = Mode::Heavy(task, object);
         let switch = secs(self.config.object_switch_cost);
         let under_cap = self.workers.values().filter(|w| w.mode == mode).count() < wanted.max(1);
-        let least = |filter: &dyn Fn(&Worker) -> bool| {
+        let least = |filter: &dyn Fn(&Worker) -> bool, allow_excluded: bool| {
             self.workers
                 .iter()
-                .filter(|(id, w)| filter(w) && self.has_room(w) && !exclude.contains(id))
+                .filter(|(id, w)| filter(w) && self.has_room(w) && (allow_excluded || !exclude.contains(id)))
                 .map(|(&id, w)| (w.backlog_s + if w.last_object == Some(object) { 0.0 } else { switch }, id))
                 .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
                 .map(|(_, id)| (id, mode))
         };
-        least(&|w| w.mode == mode || (under_cap && w.mode == Mode::Idle))
-            .or_else(|| if under_cap && convert { least(&|w| w.mode == Mode::Light) } else { None })
+        let pick = |allow_excluded: bool| {
+            least(&|w| w.mode == mode || (under_cap && w.mode == Mode::Idle), allow_excluded)
+                .or_else(|| if under_cap && convert { least(&|w| w.mode == Mode::Light, allow_excluded) } else { None })
+        };
+        pick(false).or_else(|| pick(true))
     }
 
     fn plan_fifo(&mut self, now: Time) {

@@ -530,3 +530,35 @@ fn views_within_the_tolerance_share_and_the_error_is_measured() {
     assert!(stats.share_error_px_max > 0.0 && stats.share_error_px_max < 0.05, "{}", stats.share_error_px_max);
     assert!(stats.share_error_px_mean() > 0.0);
 }
+
+#[test]
+fn a_heavy_batch_that_timed_out_on_every_worker_is_still_reissued() {
+    // Two workers, heavy tasks in one batch each; nobody answers. Once a batch has timed out
+    // on every worker that may take it, it must go back to one of them, not wait forever for
+    // another: the live farm froze a user's stream this way when a loaded machine made both
+    // path tracers miss their deadlines.
+    let mut cfg = config(Policy::Nephele);
+    cfg.heartbeat_timeout = None;
+    cfg.max_batch_rays = 1 << 20;
+    cfg.sharing = None;
+    cfg.history_capacity = 0;
+    let mut s = Scheduler::new(cfg).expect("config");
+    s.register_object(OBJ, unit_object(Vec3::new(0.0, -2.0, 0.0), 0.8, 1.0)).expect("object");
+    s.add_worker(WorkerId(1), 2e3, ms(0)).expect("worker");
+    s.add_worker(WorkerId(2), 2e3, ms(0)).expect("worker");
+    let id = s.open_session(SessionSpec { target_fps: 1.0, objects: vec![OBJ] }, ms(0)).expect("admitted");
+    s.pose(id, &[camera_at(0.0)], ms(0)).expect("pose");
+    let first = dispatches(&s.tick(ms(0)));
+    assert_eq!(first.len(), 1);
+    let (batch, class) = (first[0].1.id, first[0].1.class);
+    assert_eq!(class, TaskClass::Heavy);
+    let mut workers = vec![first[0].0];
+    for t in (100..60_000).step_by(100) {
+        for (w, b) in dispatches(&s.tick(ms(t))) {
+            if b.id == batch {
+                workers.push(w);
+            }
+        }
+    }
+    assert!(workers.len() >= 3, "the batch went to {workers:?} and then waited forever");
+}

@@ -31,6 +31,18 @@ pub fn nephele_bin() -> PathBuf {
             build.args(["--profile", if profile == "release" { "release" } else { &profile }]);
         }
         build.current_dir(env!("CARGO_MANIFEST_DIR"));
+        // `cargo test` runs this executable with the package's `CARGO_PKG_*` (and similar)
+        // variables set; build scripts that watch them (ring's does) would otherwise see a
+        // change and rebuild half the TLS stack on every alternation with `cargo test`.
+        for (name, _) in std::env::vars_os() {
+            let name = name.to_string_lossy();
+            if ["CARGO_PKG_", "CARGO_MANIFEST_", "CARGO_CRATE_", "CARGO_BIN_", "CARGO_PRIMARY_PACKAGE", "CARGO_TARGET_TMPDIR", "OUT_DIR"]
+                .iter()
+                .any(|prefix| name.starts_with(prefix))
+            {
+                build.env_remove(name.as_ref());
+            }
+        }
         let status = build.status().expect("running cargo build");
         assert!(status.success(), "cargo build of the nephele binary failed");
         profile_dir.join(format!("nephele{}", std::env::consts::EXE_SUFFIX))

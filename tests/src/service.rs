@@ -18,6 +18,9 @@ pub struct UpService {
     pub url_line: String,
     /// The composer's HTTP address (`GET /v1/sessions`: counters and latency), as printed.
     pub composer_http: Option<SocketAddr>,
+    /// Where the processes' logs go (stderr of `nephele up` and its children, info level);
+    /// its tail is printed when a test fails while the service runs.
+    log: tempfile::NamedTempFile,
 }
 
 /// A loopback port that was free a moment ago.
@@ -41,10 +44,13 @@ impl UpService {
     /// the URL it prints once the composer and every worker have joined the master.
     pub fn start(workers: usize) -> UpService {
         let http = free_port();
+        let log = tempfile::Builder::new().prefix("nephele-up-").suffix(".log").tempfile().expect("a log file");
         let mut child = Command::new(nephele_bin())
             .args(["--quiet", "up", "--http", &http.to_string(), "--workers", &workers.to_string(), "--spp", "1", "--ready-secs", "40"])
+            .env("NEPHELE_LOG", std::env::var("NEPHELE_LOG").unwrap_or_else(|_| "info".into()))
+            .env("NO_COLOR", "1")
             .stdout(Stdio::piped())
-            .stderr(Stdio::null())
+            .stderr(log.reopen().expect("reopening the log file"))
             .spawn()
             .expect("starting nephele up");
         let stdout = child.stdout.take().expect("piped stdout");
@@ -57,11 +63,14 @@ impl UpService {
                 }
             }
         });
-        let mut service = UpService { child: Some(child), http, url_line: String::new(), composer_http: None };
+        let mut service = UpService { child: Some(child), http, url_line: String::new(), composer_http: None, log };
         let deadline = Instant::now() + Duration::from_secs(45);
         while service.url_line.is_empty() {
             let left = deadline.saturating_duration_since(Instant::now());
-            let line = ready_rx.recv_timeout(left).expect("nephele up prints the URL once the farm is whole");
+            let line = match ready_rx.recv_timeout(left) {
+                Ok(line) => line,
+                Err(e) => panic!("nephele up did not print the URL once the farm was whole: {e}"),
+            };
             if line.contains("open http://") {
                 service.url_line = line;
             } else {
@@ -97,6 +106,56 @@ impl UpService {
 
 impl Drop for UpService {
     fn drop(&mut self) {
+        if std::thread::panicking() {
+            // What the composer and the master saw, while they still run.
+            match self.composer_sessions() {
+                Ok(v) => eprintln!("composer sessions: {v}"),
+                Err(e) => eprintln!("composer sessions: {e}"),
+            }
+            match get_json(self.http, "/v1/farm") {
+                Ok(v) => eprintln!("master farm state: {v}"),
+                Err(e) => eprintln!("master farm state: {e}"),
+            }
+        }
         self.interrupt(Duration::from_secs(15));
+        if std::thread::panicking() {
+            self.print_log_tail(80);
+        }
+    }
+}
+
+/// A blocking `GET` of a JSON endpoint on loopback (`Connection: close`).
+pub fn get_json(addr: SocketAddr, path: &str) -> Result<serde_json::Value, String> {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(2)).map_err(|e| format!("connecting to {addr}: {e}"))?;
+    stream.set_read_timeout(Some(Duration::from_secs(5))).map_err(|e| e.to_string())?;
+    write!(stream, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").map_err(|e| e.to_string())?;
+    let mut raw = Vec::new();
+    stream.read_to_end(&mut raw).map_err(|e| format!("reading {path}: {e}"))?;
+    let text = String::from_utf8_lossy(&raw);
+    let (head, body) = text.split_once("\r\n\r\n").ok_or_else(|| format!("{path}: no HTTP header end"))?;
+    if !head.starts_with("HTTP/1.1 200") {
+        return Err(format!("{path}: {}", head.lines().next().unwrap_or_default()));
+    }
+    serde_json::from_str(body).map_err(|e| format!("{path}: {e}"))
+}
+
+impl UpService {
+    /// The composer's per-session counters, encoder statistics and latency
+    /// (`GET /v1/sessions` on the composer).
+    pub fn composer_sessions(&self) -> Result<serde_json::Value, String> {
+        let addr = self.composer_http.ok_or("nephele up did not print the composer's address")?;
+        get_json(addr, "/v1/sessions")
+    }
+
+    /// Prints the last `lines` lines of the service's log to stderr (the test's output).
+    pub fn print_log_tail(&self, lines: usize) {
+        let text = std::fs::read_to_string(self.log.path()).unwrap_or_default();
+        let all: Vec<&str> = text.lines().collect();
+        eprintln!("--- last {} of {} lines of the nephele up log ---", lines.min(all.len()), all.len());
+        for line in &all[all.len().saturating_sub(lines)..] {
+            eprintln!("{line}");
+        }
+        eprintln!("--- end of the nephele up log ---");
     }
 }

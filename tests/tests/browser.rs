@@ -196,13 +196,17 @@ fn a_busy_farm_makes_the_client_wait_and_retry() {
 #[test]
 fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_second_user() {
     let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let started = Instant::now();
     let up = UpService::start(2);
+    eprintln!("[{:.1} s] the service is up", started.elapsed().as_secs_f64());
     let url = format!("http://{}/?scene=default&width={WIDTH}&height={HEIGHT}", up.http);
     let browser = Browser::start().expect("headless Chromium");
     browser.goto(&url).expect("open the client");
     client::wait_streaming(&browser, Duration::from_secs(30)).expect("the data channel opens");
     let first = client::session_id(&browser).expect("session id").expect("a session");
+    eprintln!("[{:.1} s] streaming", started.elapsed().as_secs_f64());
     wait_for("decoded frames", Duration::from_secs(30), || client::frames_decoded(&browser).ok().filter(|&n| n >= 5));
+    eprintln!("[{:.1} s] 5 frames decoded", started.elapsed().as_secs_f64());
     let stats = client::inbound_video_stats(&browser).expect("getStats");
     assert_eq!((stats["frameWidth"].as_u64(), stats["frameHeight"].as_u64()), (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))), "{stats}");
 
@@ -211,7 +215,9 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
     let settle = |radius: f64| {
         client::set_orbit(&browser, 0.6, 0.35, radius).expect("setOrbit");
         let decoded = client::frames_decoded(&browser).expect("getStats");
+        let asked = Instant::now();
         wait_for("frames of the new pose", Duration::from_secs(20), || client::frames_decoded(&browser).ok().filter(|&n| n >= decoded + 10));
+        eprintln!("[{:.1} s] 10 frames at {radius} m in {:.1} s", started.elapsed().as_secs_f64(), asked.elapsed().as_secs_f64());
         client::mean_grey(&browser, whole).expect("reading the picture back").expect("a picture")
     };
     let near = settle(3.0);
@@ -227,6 +233,7 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
     let second = client::session_id(&browser).expect("session id").expect("a session");
     assert_ne!(first, second);
     wait_for("decoded frames in the second tab", Duration::from_secs(30), || client::frames_decoded(&browser).ok().filter(|&n| n >= 5));
+    eprintln!("[{:.1} s] the second tab decodes", started.elapsed().as_secs_f64());
     let farm = browser.eval_promise("fetch('/v1/farm').then((r) => r.json())").expect("GET /v1/farm");
     let sessions: Vec<&str> = farm["sessions"].as_array().expect("sessions").iter().filter_map(|s| s["id"].as_str()).collect();
     assert!(sessions.contains(&first.as_str()) && sessions.contains(&second.as_str()), "{farm}");
@@ -234,5 +241,10 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
     browser.switch_to(&first_tab).expect("back to the first tab");
     assert_eq!(client::state(&browser).expect("state"), "streaming");
     let errors = browser.console_log().expect("console log");
-    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
+    // On a loaded machine the first user can be starved when the second tab asks: the master
+    // refuses it (503 + Retry-After, Algorithm 1's admission) and the page retries, which
+    // Chromium logs as a failed resource load. Anything else is an error.
+    let refused = "/v1/sessions - Failed to load resource: the server responded with a status of 503";
+    let unexpected: Vec<_> = client::page_errors(&errors).into_iter().filter(|e| !e.message.contains(refused)).collect();
+    assert!(unexpected.is_empty(), "JavaScript errors: {errors:?}");
 }

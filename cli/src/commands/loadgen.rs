@@ -28,9 +28,13 @@ pub struct Args {
     /// Seconds each user streams once connected.
     #[arg(long, default_value_t = 10.0)]
     seconds: f64,
-    /// Size of each user's view.
+    /// Size of each user's view (of each eye's with --stereo).
     #[arg(long, default_value = "640x480", value_parser = super::parse_size)]
     size: (u32, u32),
+    /// Stereo users, as a WebXR headset: two views per pose (left and right eye, this many
+    /// metres apart, 0.064 when given without a value), streamed side by side.
+    #[arg(long, value_name = "IPD_M", num_args = 0..=1, default_missing_value = "0.064")]
+    stereo: Option<f32>,
     #[arg(long, default_value = "default")]
     scene: String,
     /// Frame rate each user asks for.
@@ -62,6 +66,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         scene: args.scene,
         width: u16::try_from(width).context("--size width")?,
         height: u16::try_from(height).context("--size height")?,
+        stereo_ipd: args.stereo,
         target_fps: args.fps,
         pose_interval: Duration::from_millis(args.pose_ms),
         orbit_speed: args.orbit_speed,
