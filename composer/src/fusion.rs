@@ -312,18 +312,22 @@ pub struct SessionCounters {
     pub pixels_filled: u64,
 }
 
-/// Limits that bound the compositor's memory whatever its inputs.
+/// Limits that bound the compositor's memory whatever its inputs, and the size of its
+/// parallel work.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FusionLimits {
     /// Frames of one session waiting at once; planning one more supersedes the oldest.
     pub max_pending_frames: usize,
     /// Batches of one session held while their frame plan has not arrived yet.
     pub max_early_batches: usize,
+    /// Pixels fused by one parallel task (whole rows of the packed picture, at least one):
+    /// a task's counts and samples then stay in the cache.
+    pub band_pixels: usize,
 }
 
 impl Default for FusionLimits {
     fn default() -> Self {
-        FusionLimits { max_pending_frames: 8, max_early_batches: 4096 }
+        FusionLimits { max_pending_frames: 8, max_early_batches: 4096, band_pixels: 32 * 1024 }
     }
 }
 
@@ -528,7 +532,7 @@ impl Compositor {
             let Some(pending) = state.pending.remove(&frame) else { continue };
             state.done_upto = Some(frame);
             let last = state.last.as_ref().filter(|l| l.layout == pending.plan.layout);
-            let fused = fuse(&pending, last.map(|l| l.rgb.as_slice()));
+            let fused = fuse(&pending, last.map(|l| l.rgb.as_slice()), self.limits.band_pixels);
             let c = &mut state.counters;
             if fused.report.batches_missing == 0 {
                 c.frames_complete += 1;
@@ -596,13 +600,51 @@ struct Sample {
     alpha: f32,
 }
 
+/// One received batch, as a fusion task reads it: its pixels in ascending order (through
+/// `order` when the batch did not send them sorted) and its range.
+struct BatchView<'a> {
+    slot: u32,
+    view: u16,
+    batch: &'a BatchResult,
+    /// A permutation sorting `batch.pixels`; `None` when they are sorted already.
+    order: Option<Vec<u32>>,
+    min_pixel: u32,
+    max_pixel: u32,
+}
+
+impl BatchView<'_> {
+    fn pixel_at(&self, i: usize) -> (u32, usize) {
+        let item = self.order.as_ref().map_or(i, |o| o[i] as usize);
+        (self.batch.pixels[item], item)
+    }
+
+    /// The items with a pixel in `[from, to)`, in ascending pixel order.
+    fn items_in(&self, from: u32, to: u32) -> impl Iterator<Item = (u32, usize)> + '_ {
+        let n = self.batch.pixels.len();
+        let first = match &self.order {
+            None => self.batch.pixels.partition_point(|&p| p < from),
+            Some(o) => o.partition_point(|&i| self.batch.pixels[i as usize] < from),
+        };
+        (first..n).map(|i| self.pixel_at(i)).take_while(move |&(p, _)| p < to)
+    }
+}
+
+/// Per-thread scratch of [`fuse`]'s tasks, reused from one task to the next.
+#[derive(Default)]
+struct FuseScratch {
+    ends: Vec<u32>,
+    samples: Vec<Sample>,
+    sorted: Vec<Sample>,
+}
+
 /// Fuses a frame: composites every view's samples by depth and fills missing batches.
 ///
-/// The samples of all views are bucketed by key `view * view_pixels + pixel` with a
-/// counting sort (one pass to count, one to scatter), then each packed row is composited in
-/// parallel: a pixel's bucket is sorted by depth (it rarely holds more than a few samples)
-/// and blended front to back.
-fn fuse(pending: &PendingFrame, last: Option<&[[f32; 3]]>) -> FusedFrame {
+/// The packed picture is cut into bands of rows fused in parallel. A band gathers, for each
+/// view it shows, the samples of the batches that reach its rows (batches' pixels are
+/// searched in ascending order, so a band reads only its own part of each batch), buckets
+/// them by pixel with a counting sort, then blends each pixel's bucket front to back in
+/// depth order (ties in planned batch order, so the result never depends on threads).
+fn fuse(pending: &PendingFrame, last: Option<&[[f32; 3]]>, band_pixels: usize) -> FusedFrame {
     let plan = &pending.plan;
     let layout = plan.layout;
     let mut report = FrameReport {
@@ -614,37 +656,22 @@ fn fuse(pending: &PendingFrame, last: Option<&[[f32; 3]]>) -> FusedFrame {
     };
     let view_pixels = layout.view_pixel_count();
     let keys = view_pixels * usize::from(layout.views());
-    let received = || pending.received.iter().enumerate().filter_map(|(slot, b)| b.as_ref().map(|b| (slot, b)));
-    // ends[k + 1] counts the samples of key k; after the prefix sum, ends[k] is where key k starts.
-    let mut ends = vec![0u32; keys + 1];
-    let mut total = 0usize;
-    for (_, b) in received() {
-        let counts = &mut ends[usize::from(b.view) * view_pixels + 1..];
-        for ((&p, &a), c) in b.pixels.iter().zip(&b.results.opacity).zip(&b.results.color) {
-            if contributes(a, c) {
-                counts[p as usize] += 1;
-                total += 1;
-            }
-        }
-    }
-    for k in 1..ends.len() {
-        ends[k] += ends[k - 1];
-    }
-    let mut samples = vec![Sample::default(); total];
-    for (slot, b) in received() {
-        let cursors = &mut ends[usize::from(b.view) * view_pixels..];
-        let r = &b.results;
-        for (((&p, &alpha), &color), &depth) in b.pixels.iter().zip(&r.opacity).zip(&r.color).zip(&r.depth) {
-            if contributes(alpha, &color) {
-                let cursor = &mut cursors[p as usize];
-                samples[*cursor as usize] = Sample { depth, slot: slot as u32, color, alpha };
-                *cursor += 1;
-            }
-        }
-    }
-    // After the scatter, ends[k] is the end of key k and ends[k - 1] its start.
-    ends.pop();
-    report.samples = total as u64;
+    let received: Vec<(usize, &BatchResult)> =
+        pending.received.iter().enumerate().filter_map(|(slot, b)| b.as_ref().map(|b| (slot, b))).collect();
+    let batches: Vec<BatchView> = received
+        .par_iter()
+        .map(|&(slot, batch)| {
+            let pixels = &batch.pixels;
+            let sorted = pixels.windows(2).all(|w| w[0] <= w[1]);
+            let order = (!sorted).then(|| {
+                let mut order: Vec<u32> = (0..pixels.len() as u32).collect();
+                order.sort_by_key(|&i| pixels[i as usize]);
+                order
+            });
+            let (min_pixel, max_pixel) = pixels.iter().fold((u32::MAX, 0), |(lo, hi), &p| (lo.min(p), hi.max(p)));
+            BatchView { slot: slot as u32, view: batch.view, batch, order, min_pixel, max_pixel }
+        })
+        .collect();
 
     let width = layout.width() as usize;
     let (vw, vh) = (layout.view_width() as usize, layout.view_height() as usize);
@@ -652,38 +679,34 @@ fn fuse(pending: &PendingFrame, last: Option<&[[f32; 3]]>) -> FusedFrame {
     let views = usize::from(layout.views());
     let background = plan.background;
     let mut rgb = vec![background; layout.pixel_count()];
-    let samples = &samples;
-    let ends = &ends;
-    rgb.par_chunks_mut(width).enumerate().for_each(|(row, out_row)| {
-        let (grid_row, y) = (row / vh, row % vh);
-        let mut scratch: Vec<Sample> = Vec::new();
-        for column in 0..columns {
-            let view = grid_row * columns + column;
-            if view >= views {
-                break;
-            }
-            let first_key = view * view_pixels + y * vw;
-            let out = &mut out_row[column * vw..(column + 1) * vw];
-            let mut start = if first_key == 0 { 0 } else { ends[first_key - 1] as usize };
-            for (pixel, &end) in out.iter_mut().zip(&ends[first_key..first_key + vw]) {
-                let end = end as usize;
-                let bucket = samples.get(start..end).unwrap_or_default();
-                start = end;
-                let (color, alpha) = match bucket {
-                    [] => continue,
-                    [one] => (one.color, one.alpha),
-                    many => {
-                        scratch.clear();
-                        scratch.extend_from_slice(many);
-                        scratch.sort_unstable_by(|a, b| a.depth.total_cmp(&b.depth).then(a.slot.cmp(&b.slot)));
-                        composite(&scratch)
+    let rows_per_task = (band_pixels / width.max(1)).max(1);
+    let batches = &batches;
+    report.samples = rgb
+        .par_chunks_mut(width * rows_per_task)
+        .enumerate()
+        .map_init(FuseScratch::default, |scratch, (task, out)| {
+            let mut samples_fused = 0u64;
+            let first_row = task * rows_per_task;
+            let rows = out.len() / width;
+            // A band may straddle two grid rows of views: fuse it one grid row at a time.
+            let mut row = first_row;
+            while row < first_row + rows {
+                let grid_row = row / vh;
+                let segment_end = ((grid_row + 1) * vh).min(first_row + rows);
+                let (y0, y1) = (row % vh, row % vh + (segment_end - row));
+                for column in 0..columns {
+                    let view = grid_row * columns + column;
+                    if view >= views {
+                        break;
                     }
-                };
-                let t = 1.0 - alpha;
-                *pixel = [color[0] + t * background[0], color[1] + t * background[1], color[2] + t * background[2]];
+                    let target = OutRows { rows: &mut *out, width, x0: column * vw, first_row: row - first_row, vw };
+                    samples_fused += fuse_view_rows(batches, scratch, view as u16, (y0 * vw) as u32, (y1 * vw) as u32, background, target);
+                }
+                row = segment_end;
             }
-        }
-    });
+            samples_fused
+        })
+        .sum();
 
     // Missing batches: their pixels show the last frame's picture of the same view.
     if report.batches_missing > 0 {
@@ -703,6 +726,81 @@ fn fuse(pending: &PendingFrame, last: Option<&[[f32; 3]]>) -> FusedFrame {
         }
     }
     FusedFrame { session: plan.session, frame: plan.frame, layout, rgb: Arc::new(rgb), report }
+}
+
+/// Where a view's rows go in a band of the packed picture: `rows` is the band (`width`
+/// pixels per row), the view's first row lands on band row `first_row`, at column `x0`.
+struct OutRows<'a> {
+    rows: &'a mut [[f32; 3]],
+    width: usize,
+    x0: usize,
+    first_row: usize,
+    vw: usize,
+}
+
+/// Fuses the pixels `[from, to)` (whole rows) of one view into `out`; returns the samples
+/// composited.
+fn fuse_view_rows(batches: &[BatchView], scratch: &mut FuseScratch, view: u16, from: u32, to: u32, background: [f32; 3], out: OutRows) -> u64 {
+    let reaching = || batches.iter().filter(move |b| b.view == view && b.max_pixel >= from && b.min_pixel < to);
+    let span = (to - from) as usize;
+    // ends[k + 1] counts the samples of pixel from + k; after the prefix sum, ends[k] is where
+    // pixel from + k starts.
+    let ends = &mut scratch.ends;
+    ends.clear();
+    ends.resize(span + 1, 0);
+    let mut total = 0usize;
+    for b in reaching() {
+        let r = &b.batch.results;
+        for (p, item) in b.items_in(from, to) {
+            if contributes(r.opacity[item], &r.color[item]) {
+                ends[(p - from) as usize + 1] += 1;
+                total += 1;
+            }
+        }
+    }
+    if total == 0 {
+        return 0;
+    }
+    for k in 1..ends.len() {
+        ends[k] += ends[k - 1];
+    }
+    let samples = &mut scratch.samples;
+    samples.clear();
+    samples.resize(total, Sample::default());
+    for b in reaching() {
+        let r = &b.batch.results;
+        for (p, item) in b.items_in(from, to) {
+            let (alpha, color) = (r.opacity[item], r.color[item]);
+            if contributes(alpha, &color) {
+                let cursor = &mut ends[(p - from) as usize];
+                samples[*cursor as usize] = Sample { depth: r.depth[item], slot: b.slot, color, alpha };
+                *cursor += 1;
+            }
+        }
+    }
+    // After the scatter, ends[k] is the end of pixel from + k and ends[k - 1] its start.
+    let sorted = &mut scratch.sorted;
+    let mut start = 0usize;
+    for (k, &end) in ends[..span].iter().enumerate() {
+        let end = end as usize;
+        let bucket = &samples[start..end];
+        start = end;
+        let (color, alpha) = match bucket {
+            [] => continue,
+            [one] => (one.color, one.alpha),
+            many => {
+                sorted.clear();
+                sorted.extend_from_slice(many);
+                sorted.sort_unstable_by(|a, b| a.depth.total_cmp(&b.depth).then(a.slot.cmp(&b.slot)));
+                composite(sorted)
+            }
+        };
+        let t = 1.0 - alpha;
+        let (y, x) = (k / out.vw, k % out.vw);
+        out.rows[(out.first_row + y) * out.width + out.x0 + x] =
+            [color[0] + t * background[0], color[1] + t * background[1], color[2] + t * background[2]];
+    }
+    total as u64
 }
 
 /// Front-to-back blending of depth-sorted samples (premultiplied colour):
@@ -976,7 +1074,7 @@ mod tests {
     fn pending_frames_and_early_batches_are_bounded() {
         let t0 = Instant::now();
         let layout = FrameLayout::mono(1, 1).unwrap();
-        let mut c = Compositor::new(FusionLimits { max_pending_frames: 2, max_early_batches: 1 });
+        let mut c = Compositor::new(FusionLimits { max_pending_frames: 2, max_early_batches: 1, ..FusionLimits::default() });
         c.open_session(1).unwrap();
         for f in 0..4 {
             c.plan_frame(plan(f, layout, [0.0; 3], t0 + Duration::from_secs(1), vec![planned(0, 0, 0, &[0])])).unwrap();
@@ -990,6 +1088,21 @@ mod tests {
         ));
         assert!(c.close_session(1).is_some());
         assert!(c.poll(t0).is_empty());
+    }
+
+    #[test]
+    fn a_batch_reaching_a_band_by_its_first_pixel_only_is_fused() {
+        // One-row bands of a 4x3 view: the batch's last pixel (4) is the first of band 1, and
+        // its first pixel (3) the last of band 0.
+        let t0 = Instant::now();
+        let layout = FrameLayout::mono(4, 3).unwrap();
+        let mut c = Compositor::new(FusionLimits { band_pixels: 4, ..FusionLimits::default() });
+        c.open_session(1).unwrap();
+        c.plan_frame(plan(0, layout, [0.0; 3], t0, vec![planned(0, 0, 0, &[4, 3])])).unwrap();
+        c.add_batch(result(0, 0, 0, 0, &[4, 3], &[([0.5; 3], 1.0, 2.0), ([0.25; 3], 1.0, 2.0)])).unwrap();
+        let f = c.poll(t0).remove(0);
+        assert_eq!((f.rgb[3], f.rgb[4], f.rgb[5]), ([0.25; 3], [0.5; 3], [0.0; 3]));
+        assert_eq!(f.report.samples, 2);
     }
 
     proptest::proptest! {
@@ -1028,6 +1141,91 @@ mod tests {
             col += (1.0 - alpha) * 0.2;
             proptest::prop_assert_eq!(f.rgb[0], [col; 3]);
             proptest::prop_assert!((0.0..=1.0 + 1e-6).contains(&col));
+        }
+
+        /// Any layout (views in a grid), any bands (one row up to the whole picture, bands
+        /// straddling grid rows), batches with pixels in any order and any overlap: every
+        /// pixel equals a direct per-pixel composite of its samples sorted by (depth, batch).
+        #[test]
+        fn banded_fusion_equals_a_per_pixel_reference(
+            (vw, vh, views) in (1u32..24, 1u32..24, 1u16..6),
+            band_rows in 1usize..8,
+            objects in proptest::collection::vec((0.0f32..1.0, 1usize..4, proptest::bool::ANY), 1..5),
+            seed in 0u64..u64::MAX,
+        ) {
+            let t0 = Instant::now();
+            let layout = FrameLayout::grid(vw, vh, views, views.div_ceil(2)).unwrap();
+            let mut rng = seed;
+            let mut next = move || {
+                rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                (rng >> 33) as u32
+            };
+            let view_pixels = vw * vh;
+            // Object o covers a random subset of each view (density `fill`), split into
+            // `split` batches, each optionally shuffled; random colours, opacities (some 0),
+            // depths (some tied).
+            let mut planned_batches = Vec::new();
+            let mut results = Vec::new();
+            for (o, &(fill, split, shuffle)) in objects.iter().enumerate() {
+                for view in 0..views {
+                    let mut pixels: Vec<u32> = (0..view_pixels).filter(|_| (next() % 1000) as f32 / 1000.0 < fill).collect();
+                    if shuffle {
+                        for i in (1..pixels.len()).rev() {
+                            pixels.swap(i, next() as usize % (i + 1));
+                        }
+                    }
+                    let chunk = pixels.len().div_ceil(split).max(1);
+                    for (b, part) in pixels.chunks(chunk).enumerate() {
+                        let items: Vec<([f32; 3], f32, f32)> = part
+                            .iter()
+                            .map(|_| {
+                                let a = [0.0, 0.3, 0.7, 1.0][next() as usize % 4];
+                                let c = (next() % 100) as f32 / 100.0 * a;
+                                let z = 1.0 + (next() % 5) as f32;
+                                ([c, 0.5 * c, 0.25 * c], a, z)
+                            })
+                            .collect();
+                        let batch = u32::from(view) * 100 + b as u32;
+                        planned_batches.push(planned(o as u32, batch, view, part));
+                        results.push(result(0, o as u32, batch, view, part, &items));
+                    }
+                }
+            }
+            let background = [0.1, 0.2, 0.3];
+            let limits = FusionLimits { band_pixels: band_rows * layout.width() as usize, ..FusionLimits::default() };
+            let mut c = Compositor::new(limits);
+            c.open_session(1).unwrap();
+            c.plan_frame(plan(0, layout, background, t0, planned_batches.clone())).unwrap();
+            for r in results.iter().rev() {
+                c.add_batch(r.clone()).unwrap();
+            }
+            let f = c.poll(t0).remove(0);
+            // The reference: every sample of every pixel, in planned order, sorted, blended.
+            let slot_of = |r: &BatchResult| planned_batches.iter().position(|p| p.key == r.key).unwrap();
+            let mut per_pixel: Vec<Vec<(f32, usize, [f32; 3], f32)>> = vec![Vec::new(); layout.pixel_count()];
+            for r in &results {
+                for (i, &p) in r.pixels.iter().enumerate() {
+                    let (color, alpha) = (r.results.color[i], r.results.opacity[i]);
+                    if contributes(alpha, &color) {
+                        per_pixel[layout.packed_index(r.view, p)].push((r.results.depth[i], slot_of(r), color, alpha));
+                    }
+                }
+            }
+            for (index, samples) in per_pixel.iter_mut().enumerate() {
+                samples.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                let (mut color, mut alpha) = ([0.0f32; 3], 0.0f32);
+                for s in samples.iter() {
+                    let t = 1.0 - alpha;
+                    for k in 0..3 {
+                        color[k] += t * s.2[k];
+                    }
+                    alpha += t * s.3;
+                }
+                let t = 1.0 - alpha;
+                let expected = [color[0] + t * background[0], color[1] + t * background[1], color[2] + t * background[2]];
+                proptest::prop_assert_eq!(f.rgb[index], expected, "pixel {}", index);
+            }
+            proptest::prop_assert_eq!(f.report.samples, per_pixel.iter().map(|s| s.len() as u64).sum::<u64>());
         }
     }
 }

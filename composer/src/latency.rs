@@ -7,7 +7,11 @@
 //! here, and the master plans the frame when every task reports done: the `farm` stage);
 //! then it waits for any results still on their way (`results_wait`), fuses them by depth
 //! and hands the picture to the viewer's media thread (`fusion`), converts it to YUV 4:2:0,
-//! encodes it and sends it.
+//! encodes it and sends it. Inside the farm stage, `render` is the workers' own kernel time
+//! on the frame's critical path: per worker, the sum of `render_time_us` of the frame's
+//! batches it rendered; the largest of these. The rest of the farm stage is scheduling,
+//! queueing and the loopback hops. (A part reused from an earlier frame's task, a still
+//! camera, counts the time it took when it was rendered.)
 
 use std::collections::{HashMap, VecDeque};
 use std::time::Instant;
@@ -31,6 +35,9 @@ pub struct FrameTiming {
     pub pose_received: Option<Instant>,
     pub plan_received: Instant,
     pub results_complete: Instant,
+    /// The frame's rendering critical path, milliseconds (see the module docs); `None`
+    /// when no result of the frame arrived.
+    pub render_ms: Option<f64>,
 }
 
 /// The stages of one sent frame, milliseconds.
@@ -42,6 +49,8 @@ pub struct Stages {
     /// Pose received → plan received: the master's scheduling, the workers' rendering, their
     /// done reports and the plan (four loopback hops).
     pub farm: Option<f64>,
+    /// Part of `farm`: the workers' kernel time on the frame's critical path.
+    pub render: Option<f64>,
     /// Plan received → every part's results in at the composer (or the grace over).
     pub results_wait: f64,
     /// Results in → picture at the media thread: depth fusion and the hand-off.
@@ -59,6 +68,7 @@ impl Stages {
         Stages {
             total: timing.pose_received.map(|p| ms(p, t3)),
             farm: timing.pose_received.map(|p| ms(p, timing.plan_received)),
+            render: timing.render_ms,
             results_wait: ms(timing.plan_received, timing.results_complete),
             fusion: ms(timing.results_complete, t0),
             yuv: ms(t0, t1),
@@ -91,6 +101,7 @@ impl Percentiles {
 pub struct LatencyReport {
     pub pose_to_sent: Percentiles,
     pub farm: Percentiles,
+    pub render: Percentiles,
     pub results_wait: Percentiles,
     pub fusion: Percentiles,
     pub yuv: Percentiles,
@@ -153,6 +164,7 @@ impl LatencyTracker {
         LatencyReport {
             pose_to_sent: Percentiles::of(s.iter().filter_map(|x| x.total)),
             farm: Percentiles::of(s.iter().filter_map(|x| x.farm)),
+            render: Percentiles::of(s.iter().filter_map(|x| x.render)),
             results_wait: Percentiles::of(s.iter().map(|x| x.results_wait)),
             fusion: Percentiles::of(s.iter().map(|x| x.fusion)),
             yuv: Percentiles::of(s.iter().map(|x| x.yuv)),
@@ -176,12 +188,12 @@ mod tests {
         tracker.pose_received(1, 7, at(0));
         assert_eq!(tracker.pose_time(1, 7), Some(at(0)));
         assert_eq!(tracker.pose_time(1, 8), None);
-        let timing = FrameTiming { pose_sequence: 7, client_time_ms: 140.0, pose_received: tracker.pose_time(1, 7), plan_received: at(2), results_complete: at(30) };
+        let timing = FrameTiming { pose_sequence: 7, client_time_ms: 140.0, pose_received: tracker.pose_time(1, 7), plan_received: at(2), results_complete: at(30), render_ms: Some(1.5) };
         tracker.frame_planned(1, 3, timing);
         let timing = tracker.take_frame(1, 3).expect("planned");
         assert!(tracker.take_frame(1, 3).is_none());
         let stages = Stages::of(&timing, at(31), at(33), at(40), at(41));
-        assert_eq!(stages, Stages { total: Some(41.0), farm: Some(2.0), results_wait: 28.0, fusion: 1.0, yuv: 2.0, encode: 7.0, send: 1.0 });
+        assert_eq!(stages, Stages { total: Some(41.0), farm: Some(2.0), render: Some(1.5), results_wait: 28.0, fusion: 1.0, yuv: 2.0, encode: 7.0, send: 1.0 });
         for _ in 0..98 {
             tracker.frame_sent(stages);
         }
@@ -191,7 +203,7 @@ mod tests {
         let r = tracker.report();
         assert_eq!((r.pose_to_sent.count, r.results_wait.count), (98, 100));
         assert_eq!((r.results_wait.p50, r.results_wait.p99), (Some(28.0), Some(100.0)));
-        assert_eq!(r.encode.p50, Some(7.0));
+        assert_eq!((r.encode.p50, r.render.p50), (Some(7.0), Some(1.5)));
         tracker.session_ended(1);
         assert_eq!(tracker.pose_time(1, 7), None);
     }
@@ -202,7 +214,7 @@ mod tests {
         let now = Instant::now();
         for i in 0..10_000u32 {
             tracker.pose_received(1, i, now);
-            let timing = FrameTiming { pose_sequence: i, client_time_ms: 0.0, pose_received: None, plan_received: now + Duration::from_micros(u64::from(i)), results_complete: now };
+            let timing = FrameTiming { pose_sequence: i, client_time_ms: 0.0, pose_received: None, plan_received: now + Duration::from_micros(u64::from(i)), results_complete: now, render_ms: None };
             tracker.frame_planned(1, u64::from(i), timing);
             tracker.frame_sent(Stages::default());
         }

@@ -168,6 +168,8 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
     let mut planned = Vec::new();
     let mut arrived = Vec::new();
     let mut missing = false;
+    // Kernel time per worker on this frame's batches (the latency split's `render`).
+    let mut render_us: HashMap<u64, u64> = HashMap::new();
     {
         let results = lock(&shared.task_results);
         let mut last = lock(&shared.last_parts);
@@ -185,6 +187,7 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
                         let key = BatchKey { object, batch: u32::try_from(j).map_err(|_| "too many batches".to_string())? };
                         planned.push(PlannedBatch { key, view, pixels: r.pixels.clone().into() });
                         covered.extend_from_slice(&r.pixels);
+                        *render_us.entry(r.worker_id).or_default() += r.render_time_us;
                         let results = PixelResults { color: r.color.clone(), opacity: r.opacity.clone(), depth: r.depth.clone() };
                         arrived.push(fusion::BatchResult { session, frame, view, key, pixels: r.pixels.clone(), results });
                     }
@@ -205,7 +208,8 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
     {
         let mut latency = lock(&shared.latency);
         let pose_received = latency.pose_time(session, plan.pose_sequence);
-        let timing = FrameTiming { pose_sequence: plan.pose_sequence, client_time_ms: plan.client_time_ms, pose_received, plan_received, results_complete };
+        let render_ms = render_us.values().max().map(|&us| us as f64 / 1e3);
+        let timing = FrameTiming { pose_sequence: plan.pose_sequence, client_time_ms: plan.client_time_ms, pose_received, plan_received, results_complete, render_ms };
         latency.frame_planned(session, frame, timing);
     }
     let plan = fusion::FramePlan { session, frame, layout, background: [0.0; 3], deadline, batches: planned };
