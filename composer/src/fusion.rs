@@ -604,7 +604,6 @@ struct Sample {
 /// `order` when the batch did not send them sorted) and its range.
 struct BatchView<'a> {
     slot: u32,
-    view: u16,
     batch: &'a BatchResult,
     /// A permutation sorting `batch.pixels`; `None` when they are sorted already.
     order: Option<Vec<u32>>,
@@ -656,11 +655,12 @@ fn fuse(pending: &PendingFrame, last: Option<&[[f32; 3]]>, band_pixels: usize) -
     };
     let view_pixels = layout.view_pixel_count();
     let keys = view_pixels * usize::from(layout.views());
-    let received: Vec<(usize, &BatchResult)> =
-        pending.received.iter().enumerate().filter_map(|(slot, b)| b.as_ref().map(|b| (slot, b))).collect();
-    let batches: Vec<BatchView> = received
+    let batches: Vec<BatchView> = pending
+        .received
         .par_iter()
-        .map(|&(slot, batch)| {
+        .enumerate()
+        .filter_map(|(slot, b)| b.as_ref().map(|b| (slot, b)))
+        .map(|(slot, batch)| {
             let pixels = &batch.pixels;
             let sorted = pixels.windows(2).all(|w| w[0] <= w[1]);
             let order = (!sorted).then(|| {
@@ -669,7 +669,7 @@ fn fuse(pending: &PendingFrame, last: Option<&[[f32; 3]]>, band_pixels: usize) -
                 order
             });
             let (min_pixel, max_pixel) = pixels.iter().fold((u32::MAX, 0), |(lo, hi), &p| (lo.min(p), hi.max(p)));
-            BatchView { slot: slot as u32, view: batch.view, batch, order, min_pixel, max_pixel }
+            BatchView { slot: slot as u32, batch, order, min_pixel, max_pixel }
         })
         .collect();
 
@@ -741,7 +741,7 @@ struct OutRows<'a> {
 /// Fuses the pixels `[from, to)` (whole rows) of one view into `out`; returns the samples
 /// composited.
 fn fuse_view_rows(batches: &[BatchView], scratch: &mut FuseScratch, view: u16, from: u32, to: u32, background: [f32; 3], out: OutRows) -> u64 {
-    let reaching = || batches.iter().filter(move |b| b.view == view && b.max_pixel >= from && b.min_pixel < to);
+    let reaching = || batches.iter().filter(move |b| b.batch.view == view && b.max_pixel >= from && b.min_pixel < to);
     let span = (to - from) as usize;
     // ends[k + 1] counts the samples of pixel from + k; after the prefix sum, ends[k] is where
     // pixel from + k starts.
