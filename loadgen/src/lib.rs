@@ -535,7 +535,11 @@ mod tests {
     #[test]
     fn settings_are_checked() {
         assert!(LoadConfig::default().validate().is_ok());
+        assert!(LoadConfig { stereo_ipd: Some(0.064), ..Default::default() }.validate().is_ok());
         for bad in [
+            LoadConfig { stereo_ipd: Some(f32::NAN), ..Default::default() },
+            LoadConfig { stereo_ipd: Some(-0.01), ..Default::default() },
+            LoadConfig { stereo_ipd: Some(2.0), ..Default::default() },
             LoadConfig { users: 0, ..Default::default() },
             LoadConfig { width: 15, ..Default::default() },
             LoadConfig { url: "ftp://x".into(), ..Default::default() },
