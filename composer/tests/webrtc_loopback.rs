@@ -74,7 +74,16 @@ async fn a_client_negotiates_receives_h264_and_sends_poses() {
     assert_eq!(pong, r#"{"type":"pong","t":42.5}"#);
     client.send_text(r#"{"type":"keyframe"}"#).await.unwrap();
     client.next_picture(WAIT, |p| p.idr && p.width == 192).await.unwrap();
-    let report = composer.sessions().into_iter().find(|r| r.session == client.session).unwrap();
+    // The media thread counts a frame after sending it: the client can see the keyframe
+    // before the report does.
+    let deadline = tokio::time::Instant::now() + WAIT;
+    let report = loop {
+        let report = composer.sessions().into_iter().find(|r| r.session == client.session).unwrap();
+        if report.encoder.keyframes >= 2 || tokio::time::Instant::now() >= deadline {
+            break report;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    };
     assert_eq!((report.poses.accepted, report.poses.malformed), (1, 2), "{report:?}");
     assert!(report.connected && report.media.frames_sent >= 3, "{report:?}");
     assert!(report.encoder.keyframes >= 2, "{report:?}");

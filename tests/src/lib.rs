@@ -12,8 +12,10 @@ use std::path::PathBuf;
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-/// Path of the `nephele` binary of this build profile, built on first use (`cargo build` is a
-/// no-op when it is fresh). `NEPHELE_BIN` overrides, e.g. to test an installed binary.
+/// Path of the `nephele` command under test: this package's `nephele-under-test` binary
+/// (the same command, see `src/bin/`), which cargo builds beside the integration tests with
+/// their profile; built here with `cargo build` if it is missing. `NEPHELE_BIN` overrides,
+/// e.g. to test an installed `nephele`.
 pub fn nephele_bin() -> PathBuf {
     static BIN: OnceLock<PathBuf> = OnceLock::new();
     BIN.get_or_init(|| {
@@ -23,17 +25,21 @@ pub fn nephele_bin() -> PathBuf {
         // The test executable lives in target/<profile>/deps/; the binary in target/<profile>/.
         let exe = std::env::current_exe().expect("test executable path");
         let profile_dir = exe.parent().and_then(|deps| deps.parent()).expect("target/<profile>").to_path_buf();
+        let bin = profile_dir.join(format!("nephele-under-test{}", std::env::consts::EXE_SUFFIX));
+        if bin.is_file() {
+            return bin;
+        }
         let profile = profile_dir.file_name().and_then(|n| n.to_str()).unwrap_or("debug").to_string();
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let mut build = Command::new(cargo);
-        build.args(["build", "--quiet", "-p", "nephele-cli", "--bin", "nephele"]);
+        build.args(["build", "--quiet", "-p", "nephele-tests", "--bin", "nephele-under-test"]);
         if profile != "debug" {
             build.args(["--profile", if profile == "release" { "release" } else { &profile }]);
         }
         build.current_dir(env!("CARGO_MANIFEST_DIR"));
         // `cargo test` runs this executable with the package's `CARGO_PKG_*` (and similar)
         // variables set; build scripts that watch them (ring's does) would otherwise see a
-        // change and rebuild half the TLS stack on every alternation with `cargo test`.
+        // change and rebuild half the TLS stack.
         for (name, _) in std::env::vars_os() {
             let name = name.to_string_lossy();
             if ["CARGO_PKG_", "CARGO_MANIFEST_", "CARGO_CRATE_", "CARGO_BIN_", "CARGO_PRIMARY_PACKAGE", "CARGO_TARGET_TMPDIR", "OUT_DIR"]
@@ -44,8 +50,8 @@ pub fn nephele_bin() -> PathBuf {
             }
         }
         let status = build.status().expect("running cargo build");
-        assert!(status.success(), "cargo build of the nephele binary failed");
-        profile_dir.join(format!("nephele{}", std::env::consts::EXE_SUFFIX))
+        assert!(status.success(), "cargo build of the nephele-under-test binary failed");
+        bin
     })
     .clone()
 }

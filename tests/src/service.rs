@@ -18,6 +18,8 @@ pub struct UpService {
     pub url_line: String,
     /// The composer's HTTP address (`GET /v1/sessions`: counters and latency), as printed.
     pub composer_http: Option<SocketAddr>,
+    /// Everything `nephele up` printed on stdout up to and including the URL line.
+    pub startup: Vec<String>,
     /// Where the processes' logs go (stderr of `nephele up` and its children, info level);
     /// its tail is printed when a test fails while the service runs.
     log: tempfile::NamedTempFile,
@@ -40,13 +42,23 @@ pub fn alive(pid: u32) -> bool {
 }
 
 impl UpService {
-    /// Starts `nephele up --workers N --spp 1` on a free HTTP port and waits (up to 45 s) for
-    /// the URL it prints once the composer and every worker have joined the master.
+    /// Starts `nephele up --workers N --spp 1 --bake off` (objects path traced, nothing
+    /// baked) on a free HTTP port and waits (up to 45 s) for the URL it prints once the
+    /// composer and every worker have joined the master.
     pub fn start(workers: usize) -> UpService {
+        UpService::start_with(workers, &["--bake", "off"], Duration::from_secs(45))
+    }
+
+    /// Starts `nephele up --workers N --spp 1 EXTRA...` on a free HTTP port and waits up to
+    /// `limit` for the URL it prints once the farm is whole (a first start that bakes takes
+    /// longer).
+    pub fn start_with(workers: usize, extra: &[&str], limit: Duration) -> UpService {
         let http = free_port();
         let log = tempfile::Builder::new().prefix("nephele-up-").suffix(".log").tempfile().expect("a log file");
+        let ready_secs = (limit.as_secs() + 5).to_string();
         let mut child = Command::new(nephele_bin())
-            .args(["--quiet", "up", "--http", &http.to_string(), "--workers", &workers.to_string(), "--spp", "1", "--ready-secs", "40"])
+            .args(["--quiet", "up", "--http", &http.to_string(), "--workers", &workers.to_string(), "--spp", "1", "--ready-secs", &ready_secs])
+            .args(extra)
             .env("NEPHELE_LOG", std::env::var("NEPHELE_LOG").unwrap_or_else(|_| "info".into()))
             .env("NO_COLOR", "1")
             .stdout(Stdio::piped())
@@ -54,29 +66,32 @@ impl UpService {
             .spawn()
             .expect("starting nephele up");
         let stdout = child.stdout.take().expect("piped stdout");
-        let (ready_tx, ready_rx) = std::sync::mpsc::channel();
-        // Drain every line (the children share the pipe), reporting the URL line.
+        let (line_tx, line_rx) = std::sync::mpsc::channel();
+        // Drain every line (the children share the pipe), passing on those up to the URL.
         std::thread::spawn(move || {
             for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                if line.contains("open http://") || line.starts_with("composer counters") {
-                    let _ = ready_tx.send(line);
-                }
+                let _ = line_tx.send(line);
             }
         });
-        let mut service = UpService { child: Some(child), http, url_line: String::new(), composer_http: None, log };
-        let deadline = Instant::now() + Duration::from_secs(45);
+        let mut service =
+            UpService { child: Some(child), http, url_line: String::new(), composer_http: None, startup: Vec::new(), log };
+        let deadline = Instant::now() + limit;
         while service.url_line.is_empty() {
             let left = deadline.saturating_duration_since(Instant::now());
-            let line = match ready_rx.recv_timeout(left) {
+            let line = match line_rx.recv_timeout(left) {
                 Ok(line) => line,
-                Err(e) => panic!("nephele up did not print the URL once the farm was whole: {e}"),
+                Err(e) => {
+                    service.print_log_tail(40);
+                    panic!("nephele up did not print the URL once the farm was whole: {e}; it printed {:#?}", service.startup)
+                }
             };
             if line.contains("open http://") {
-                service.url_line = line;
-            } else {
+                service.url_line = line.clone();
+            } else if line.starts_with("composer counters") {
                 // "composer counters and latency: http://ADDR/v1/sessions"
                 service.composer_http = line.split("http://").nth(1).and_then(|rest| rest.split('/').next()).and_then(|a| a.parse().ok());
             }
+            service.startup.push(line);
         }
         service
     }
@@ -149,6 +164,11 @@ impl UpService {
     }
 
     /// Prints the last `lines` lines of the service's log to stderr (the test's output).
+    /// The service's log so far (stderr of `nephele up` and its children).
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(self.log.path()).unwrap_or_default()
+    }
+
     pub fn print_log_tail(&self, lines: usize) {
         let text = std::fs::read_to_string(self.log.path()).unwrap_or_default();
         let all: Vec<&str> = text.lines().collect();

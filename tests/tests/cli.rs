@@ -102,6 +102,9 @@ fn bad_input_gets_a_clear_error() {
         (&["dataset", "info", out], "transforms"),
         (&["dataset", "render", "--scene", "diffuse", "--views", "0", "--out", out], "at least 1"),
         (&["--threads", "0", "scenes"], "threads"),
+        (&["up", "--scene", "no-such-scene", "--bake", "off"], "known scenes: default"),
+        (&["up", "--bake", "sometimes"], "standard"),
+        (&["up", "--workers", "0", "--bake", "off"], "at least 1"),
     ];
     for (args, expected) in cases {
         let err = nephele_err(args);

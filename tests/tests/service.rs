@@ -1,7 +1,9 @@
 //! The whole service across processes: `nephele up --workers 2` (master, composer, two
-//! workers), a WebRTC client that opens its session through the MASTER's `POST
-//! /v1/sessions`, sends poses in the browser client's format and receives H.264 rendered by
-//! the farm; then DELETE and SIGINT stop everything with no child left behind.
+//! workers) on a first start, which bakes the default scene's objects into i-NOLF assets
+//! (`--bake quick`: small, blurry, seconds each); a WebRTC client that opens its session
+//! through the MASTER's `POST /v1/sessions`, sends poses in the browser client's format and
+//! receives H.264 rendered by the farm from those assets; then DELETE and SIGINT stop
+//! everything with no child left behind.
 
 use std::time::{Duration, Instant};
 
@@ -10,9 +12,20 @@ use nephele_composer::pose::look_at_pose;
 use nephele_tests::service::{UpService, alive, children_of};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn nephele_up_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {
-    let mut up = UpService::start(2);
+async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {
+    let assets = tempfile::tempdir().expect("an empty asset folder: a first start");
+    let assets_arg = assets.path().to_str().expect("utf-8 path");
+    let mut up = UpService::start_with(2, &["--bake", "quick", "--assets", assets_arg], Duration::from_secs(600));
     let http = up.http;
+    // Each of the default scene's objects was baked, scored and put where the workers look.
+    for object in ["diffuse", "glossy", "shell"] {
+        let baked = up.startup.iter().find(|l| l.starts_with(&format!("baked '{object}'")));
+        assert!(baked.is_some_and(|l| l.contains(" dB on held-out views")), "{object}: {:#?}", up.startup);
+        assert!(assets.path().join(format!("{object}.nolf")).is_file(), "{object}.nolf");
+    }
+    let names: Vec<String> = std::fs::read_dir(assets.path()).expect("the asset folder").filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    assert!(!names.iter().any(|n| n.contains(".part") || n.starts_with(".bake-")), "scratch files left behind: {names:?}");
+    assert!(up.startup.iter().any(|l| l.contains("served by the i-NOLF kernel")), "{:#?}", up.startup);
     assert!(up.url_line.contains(&http.to_string()), "{}", up.url_line);
     let children = children_of(up.pid());
     assert_eq!(children.len(), 4, "master, composer, two workers: {children:?}");
@@ -41,6 +54,10 @@ async fn nephele_up_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {
         }
     }
     assert!(idr && after >= 5, "an IDR then 5 more frames within 30 s: idr {idr}, after {after}");
+    // The workers rendered them from the baked assets, not by path tracing the built-ins.
+    let log = up.log_text();
+    assert!(log.contains("loading asset file") && log.contains(".nolf"), "no worker loaded a baked asset");
+    assert!(!log.contains("path traced"), "a worker path traced a built-in object");
 
     let (status, farm) = http_request(http, "GET", "/v1/farm", &[], "").await.expect("GET /v1/farm");
     assert_eq!(status, 200, "{farm}");

@@ -18,6 +18,7 @@ use nephele_render::inolf::model::{HeadsShape, InolfModel};
 use nephele_render::inolf::psh::PshOptions;
 use nephele_render::inolf::train::{TrainOptions, collect_hit_points, train, training_views};
 use nephele_render::kernel::Bounds;
+use nephele_render::nn::HashGridConfig;
 use nephele_render::ngp::{FieldConfig, RadianceField, TrainConfig, Trainer, load_field, save_field};
 use serde_json::json;
 
@@ -54,9 +55,21 @@ pub struct Args {
     /// Training steps of the radiance field.
     #[arg(long, default_value_t = 2000)]
     field_steps: u32,
+    /// log2 of the radiance field's hash-table entries per level (i-NGP: 19).
+    #[arg(long, default_value_t = 19)]
+    field_table_log2: u32,
+    /// Hash-grid levels of the radiance field.
+    #[arg(long, default_value_t = 16)]
+    field_levels: u32,
+    /// Finest hash-grid resolution of the radiance field.
+    #[arg(long, default_value_t = 2048)]
+    field_finest: u32,
+    /// Density samples per training step of the radiance field.
+    #[arg(long, default_value_t = 1 << 16)]
+    field_samples: usize,
     /// Training steps of the i-NOLF heads.
     #[arg(long, default_value_t = 3000)]
-    steps: u32,
+    pub(crate) steps: u32,
     /// Rays per step of the heads.
     #[arg(long, default_value_t = 4096)]
     batch: usize,
@@ -68,7 +81,7 @@ pub struct Args {
     cube_res: u32,
     /// Side of the PSH lattice over the object's box (NEPHELE: 128, 256 or 512).
     #[arg(long, default_value_t = 256)]
-    psh_res: u32,
+    pub(crate) psh_res: u32,
     /// Learned features per PSH slot.
     #[arg(long, default_value_t = 8)]
     psh_features: u32,
@@ -109,8 +122,12 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let field: RadianceField = match &args.field {
         Some(path) => load_field(path).with_context(|| format!("loading {}", path.display()))?,
         None => {
-            let config = TrainConfig { seed: args.seed, ..TrainConfig::default() };
-            let mut trainer = Trainer::from_dataset(FieldConfig::default(), config, &data)?;
+            let config = TrainConfig { seed: args.seed, samples_per_step: args.field_samples, ..TrainConfig::default() };
+            let field_config = FieldConfig {
+                grid: HashGridConfig::with_finest_resolution(args.field_levels, args.field_table_log2, 16, args.field_finest),
+                ..FieldConfig::default()
+            };
+            let mut trainer = Trainer::from_dataset(field_config, config, &data)?;
             let bar = progress.bar(u64::from(args.field_steps), "radiance field", "steps");
             let mut last = 0.0;
             for step in 0..args.field_steps {

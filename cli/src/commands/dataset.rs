@@ -30,7 +30,7 @@ pub struct RenderArgs {
     scene: String,
     /// Training views.
     #[arg(long, default_value_t = 100)]
-    views: usize,
+    pub(crate) views: usize,
     /// Held-out test views (0 for none).
     #[arg(long, default_value_t = 20)]
     test_views: usize,

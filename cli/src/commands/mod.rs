@@ -10,6 +10,7 @@ pub mod bench_scheduler;
 pub mod bench_inolf;
 pub mod dataset;
 pub mod eval;
+pub mod first_start;
 pub mod loadgen;
 pub mod master;
 pub mod pathtrace;

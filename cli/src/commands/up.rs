@@ -9,6 +9,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
+use super::first_start::{BakeQuality, default_asset_dir, ensure_baked};
+use crate::progress::Progress;
 use crate::supervise::{Supervisor, stop_flag};
 
 /// Runs the service locally: one `nephele master`, one `nephele composer --master ...` and
@@ -16,9 +18,12 @@ use crate::supervise::{Supervisor, stop_flag};
 /// address excepted), waits until the master sees the composer and every worker, prints the
 /// URL to open, and stops everything on Ctrl-C (or as soon as any process dies).
 ///
-/// No baked neural assets ship with Nephele: the built-in scenes' objects are path traced
-/// by the workers (at `--spp` samples per pixel, low by default for interactivity). Put
-/// `.nolf` assets in `--assets` to serve neural ones.
+/// The scene's objects are served as baked i-NOLF assets (one small-network query per
+/// ray). None ship with Nephele: the first start bakes the scene's built-in objects (a
+/// path-traced dataset of each, then `nephele bake`), with progress bars, into a cache
+/// folder that later starts reuse (`--assets`; see `--bake` for the quality, or `--bake off`
+/// to have the workers path trace the objects instead). An object's asset is
+/// `ASSETS/<object>.nolf`; put your own there to serve it.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The master's HTTP address: the viewer page, `POST /v1/sessions`, `GET /v1/farm`.
@@ -30,10 +35,17 @@ pub struct Args {
     /// Scene the printed URL opens (`nephele scenes`; the master's catalog).
     #[arg(long, default_value = "default")]
     scene: String,
-    /// Path-tracing samples per pixel of the workers (built-in scenes are path traced).
+    /// How the first start bakes the scene's objects: standard (a few minutes per object on
+    /// two cores), quick (seconds per object, blurry), or off (objects without an asset are
+    /// path traced by the workers).
+    #[arg(long, value_enum, default_value = "standard")]
+    bake: BakeQuality,
+    /// Path-tracing samples per pixel of the workers, for objects served path traced.
     #[arg(long, default_value_t = 1)]
     spp: u32,
-    /// Asset directory for the workers (default: an empty temporary directory).
+    /// Asset folder of the workers, where the first start bakes missing objects (default:
+    /// `$NEPHELE_CACHE`, `$XDG_CACHE_HOME/nephele` or `~/.cache/nephele`, then
+    /// `assets/<quality>`).
     #[arg(long, value_name = "DIR")]
     assets: Option<PathBuf>,
     /// How long to wait for every process to join the farm, seconds.
@@ -67,22 +79,43 @@ fn farm_members(http: SocketAddr) -> Option<(bool, usize)> {
     Some((farm.get("composer").is_some_and(|c| !c.is_null()), workers))
 }
 
-pub fn run(args: Args) -> Result<()> {
+/// The built-in objects of `scene` in the master's catalog (the ones a first start can bake).
+fn builtin_objects_of(scene: &str) -> Result<Vec<String>> {
+    use nephele_master::scenes::{BUILTIN_OBJECTS, Catalog};
+    let catalog = Catalog::builtin().map_err(|e| anyhow::anyhow!("building the scene catalog: {e}"))?;
+    let Some(def) = catalog.scene(scene) else {
+        let names: Vec<&str> = catalog.scenes().iter().map(|s| s.name.as_str()).collect();
+        bail!("--scene {scene:?} is not in the catalog; known scenes: {}", names.join(", "));
+    };
+    Ok(def
+        .objects
+        .iter()
+        .filter_map(|id| catalog.object(*id))
+        .map(|o| o.asset.clone())
+        .filter(|asset| BUILTIN_OBJECTS.contains(&asset.as_str()))
+        .collect())
+}
+
+pub fn run(args: Args, progress: &Progress) -> Result<()> {
     if args.workers == 0 {
         bail!("--workers must be at least 1");
+    }
+    let objects = builtin_objects_of(&args.scene)?;
+    let assets = args.assets.clone().unwrap_or_else(|| default_asset_dir(args.bake));
+    std::fs::create_dir_all(&assets).with_context(|| format!("creating the asset folder {}", assets.display()))?;
+    // Before the Ctrl-C handler: a Ctrl-C while baking simply ends the process, and what is
+    // baked by then stays (each asset is renamed into place only once complete).
+    let baked = ensure_baked(&assets, &objects, args.bake, progress)?;
+    for object in &baked {
+        match object.psnr_db {
+            Some(db) => println!("baked '{}' in {:.0} s ({db:.2} dB on held-out views): {}", object.name, object.seconds, object.path.display()),
+            None => println!("using the baked '{}': {}", object.name, object.path.display()),
+        }
     }
     let stop = stop_flag()?;
     let exe = std::env::current_exe().context("locating the nephele executable")?;
     let farm = free_port()?;
     let (composer_http, composer_results) = (free_port()?, free_port()?);
-    let assets = match &args.assets {
-        Some(dir) => dir.clone(),
-        None => {
-            let dir = std::env::temp_dir().join(format!("nephele-up-{}", std::process::id()));
-            std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-            dir
-        }
-    };
     let mut supervisor = Supervisor::new();
     let mut master = Command::new(&exe);
     master.args(["master", "--http", &args.http.to_string(), "--farm-listen", &farm.to_string()]);
@@ -127,13 +160,18 @@ pub fn run(args: Args) -> Result<()> {
         std::thread::sleep(Duration::from_millis(200));
     }
     println!("nephele up: master, composer and {} workers ready", args.workers);
+    let (neural, traced): (Vec<&String>, Vec<&String>) = objects.iter().partition(|o| assets.join(format!("{o}.nolf")).is_file());
+    let list = |v: &[&String]| v.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(", ");
+    if !neural.is_empty() {
+        println!("scene '{}': {} served by the i-NOLF kernel (assets in {})", args.scene, list(&neural), assets.display());
+    }
+    if !traced.is_empty() {
+        println!("scene '{}': {} path traced at {} spp (no baked asset)", args.scene, list(&traced), args.spp);
+    }
     println!("composer counters and latency: http://{composer_http}/v1/sessions");
     println!("open http://{}/?scene={}", args.http, args.scene);
     let exited = supervisor.watch(&stop)?;
     let killed = supervisor.shutdown(Duration::from_secs(10));
-    if args.assets.is_none() {
-        let _ = std::fs::remove_dir(&assets);
-    }
     if let Some((name, status)) = exited {
         bail!("{name} exited ({status}); stopped the others");
     }

@@ -1,0 +1,336 @@
+//! The first start of `nephele up`: the default scene's objects baked into i-NOLF assets.
+//!
+//! No baked assets ship with Nephele (they are tens of MiB each). On first start, `up` bakes
+//! every built-in object of the scene it serves and keeps the assets in a cache folder, so
+//! later starts reuse them. Each object goes through exactly what a user would run by hand:
+//!
+//! ```text
+//! nephele dataset render --scene NAME --views V --test-views T --size SxS --spp P --out TMP
+//! nephele bake --dataset TMP --out DIR/NAME.nolf --downscale 1 --field-steps F --steps H ...
+//! ```
+//!
+//! then the asset is scored on the held-out views (PSNR against the path tracer's images)
+//! and moved into place. An asset is written as `NAME.nolf.part-PID` and renamed once complete,
+//! so an interrupted bake leaves no half asset behind, and objects already baked are kept.
+//! The workers resolve an object's asset id to `DIR/NAME.nolf` before the built-in
+//! (path-traced) scene of the same name, so a baked object is served by the i-NOLF kernel.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use nephele_render::camera::Camera;
+use nephele_render::inolf::kernel::InolfKernel;
+use nephele_render::kernel::{RayKernel, all_pixels, frame_to_image};
+use nephele_render::metrics::psnr_and_ssim;
+
+use crate::progress::Progress;
+
+/// How hard the first start works on each object.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum BakeQuality {
+    /// 128x128 training views, a few minutes per object on two cores.
+    Standard,
+    /// 48x48 views and a few hundred steps, seconds per object: a blurry but real i-NOLF
+    /// asset, for trying the service out and for the tests.
+    Quick,
+    /// Bake nothing: objects without a `.nolf` asset are path traced by the workers.
+    Off,
+}
+
+/// The settings of one quality: the arguments of `nephele dataset render` and `nephele bake`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Recipe {
+    pub size: u32,
+    pub views: usize,
+    pub test_views: usize,
+    pub spp: u32,
+    pub bounces: u32,
+    pub field_steps: u32,
+    pub field_table_log2: u32,
+    pub field_levels: u32,
+    pub field_finest: u32,
+    pub field_samples: usize,
+    pub head_steps: u32,
+    pub batch: usize,
+    pub cubes: u32,
+    pub psh_res: u32,
+}
+
+impl Recipe {
+    /// `nephele dataset render` of the built-in object `scene` into `out`.
+    pub fn dataset_words(&self, scene: &str, out: &Path) -> Vec<String> {
+        let mut words: Vec<String> = ["dataset", "--scene", scene].map(String::from).to_vec();
+        for (flag, value) in [
+            ("--views", self.views.to_string()),
+            ("--test-views", self.test_views.to_string()),
+            ("--size", format!("{0}x{0}", self.size)),
+            ("--spp", self.spp.to_string()),
+            ("--bounces", self.bounces.to_string()),
+            ("--out", out.to_string_lossy().into_owned()),
+        ] {
+            words.extend([flag.to_string(), value]);
+        }
+        words
+    }
+
+    /// `nephele bake` of the dataset `dataset` into the asset `out`.
+    pub fn bake_words(&self, dataset: &Path, out: &Path) -> Vec<String> {
+        let mut words = vec!["bake".to_string()];
+        for (flag, value) in [
+            ("--dataset", dataset.to_string_lossy().into_owned()),
+            ("--out", out.to_string_lossy().into_owned()),
+            ("--downscale", "1".into()),
+            ("--field-steps", self.field_steps.to_string()),
+            ("--field-table-log2", self.field_table_log2.to_string()),
+            ("--field-levels", self.field_levels.to_string()),
+            ("--field-finest", self.field_finest.to_string()),
+            ("--field-samples", self.field_samples.to_string()),
+            ("--steps", self.head_steps.to_string()),
+            ("--batch", self.batch.to_string()),
+            ("--cubes", self.cubes.to_string()),
+            ("--psh-res", self.psh_res.to_string()),
+        ] {
+            words.extend([flag.to_string(), value]);
+        }
+        words
+    }
+}
+
+impl BakeQuality {
+    pub fn recipe(self) -> Option<Recipe> {
+        match self {
+            BakeQuality::Standard => Some(Recipe {
+                size: 128,
+                views: 64,
+                test_views: 4,
+                spp: 32,
+                bounces: 6,
+                field_steps: 400,
+                field_table_log2: 17,
+                field_levels: 16,
+                field_finest: 1024,
+                field_samples: 1 << 15,
+                head_steps: 1200,
+                batch: 4096,
+                cubes: 48,
+                psh_res: 256,
+            }),
+            BakeQuality::Quick => Some(Recipe {
+                size: 48,
+                views: 24,
+                test_views: 2,
+                spp: 4,
+                bounces: 3,
+                field_steps: 40,
+                field_table_log2: 14,
+                field_levels: 8,
+                field_finest: 128,
+                field_samples: 1 << 13,
+                head_steps: 150,
+                batch: 1024,
+                cubes: 24,
+                psh_res: 96,
+            }),
+            BakeQuality::Off => None,
+        }
+    }
+
+    /// Cache subfolder name: assets of different qualities (or of an older bake recipe) never
+    /// mix. Bump the suffix when a recipe or the asset format changes.
+    pub fn folder(self) -> &'static str {
+        match self {
+            BakeQuality::Standard => "standard-v1",
+            BakeQuality::Quick => "quick-v1",
+            BakeQuality::Off => "path-traced",
+        }
+    }
+}
+
+/// Where baked assets are kept between starts: `$NEPHELE_CACHE`, else
+/// `$XDG_CACHE_HOME/nephele`, else `$HOME/.cache/nephele`, else the temporary folder; then
+/// `assets/<quality>`.
+pub fn default_asset_dir(quality: BakeQuality) -> PathBuf {
+    let env = |name: &str| std::env::var_os(name).filter(|v| !v.is_empty()).map(PathBuf::from);
+    let root = env("NEPHELE_CACHE")
+        .or_else(|| env("XDG_CACHE_HOME").map(|d| d.join("nephele")))
+        .or_else(|| env("HOME").map(|d| d.join(".cache").join("nephele")))
+        .unwrap_or_else(|| std::env::temp_dir().join("nephele-cache"));
+    root.join("assets").join(quality.folder())
+}
+
+/// What the first start found or made for one object.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BakedObject {
+    pub name: String,
+    pub path: PathBuf,
+    /// Mean PSNR of the asset on the held-out views, when it was baked by this call.
+    pub psnr_db: Option<f64>,
+    pub seconds: f64,
+}
+
+/// Whether `path` holds an asset the workers will load (every size and checksum verified).
+fn loads(path: &Path) -> bool {
+    path.is_file() && InolfKernel::load(path).is_ok()
+}
+
+/// Makes sure `dir/<name>.nolf` exists for every name, baking the missing ones (a corrupt or
+/// truncated one is baked again). Returns one line of account per object.
+pub fn ensure_baked(dir: &Path, names: &[String], quality: BakeQuality, progress: &Progress) -> Result<Vec<BakedObject>> {
+    let Some(recipe) = quality.recipe() else { return Ok(Vec::new()) };
+    std::fs::create_dir_all(dir).with_context(|| format!("creating the asset folder {}", dir.display()))?;
+    remove_stale_scratch(dir);
+    let mut done = Vec::with_capacity(names.len());
+    let missing: Vec<&String> = names.iter().filter(|n| !loads(&dir.join(format!("{n}.nolf")))).collect();
+    let mut index = 0;
+    for name in names {
+        let path = dir.join(format!("{name}.nolf"));
+        if !missing.contains(&name) {
+            done.push(BakedObject { name: name.clone(), path, psnr_db: None, seconds: 0.0 });
+            continue;
+        }
+        index += 1;
+        println!(
+            "first start: baking '{name}' ({index} of {}) into {} ({} quality; later starts reuse it)",
+            missing.len(),
+            path.display(),
+            quality.folder()
+        );
+        done.push(bake_object(dir, name, &recipe, progress).with_context(|| format!("baking the built-in object '{name}'"))?);
+    }
+    Ok(done)
+}
+
+/// The process id in a scratch name of ours: `.bake-PID-...` (dataset folders) or
+/// `NAME.nolf.part-PID` (assets being written).
+fn scratch_owner(file_name: &str) -> Option<i32> {
+    if let Some(rest) = file_name.strip_prefix(".bake-") {
+        return rest.split('-').next()?.parse().ok();
+    }
+    file_name.rsplit_once(".nolf.part-")?.1.parse().ok()
+}
+
+/// Removes what an interrupted bake (Ctrl-C, a crash) left in `dir`: scratch entries whose
+/// process is gone. Those of a live process (another first start) are left alone.
+fn remove_stale_scratch(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(pid) = scratch_owner(&name).filter(|&pid| pid > 0) else { continue };
+        // Signal 0 probes for the process; EPERM means it exists under another user.
+        let probe = nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid), None);
+        if matches!(probe, Ok(()) | Err(nix::errno::Errno::EPERM)) {
+            continue;
+        }
+        let path = entry.path();
+        let removed = if path.is_dir() { std::fs::remove_dir_all(&path) } else { std::fs::remove_file(&path) };
+        match removed {
+            Ok(()) => tracing::info!(path = %path.display(), "removed what an interrupted bake left"),
+            Err(e) => tracing::warn!(path = %path.display(), "could not remove what an interrupted bake left: {e}"),
+        }
+    }
+}
+
+/// Renders the dataset, bakes, scores and moves the asset into place.
+fn bake_object(dir: &Path, name: &str, recipe: &Recipe, progress: &Progress) -> Result<BakedObject> {
+    let start = Instant::now();
+    let work = tempfile::Builder::new()
+        .prefix(&format!(".bake-{}-{name}-", std::process::id()))
+        .tempdir_in(dir)
+        .context("a scratch folder for the dataset")?;
+    let data = work.path().join("dataset");
+    let render = DatasetCli::try_parse_from(recipe.dataset_words(name, &data))?;
+    super::dataset::run(super::dataset::Command::Render(render.args), progress)?;
+    // Unique per process: two first starts sharing the cache folder do not write one file.
+    let part = dir.join(format!("{name}.nolf.part-{}", std::process::id()));
+    let bake = BakeCli::try_parse_from(recipe.bake_words(&data, &part))?;
+    super::bake::run(bake.args, progress)?;
+
+    let psnr = score(&part, &data).context("scoring the asset on the held-out views")?;
+    println!(
+        "'{name}': {psnr:.2} dB PSNR on {} held-out views of {1}x{1} (i-NOLF against the path tracer)",
+        recipe.test_views, recipe.size
+    );
+    let path = dir.join(format!("{name}.nolf"));
+    std::fs::rename(&part, &path).with_context(|| format!("moving the asset to {}", path.display()))?;
+    Ok(BakedObject { name: name.into(), path, psnr_db: Some(psnr), seconds: start.elapsed().as_secs_f64() })
+}
+
+/// Mean PSNR (over white) of the asset on the dataset's test views.
+fn score(asset: &Path, dataset: &Path) -> Result<f64> {
+    let kernel = InolfKernel::load(asset)?;
+    let data = nephele_render::dataset::load_split(dataset, "test", 1)?;
+    anyhow::ensure!(!data.views.is_empty(), "the dataset has no test views");
+    let mut sum = 0.0;
+    for view in &data.views {
+        let (w, h) = (view.image.width(), view.image.height());
+        let camera = Camera::from_fov_x(w, h, data.camera_angle_x, view.camera_to_world)?;
+        let (out, _) = kernel.render_pixels(&camera, &all_pixels(&camera))?;
+        let image = frame_to_image(w, h, &out).context("frame")?;
+        sum += psnr_and_ssim(&image, &view.image, [1.0; 3])?.0;
+    }
+    Ok(sum / data.views.len() as f64)
+}
+
+/// `nephele dataset render`'s arguments, parsed from the same words a user would type.
+#[derive(Debug, Parser)]
+struct DatasetCli {
+    #[command(flatten)]
+    args: super::dataset::RenderArgs,
+}
+
+/// `nephele bake`'s arguments, parsed from the same words a user would type.
+#[derive(Debug, Parser)]
+struct BakeCli {
+    #[command(flatten)]
+    args: super::bake::Args,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_recipe_parses_as_the_commands_it_stands_for() {
+        for quality in [BakeQuality::Standard, BakeQuality::Quick] {
+            let r = quality.recipe().expect("a recipe");
+            assert!(r.size >= 16 && r.views > 0 && r.test_views > 0 && r.field_steps > 0 && r.head_steps > 0);
+            let render = DatasetCli::try_parse_from(r.dataset_words("diffuse", Path::new("ds"))).expect("dataset args");
+            assert_eq!(render.args.views, r.views);
+            let bake = BakeCli::try_parse_from(r.bake_words(Path::new("ds"), Path::new("a.nolf"))).expect("bake args");
+            assert_eq!((bake.args.steps, bake.args.psh_res), (r.head_steps, r.psh_res));
+        }
+        assert!(BakeQuality::Off.recipe().is_none());
+        assert_ne!(BakeQuality::Standard.folder(), BakeQuality::Quick.folder());
+    }
+
+    #[test]
+    fn an_interrupted_bakes_scratch_is_removed_unless_its_process_lives() {
+        assert_eq!(scratch_owner(".bake-123-diffuse-AbC"), Some(123));
+        assert_eq!(scratch_owner("glossy.nolf.part-77"), Some(77));
+        assert_eq!(scratch_owner("glossy.nolf"), None);
+        assert_eq!(scratch_owner(".bake-x-glossy"), None);
+        let dir = tempfile::tempdir().expect("tempdir");
+        // No process has pid 2^22 + 1 (above Linux's pid_max default); ours is alive.
+        let dead = 4_194_305;
+        std::fs::create_dir(dir.path().join(format!(".bake-{dead}-diffuse-x"))).expect("mkdir");
+        std::fs::write(dir.path().join(format!("diffuse.nolf.part-{dead}")), b"half").expect("write");
+        let ours = dir.path().join(format!("shell.nolf.part-{}", std::process::id()));
+        std::fs::write(&ours, b"in progress").expect("write");
+        std::fs::write(dir.path().join("glossy.nolf"), b"kept").expect("write");
+        remove_stale_scratch(dir.path());
+        let mut left: Vec<String> = std::fs::read_dir(dir.path()).expect("read").flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+        left.sort();
+        assert_eq!(left, vec!["glossy.nolf".to_string(), format!("shell.nolf.part-{}", std::process::id())]);
+    }
+
+    #[test]
+    fn a_corrupt_cached_asset_does_not_count_as_baked() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("diffuse.nolf");
+        assert!(!loads(&path));
+        std::fs::write(&path, b"NEPHNOLF but not really an asset").expect("write");
+        assert!(!loads(&path));
+    }
+}

@@ -1,0 +1,131 @@
+//! The `nephele` command: one entry point for every tool of the project.
+//!
+//! A library with one entry point, [`main`], so that two binaries run the same command:
+//! `nephele` (this package's `src/main.rs`) and the copy the cross-process tests build
+//! beside themselves (`tests/src/bin/`), which cargo compiles with the tests' own profile
+//! and features instead of a second build of the whole stack.
+
+mod commands;
+mod progress;
+mod supervise;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+use tracing_subscriber::EnvFilter;
+
+/// Nephele: a cloud renderer for neural 3D assets.
+///
+/// `nephele up` runs the whole service on this machine (master, composer, render workers;
+/// the default scene's objects baked into i-NOLF assets on first start). The other
+/// commands run one service each, bake, train and render assets, make datasets with the
+/// reference path tracer, score images, simulate the scheduler and print the benchmarks;
+/// see README.md.
+#[derive(Debug, Parser)]
+#[command(name = "nephele", version, about, long_about, propagate_version = true)]
+struct Cli {
+    /// Log more (-v: debug, -vv: trace). `NEPHELE_LOG` (tracing filter syntax) overrides.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    /// Hide progress bars (they are hidden anyway when stderr is not a terminal).
+    #[arg(short, long, global = true)]
+    quiet: bool,
+    /// Worker threads for rendering and metrics (default: one per core).
+    #[arg(long, global = true, value_name = "N")]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// List the built-in scenes.
+    Scenes,
+    /// Path-trace one view of a built-in scene or a glTF file (the reference renderer).
+    Pathtrace(commands::pathtrace::Args),
+    /// Render, inspect or load NeRF-synthetic datasets.
+    #[command(subcommand)]
+    Dataset(commands::dataset::Command),
+    /// Compare predicted images against ground truth: per-image and mean PSNR and SSIM.
+    Eval(commands::eval::Args),
+    /// Train an i-NGP-style radiance field on a NeRF-synthetic dataset (CPU), save it, and
+    /// print the test PSNR/SSIM.
+    Train(commands::train::Args),
+    /// Render every pose of a transforms file with a trained asset to PNG (for `nephele eval`).
+    Render(commands::render::Args),
+    /// Print performance figures (see BENCHMARKS.md).
+    #[command(subcommand)]
+    Bench(commands::bench::Command),
+    /// Run a composer: depth fusion, H.264 encoding and WebRTC streaming to viewers.
+    Composer(commands::composer::Args),
+    /// Run a render worker: connect to a master and render the ray batches it sends.
+    Worker(commands::worker::Args),
+    /// Simulate the farm: the scheduler core (NEPHELE Algorithm 1) against baselines on
+    /// simulated workers and users; prints a table and writes CSV.
+    Simulate(commands::simulate::Args),
+    /// Headless users over WebRTC against a running master: poses every 20 ms, frames parsed,
+    /// per-user frame rate and pose-to-frame latency.
+    Loadgen(commands::loadgen::Args),
+    /// Bake an i-NOLF asset (.nolf) from posed RGBA images: radiance field, density cubes,
+    /// perfect spatial hash, trained heads, diffuse cubes.
+    Bake(commands::bake::Args),
+    /// Run the master: HTTP API and signalling, the live scheduler, the farm listener.
+    ///
+    /// Workers (`nephele worker --master FARM_ADDR`) and the composer connect to
+    /// `--farm-listen`; browsers open `http://HTTP_ADDR/`. The master turns each session's
+    /// poses into ray batches (NEPHELE Algorithm 1), re-issues the batches of a worker that
+    /// dies or stalls, and tells the composer which results make up each frame; `GET /v1/farm`
+    /// shows workers, load, queues and per-user FPS. It prints `listening: http=ADDR
+    /// farm=ADDR` once both sockets listen. On SIGTERM or Ctrl-C it stops taking requests,
+    /// says goodbye to the workers and the composer, and exits 0.
+    Master(commands::master::Args),
+    /// Run the whole service locally: master, composer and render workers as child
+    /// processes; prints the URL to open; Ctrl-C stops everything.
+    Up(commands::up::Args),
+}
+
+/// Parses the command line and runs the command; the whole of a `nephele` binary.
+pub fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    init_logging(cli.verbose);
+    match run(cli) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("error: {error:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    if let Some(threads) = cli.threads {
+        anyhow::ensure!(threads > 0, "--threads must be at least 1");
+        rayon::ThreadPoolBuilder::new().num_threads(threads).build_global()?;
+    }
+    let progress = progress::Progress::new(cli.quiet);
+    match cli.command {
+        Command::Scenes => commands::scenes::list(),
+        Command::Pathtrace(args) => commands::pathtrace::run(args, &progress),
+        Command::Dataset(cmd) => commands::dataset::run(cmd, &progress),
+        Command::Eval(args) => commands::eval::run(args),
+        Command::Bench(cmd) => commands::bench::run(cmd, &progress),
+        Command::Composer(args) => commands::composer::run(args),
+        Command::Worker(args) => commands::worker::run(args, cli.threads),
+        Command::Simulate(args) => commands::simulate::run(args, &progress),
+        Command::Loadgen(args) => commands::loadgen::run(args, &progress),
+        Command::Bake(args) => commands::bake::run(args, &progress),
+        Command::Train(args) => commands::train::run(args, &progress),
+        Command::Render(args) => commands::render::run(args, &progress),
+        Command::Master(args) => commands::master::run(args),
+        Command::Up(args) => commands::up::run(args, &progress),
+    }
+}
+
+fn init_logging(verbose: u8) {
+    let default = match verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    };
+    let filter = EnvFilter::try_from_env("NEPHELE_LOG").unwrap_or_else(|_| EnvFilter::new(default));
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).init();
+}
