@@ -55,6 +55,10 @@ pub struct Recipe {
     pub head_steps: u32,
     pub batch: usize,
     pub cubes: u32,
+    /// Samples per cube side: 5 (4 steps per cell) is finer than a pixel of the training
+    /// views here, as good as 8 on held-out views, and marches 1.5x faster with half the
+    /// asset (BENCHMARKS.md, "First start").
+    pub cube_res: u32,
     pub psh_res: u32,
 }
 
@@ -90,6 +94,7 @@ impl Recipe {
             ("--steps", self.head_steps.to_string()),
             ("--batch", self.batch.to_string()),
             ("--cubes", self.cubes.to_string()),
+            ("--cube-res", self.cube_res.to_string()),
             ("--psh-res", self.psh_res.to_string()),
         ] {
             words.extend([flag.to_string(), value]);
@@ -115,6 +120,7 @@ impl BakeQuality {
                 head_steps: 1200,
                 batch: 4096,
                 cubes: 48,
+                cube_res: 5,
                 psh_res: 256,
             }),
             BakeQuality::Quick => Some(Recipe {
@@ -131,6 +137,7 @@ impl BakeQuality {
                 head_steps: 150,
                 batch: 1024,
                 cubes: 24,
+                cube_res: 5,
                 psh_res: 96,
             }),
             BakeQuality::Off => None,
@@ -141,8 +148,8 @@ impl BakeQuality {
     /// mix. Bump the suffix when a recipe or the asset format changes.
     pub fn folder(self) -> &'static str {
         match self {
-            BakeQuality::Standard => "standard-v1",
-            BakeQuality::Quick => "quick-v1",
+            BakeQuality::Standard => "standard-v2",
+            BakeQuality::Quick => "quick-v2",
             BakeQuality::Off => "path-traced",
         }
     }
@@ -192,7 +199,7 @@ pub fn ensure_baked(dir: &Path, names: &[String], quality: BakeQuality, progress
         }
         index += 1;
         println!(
-            "first start: baking '{name}' ({index} of {}) into {} ({} quality; later starts reuse it)",
+            "first start: baking '{name}' ({index} of {}) into {} (recipe {}; later starts reuse it)",
             missing.len(),
             path.display(),
             quality.folder()
