@@ -20,6 +20,8 @@ pub struct UpService {
     pub composer_http: Option<SocketAddr>,
     /// Everything `nephele up` printed on stdout up to and including the URL line.
     pub startup: Vec<String>,
+    /// The asset folder [`UpService::start`] made (removed when the service is dropped).
+    assets: Option<tempfile::TempDir>,
     /// Where the processes' logs go (stderr of `nephele up` and its children, info level);
     /// its tail is printed when a test fails while the service runs.
     log: tempfile::NamedTempFile,
@@ -46,7 +48,12 @@ impl UpService {
     /// baked) on a free HTTP port and waits (up to 45 s) for the URL it prints once the
     /// composer and every worker have joined the master.
     pub fn start(workers: usize) -> UpService {
-        UpService::start_with(workers, &["--bake", "off"], Duration::from_secs(45))
+        // An empty asset folder of its own: nothing of the user's cache is read or written.
+        let assets = tempfile::tempdir().expect("an asset folder");
+        let dir = assets.path().to_str().expect("utf-8 temporary path").to_owned();
+        let mut service = UpService::start_with(workers, &["--bake", "off", "--assets", &dir], Duration::from_secs(45));
+        service.assets = Some(assets);
+        service
     }
 
     /// Starts `nephele up --workers N --spp 1 EXTRA...` on a free HTTP port and waits up to
@@ -74,7 +81,7 @@ impl UpService {
             }
         });
         let mut service =
-            UpService { child: Some(child), http, url_line: String::new(), composer_http: None, startup: Vec::new(), log };
+            UpService { child: Some(child), http, url_line: String::new(), composer_http: None, startup: Vec::new(), assets: None, log };
         let deadline = Instant::now() + limit;
         while service.url_line.is_empty() {
             let left = deadline.saturating_duration_since(Instant::now());
