@@ -80,6 +80,11 @@ enum Command {
     Master(commands::master::Args),
     /// Run the whole service locally: master, composer and render workers as child
     /// processes; prints the URL to open; Ctrl-C stops everything.
+    ///
+    /// The scene's built-in objects are served as i-NOLF assets: the first start bakes them
+    /// (about 10 minutes for the default scene on two cores, with progress bars) into a
+    /// cache folder that later starts reuse. `--bake quick` bakes in seconds (blurry),
+    /// `--bake off` path traces the objects instead.
     Up(commands::up::Args),
 }
 
