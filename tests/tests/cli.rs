@@ -88,6 +88,9 @@ fn pathtrace_writes_every_output() {
 fn bad_input_gets_a_clear_error() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().to_str().expect("utf-8");
+    let not_a_folder = dir.path().join("a-file");
+    std::fs::write(&not_a_folder, b"x").expect("write");
+    let not_a_folder = not_a_folder.to_str().expect("utf-8");
     let cases: &[(&[&str], &str)] = &[
         (&["pathtrace", "--size", "0x10", "--out", out], "positive"),
         (&["pathtrace", "--size", "abc", "--out", out], "WIDTHxHEIGHT"),
@@ -105,6 +108,7 @@ fn bad_input_gets_a_clear_error() {
         (&["up", "--scene", "no-such-scene", "--bake", "off"], "known scenes: default"),
         (&["up", "--bake", "sometimes"], "standard"),
         (&["up", "--workers", "0", "--bake", "off"], "at least 1"),
+        (&["up", "--assets", not_a_folder, "--bake", "off"], "creating the asset folder"),
     ];
     for (args, expected) in cases {
         let err = nephele_err(args);
