@@ -9,6 +9,23 @@ mod commands;
 mod progress;
 mod supervise;
 
+/// The system allocator with a peak counter (two atomic updates per allocation): `nephele
+/// bench inolf` resets it before a frame and reads the frame's extra runtime memory after.
+#[global_allocator]
+static ALLOCATOR: &peakmem_alloc::PeakMemAlloc<std::alloc::System> = &peakmem_alloc::INSTRUMENTED_SYSTEM;
+
+/// Restarts the peak count of heap bytes (net of frees) from now.
+pub(crate) fn reset_heap_peak() {
+    use peakmem_alloc::PeakMemAllocTrait;
+    ALLOCATOR.reset_peak_memory();
+}
+
+/// Most heap bytes in use at once (net of frees) since [`reset_heap_peak`].
+pub(crate) fn heap_peak() -> usize {
+    use peakmem_alloc::PeakMemAllocTrait;
+    ALLOCATOR.get_peak_memory()
+}
+
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 use tracing_subscriber::EnvFilter;

@@ -45,3 +45,53 @@ fn train_render_eval_round_trip() {
     let err = nephele_err(&["render", "--asset", bogus.to_str().expect("utf-8"), "--transforms", transforms.to_str().expect("utf-8"), "--out", renders_str]);
     assert!(err.contains("truncated"), "{err}");
 }
+
+/// `nephele bake` then `nephele bench inolf` as a user runs them, on a tiny dataset: two
+/// assets from one saved field (different PSH lattices), the ablation rows of NEPHELE
+/// table 5 with their memory and query columns, the distance curve and the large frame.
+#[test]
+fn bake_then_bench_inolf_prints_the_ablation_rows() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = |name: &str| dir.path().join(name).to_str().expect("utf-8 path").to_owned();
+    let (data, field, first, second) = (path("ds"), path("field.ngp"), path("a.nolf"), path("b.nolf"));
+    nephele_ok(&[
+        "dataset", "render", "--scene", "diffuse", "--views", "12", "--test-views", "2", "--size", "24x24", "--spp", "2", "--out", &data,
+    ]);
+    let tiny = [
+        "--dataset", &data, "--downscale", "1", "--field-steps", "30", "--field-table-log2", "14", "--field-levels", "8",
+        "--field-finest", "128", "--field-samples", "4096", "--steps", "40", "--batch", "512", "--cubes", "16", "--cube-res", "4",
+        "--keep-diffuse-network",
+    ];
+    let report = nephele_ok(&[&["bake", "--out", &first, "--psh-res", "64", "--save-field", &field][..], &tiny].concat());
+    assert!(report.contains("perfect spatial hash") && report.contains("at 64^3"), "{report}");
+    let report = nephele_ok(&[&["bake", "--out", &second, "--psh-res", "32", "--field", &field][..], &tiny].concat());
+    assert!(report.contains("at 32^3"), "{report}");
+
+    let assets = format!("{first},{second}");
+    let bench = ["bench", "inolf", "--field", &field, "--dataset", &data, "--downscale", "1", "--views", "2"];
+    let out = nephele_ok(&[&bench[..], &["--asset", &assets, "--distances", "2,1", "--large-frame", "40x30", "--large-distance", "0.8"]].concat());
+    let row = |label: &str| -> Vec<f64> {
+        let line = out.lines().find(|l| l.starts_with(label)).unwrap_or_else(|| panic!("no row '{label}' in:\n{out}"));
+        line[label.len()..].split_whitespace().filter_map(|v| v.trim_end_matches(['x', '%']).parse().ok()).collect()
+    };
+    // Columns: PSNR, SSIM, model MiB, runtime MiB, ms/frame, rays/s, queries/ray, speed-up.
+    let baseline = row("i-NGP baseline");
+    let base = row("i-NOLF base (density network, diffuse MLP, PSH 64^3)");
+    let cubes_mlp = row("+ density cubes (diffuse MLP, PSH 64^3)");
+    let cubes = row("+ diffuse cubes (PSH 64^3)");
+    let second_row = row("+ diffuse cubes (PSH 32^3, b.nolf)");
+    for r in [&baseline, &base, &cubes_mlp, &cubes, &second_row] {
+        assert_eq!(r.len(), 8, "{r:?} in:\n{out}");
+        assert!(r.iter().all(|v| v.is_finite()) && r[0] > 5.0 && r[3] > 0.0, "{r:?} in:\n{out}");
+    }
+    // The density network costs many queries per ray; the cubes one per hitting ray at most.
+    assert!(base[6] > 2.0 * cubes_mlp[6] && cubes_mlp[6] <= 1.0 && cubes[6] <= 1.0, "{out}");
+    // The base row reads the field instead of the density cubes: a different model size.
+    assert!((base[2] - cubes_mlp[2]).abs() > 1e-3, "{out}");
+    assert!(out.contains("distance curve") && out.contains("large frame: 40x30"), "{out}");
+
+    let err = nephele_err(&[&bench[..], &["--asset", &first, "--distances", "1,-2"]].concat());
+    assert!(err.contains("'-2' is not a positive distance factor"), "{err}");
+    let skipped = nephele_ok(&[&bench[..], &["--distances", "none", "--asset", &second]].concat());
+    assert!(!skipped.contains("distance curve") && skipped.contains("i-NOLF base (density network, diffuse MLP, PSH 32^3)"), "{skipped}");
+}

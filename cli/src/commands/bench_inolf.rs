@@ -86,11 +86,15 @@ pub struct PshCacheArgs {
 
 #[derive(Debug, clap::Args)]
 pub struct InolfArgs {
-    /// A baked i-NOLF asset (`nephele bake`).
-    #[arg(long)]
-    asset: PathBuf,
-    /// The radiance field the asset was baked from (`nephele bake --save-field`): the
-    /// i-NGP-style baseline, rendered in the same run.
+    /// Baked i-NOLF assets (`nephele bake`), all baked from the radiance field `--field`.
+    /// The first gives the ablation rows of NEPHELE table 5 (hit point from the density
+    /// network, then from the density cubes; diffuse MLP, then diffuse cubes); each further
+    /// one (another `--psh-res`, say) adds one row. Repeat the flag or separate with commas.
+    #[arg(long, required = true, value_delimiter = ',')]
+    asset: Vec<PathBuf>,
+    /// The radiance field the assets were baked from (`nephele bake --save-field`): the
+    /// i-NGP-style baseline, rendered in the same run, and the density network of the
+    /// "i-NOLF base" row.
     #[arg(long)]
     field: PathBuf,
     /// Dataset folder whose held-out split is rendered and scored.
@@ -109,9 +113,35 @@ pub struct InolfArgs {
     holdout_every: usize,
     /// The distance curve (NEPHELE fig. 14): the first view's camera moved along its line to
     /// the object's centre, at these multiples of its distance; frame time of the baseline
-    /// and of i-NOLF at each. Empty to skip.
-    #[arg(long, value_delimiter = ',', default_value = "3,2,1.5,1,0.75,0.5")]
-    distances: Vec<f32>,
+    /// and of i-NOLF at each, comma-separated. `none` (or an empty string) skips it.
+    #[arg(long, value_parser = parse_factors, default_value = "3,2,1.5,1,0.75,0.5")]
+    distances: Factors,
+    /// Also time one large frame (3840x2160 is 4K) of the first view's camera moved to
+    /// `--large-distance` (the object filling the screen), baseline against i-NOLF: the ray
+    /// count of NEPHELE's 4K figure. The baseline takes minutes on a CPU.
+    #[arg(long, value_parser = super::parse_size, value_name = "WxH")]
+    large_frame: Option<(u32, u32)>,
+    /// Multiple of the first view's distance for `--large-frame`.
+    #[arg(long, default_value_t = 0.5)]
+    large_distance: f32,
+}
+
+/// Positive distance factors (`--distances`); empty for `none` or "".
+#[derive(Debug, Clone)]
+pub struct Factors(Vec<f32>);
+
+fn parse_factors(text: &str) -> Result<Factors, String> {
+    let text = text.trim();
+    if text.is_empty() || text.eq_ignore_ascii_case("none") {
+        return Ok(Factors(Vec::new()));
+    }
+    text.split(',')
+        .map(|f| match f.trim().parse::<f32>() {
+            Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+            _ => Err(format!("'{}' is not a positive distance factor", f.trim())),
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map(Factors)
 }
 
 fn scene_names(requested: &[String]) -> Vec<String> {
@@ -367,11 +397,30 @@ fn write_json(path: Option<PathBuf>, rows: Vec<serde_json::Value>) -> Result<()>
     Ok(())
 }
 
+/// One row of the table: a kernel and the bytes of the parts it reads.
+struct Variant {
+    name: String,
+    kernel: Box<dyn nephele_render::kernel::RayKernel>,
+    model_bytes: u64,
+}
+
+/// The first view's camera moved along its line to the object's centre by `factor`, at
+/// `width x height` with the same horizontal field of view.
+fn moved_camera(data: &nephele_render::dataset::Dataset, view: usize, centre: Vec3, factor: f32, width: u32, height: u32) -> Result<(Camera, f32)> {
+    anyhow::ensure!(factor.is_finite() && factor > 0.0, "{factor} is not a positive distance factor");
+    let mut c2w = data.views[view].camera_to_world;
+    let eye = c2w.w_axis.truncate();
+    let moved = centre + (eye - centre) * factor;
+    c2w.w_axis = moved.extend(1.0);
+    Ok((Camera::from_fov_x(width, height, data.camera_angle_x, c2w)?, (moved - centre).length()))
+}
+
 /// i-NOLF against the i-NGP-style baseline on held-out views: PSNR/SSIM against the images
-/// (over white, as NeRF papers), time per frame and rays per second, measured in one run.
+/// (over white, as NeRF papers), time per frame, rays per second and memory, measured in
+/// one run; the ablation rows of NEPHELE table 5.
 pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     use nephele_render::inolf::kernel::{DiffuseSource, InolfKernel};
-    use nephele_render::kernel::{RayKernel, frame_to_image};
+    use nephele_render::kernel::frame_to_image;
     use nephele_render::metrics::psnr_and_ssim;
     use nephele_render::ngp::NgpKernel;
 
@@ -380,27 +429,60 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
         data.views = nephele_render::dataset::split_holdout(std::mem::take(&mut data.views), args.holdout_every).1;
         anyhow::ensure!(!data.views.is_empty(), "no view left out by --holdout-every {}", args.holdout_every);
     }
-    let mut inolf_cubes = InolfKernel::load(&args.asset)?;
-    let mut inolf_net = inolf_cubes.clone();
-    let has_net = inolf_net.set_diffuse_source(DiffuseSource::Network).is_ok();
-    inolf_cubes.set_diffuse_source(DiffuseSource::Cubes)?;
-    let ngp = NgpKernel::load(&args.field)?;
-    let mut kernels: Vec<(&str, &dyn RayKernel)> = vec![("i-NGP baseline", &ngp), ("i-NOLF (diffuse cubes)", &inolf_cubes)];
-    if has_net {
-        kernels.push(("i-NOLF (diffuse MLP)", &inolf_net));
+    data.views.truncate(args.views.max(1));
+    let ngp = NgpKernel::load(&args.field).with_context(|| format!("loading {}", args.field.display()))?;
+    let field_bytes = 4 * ngp.field().num_params() as u64 + 8 * ngp.field().occupancy().words().len() as u64;
+    let mut variants = vec![Variant { name: "i-NGP baseline".into(), kernel: Box::new(ngp.clone()), model_bytes: field_bytes }];
+    let mut main_inolf = 0;
+    for (i, path) in args.asset.iter().enumerate() {
+        let mut cubes = InolfKernel::load(path).with_context(|| format!("loading {}", path.display()))?;
+        let psh = cubes.psh().table.domain();
+        let mut network = cubes.clone();
+        let has_network = network.set_diffuse_source(DiffuseSource::Network).is_ok();
+        cubes.set_diffuse_source(DiffuseSource::Cubes).with_context(|| format!("{}: no diffuse cubes", path.display()))?;
+        let variant = |name: String, kernel: InolfKernel| {
+            let model_bytes = kernel.memory().in_use;
+            Variant { name, kernel: Box::new(kernel), model_bytes }
+        };
+        if i == 0 {
+            let mut base = if has_network { network.clone() } else { cubes.clone() };
+            base.use_density_network(ngp.field().clone());
+            let diffuse = if has_network { "diffuse MLP" } else { "diffuse cubes" };
+            variants.push(variant(format!("i-NOLF base (density network, {diffuse}, PSH {psh}^3)"), base));
+            if has_network {
+                variants.push(variant(format!("+ density cubes (diffuse MLP, PSH {psh}^3)"), network));
+            }
+            main_inolf = variants.len();
+            variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3)"), cubes));
+        } else {
+            let file = path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+            variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3, {file})"), cubes));
+        }
     }
-    let views: Vec<_> = data.views.iter().take(args.views.max(1)).collect();
-    let bar = progress.bar((views.len() * kernels.len()) as u64, "rendering", "frames");
+    let views = &data.views;
+    let bar = progress.bar((views.len() * variants.len()) as u64, "rendering", "frames");
+    struct Row {
+        psnr: f64,
+        ssim: f64,
+        ms: f64,
+        rays_per_s: f64,
+        queries_per_ray: f64,
+        runtime_bytes: usize,
+    }
     let mut rows = Vec::new();
-    for (name, kernel) in &kernels {
-        let (mut seconds, mut rays, mut psnr, mut ssim) = (0.0f64, 0u64, 0.0f64, 0.0f64);
-        for v in &views {
+    for variant in &variants {
+        let (mut seconds, mut rays, mut queries, mut psnr, mut ssim, mut runtime_bytes) = (0.0f64, 0u64, 0u64, 0.0f64, 0.0f64, 0usize);
+        for v in views {
             let (w, h) = (v.image.width(), v.image.height());
             let camera = Camera::from_fov_x(w, h, data.camera_angle_x, v.camera_to_world)?;
+            let pixels = all_pixels(&camera);
+            crate::reset_heap_peak();
             let start = Instant::now();
-            let (out, stats) = kernel.render_pixels(&camera, &all_pixels(&camera))?;
+            let (out, stats) = variant.kernel.render_pixels(&camera, &pixels)?;
             seconds += start.elapsed().as_secs_f64();
+            runtime_bytes = runtime_bytes.max(crate::heap_peak());
             rays += stats.rays;
+            queries += stats.queries;
             let image = frame_to_image(w, h, &out).context("frame")?;
             let (p, s) = psnr_and_ssim(&image, &v.image, [1.0; 3])?;
             psnr += p;
@@ -408,51 +490,87 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
             bar.inc(1);
         }
         let n = views.len() as f64;
-        rows.push((name.to_string(), psnr / n, ssim / n, 1e3 * seconds / n, rays as f64 / seconds.max(1e-9)));
+        rows.push(Row {
+            psnr: psnr / n,
+            ssim: ssim / n,
+            ms: 1e3 * seconds / n,
+            rays_per_s: rays as f64 / seconds.max(1e-9),
+            queries_per_ray: queries as f64 / rays.max(1) as f64,
+            runtime_bytes,
+        });
     }
     bar.finish_and_clear();
-    let base_ms = rows[0].3;
+    let base_ms = rows[0].ms;
     let (w, h) = (views[0].image.width(), views[0].image.height());
+    let mib = |b: f64| b / 1048576.0;
     println!("{} held-out views of {w}x{h}, {} threads", views.len(), rayon::current_num_threads());
-    println!("{:<24} {:>8} {:>7} {:>10} {:>12} {:>9}", "kernel", "PSNR dB", "SSIM", "ms/frame", "rays/s", "speed-up");
-    for (name, p, s, ms, rps) in rows {
-        println!("{name:<24} {p:>8.2} {s:>7.4} {ms:>10.1} {rps:>12.0} {:>8.1}x", base_ms / ms.max(1e-9));
+    println!("model MiB: the parts the kernel reads; runtime MiB: most extra heap in use at once during a frame (outputs included)");
+    println!(
+        "{:<58} {:>8} {:>7} {:>10} {:>12} {:>10} {:>12} {:>11} {:>9}",
+        "kernel", "PSNR dB", "SSIM", "model MiB", "runtime MiB", "ms/frame", "rays/s", "queries/ray", "speed-up"
+    );
+    for (variant, r) in variants.iter().zip(&rows) {
+        println!(
+            "{:<58} {:>8.2} {:>7.4} {:>10.2} {:>12.2} {:>10.1} {:>12.0} {:>11.2} {:>8.1}x",
+            variant.name,
+            r.psnr,
+            r.ssim,
+            mib(variant.model_bytes as f64),
+            mib(r.runtime_bytes as f64),
+            r.ms,
+            r.rays_per_s,
+            r.queries_per_ray,
+            base_ms / r.ms.max(1e-9)
+        );
     }
-    let file = std::fs::metadata(&args.asset)?.len();
-    println!("asset {:.2} MiB", file as f64 / 1048576.0);
+    for path in &args.asset {
+        let file = std::fs::metadata(path)?.len();
+        println!("asset {}: {:.2} MiB on disk", path.display(), mib(file as f64));
+    }
 
+    let bounds = ngp.field().bounds();
+    let centre = 0.5 * (bounds.min + bounds.max);
+    let inolf = &variants[main_inolf];
     // Distance curve: one camera, moved towards the object's centre.
-    if !args.distances.is_empty() {
-        let first = views[0];
-        let bounds = ngp.field().bounds();
-        let centre = 0.5 * (bounds.min + bounds.max);
-        let eye = first.camera_to_world.w_axis.truncate();
+    if !args.distances.0.is_empty() {
         println!();
-        println!("distance curve: the first view's camera moved towards the object's centre, {w}x{h}");
+        println!("distance curve: the first view's camera moved towards the object's centre, {w}x{h}, {}", inolf.name);
         println!("{:>8} {:>9} {:>9} {:>14} {:>14} {:>9}", "factor", "distance", "covered", "baseline ms", "i-NOLF ms", "speed-up");
-        for &factor in &args.distances {
-            anyhow::ensure!(factor.is_finite() && factor > 0.0, "--distances: {factor} is not a positive factor");
-            let mut c2w = first.camera_to_world;
-            let moved = centre + (eye - centre) * factor;
-            c2w.w_axis = moved.extend(1.0);
-            let camera = Camera::from_fov_x(w, h, data.camera_angle_x, c2w)?;
-            let pixels = all_pixels(&camera);
-            let time = |kernel: &dyn RayKernel| -> Result<(f64, f64)> {
-                let start = Instant::now();
-                let (out, _) = kernel.render_pixels(&camera, &pixels)?;
-                let ms = 1e3 * start.elapsed().as_secs_f64();
-                let covered = out.opacity.iter().filter(|&&a| a > 0.5).count() as f64 / out.opacity.len().max(1) as f64;
-                Ok((ms, covered))
-            };
-            let (base_ms, _) = time(&ngp)?;
-            let (inolf_ms, covered) = time(&inolf_cubes)?;
-            println!(
-                "{factor:>8.2} {:>9.3} {:>8.1}% {base_ms:>14.1} {inolf_ms:>14.1} {:>8.1}x",
-                (moved - centre).length(),
-                100.0 * covered,
-                base_ms / inolf_ms.max(1e-9)
-            );
+        for &factor in &args.distances.0 {
+            let (camera, distance) = moved_camera(&data, 0, centre, factor, w, h).context("--distances")?;
+            let (base_ms, _) = time_frame(variants[0].kernel.as_ref(), &camera)?;
+            let (inolf_ms, covered) = time_frame(inolf.kernel.as_ref(), &camera)?;
+            println!("{factor:>8.2} {distance:>9.3} {:>8.1}% {base_ms:>14.1} {inolf_ms:>14.1} {:>8.1}x", 100.0 * covered, base_ms / inolf_ms.max(1e-9));
         }
     }
+    if let Some((lw, lh)) = args.large_frame {
+        let (camera, distance) = moved_camera(&data, 0, centre, args.large_distance, lw, lh).context("--large-distance")?;
+        println!();
+        println!("large frame: {lw}x{lh} ({:.2} M rays), the first view's camera at {}x its distance ({distance:.3}), {}", f64::from(lw) * f64::from(lh) / 1e6, args.large_distance, inolf.name);
+        let bar = progress.bar(2, "large frame", "frames");
+        let (base_ms, _) = time_frame(variants[0].kernel.as_ref(), &camera)?;
+        bar.inc(1);
+        let (inolf_ms, covered) = time_frame(inolf.kernel.as_ref(), &camera)?;
+        bar.finish_and_clear();
+        let rays = f64::from(lw) * f64::from(lh);
+        println!("{:>9} {:>14} {:>14} {:>16} {:>16} {:>9}", "covered", "baseline ms", "i-NOLF ms", "baseline rays/s", "i-NOLF rays/s", "speed-up");
+        println!(
+            "{:>8.1}% {base_ms:>14.1} {inolf_ms:>14.1} {:>16.0} {:>16.0} {:>8.1}x",
+            100.0 * covered,
+            rays / (base_ms / 1e3).max(1e-9),
+            rays / (inolf_ms / 1e3).max(1e-9),
+            base_ms / inolf_ms.max(1e-9)
+        );
+    }
     Ok(())
+}
+
+/// Milliseconds to render every pixel of `camera`, and the fraction with opacity > 0.5.
+fn time_frame(kernel: &dyn nephele_render::kernel::RayKernel, camera: &Camera) -> Result<(f64, f64)> {
+    let pixels = all_pixels(camera);
+    let start = Instant::now();
+    let (out, _) = kernel.render_pixels(camera, &pixels)?;
+    let ms = 1e3 * start.elapsed().as_secs_f64();
+    let covered = out.opacity.iter().filter(|&&a| a > 0.5).count() as f64 / out.opacity.len().max(1) as f64;
+    Ok((ms, covered))
 }

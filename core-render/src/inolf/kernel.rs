@@ -6,6 +6,12 @@
 //! in the diffuse cubes (or run the diffuse network), build the specular MLP's input rows
 //! (PSH features, SH of the direction, coarse opacity) in one contiguous batch and run the
 //! specular MLP once over it, then combine (eq. 7).
+//!
+//! For the ablation of NEPHELE table 5 the hit point can instead come from marching the
+//! radiance field's density network ([`InolfKernel::use_density_network`], "i-NOLF base"):
+//! same heads, many network queries per ray.
+
+use std::sync::Arc;
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -18,6 +24,7 @@ use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT
 use super::train::{HIT_OPACITY, RAY_NEAR};
 use crate::camera::Camera;
 use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
+use crate::ngp::{FieldScratch, RadianceField};
 use crate::nn::{HashGrid, Mlp, MlpWorkspace, sh_coefficient_count, sh_encode};
 
 /// Where the diffuse colour and tint come from.
@@ -29,10 +36,37 @@ pub enum DiffuseSource {
     Network,
 }
 
+/// Where the hit point and the coarse opacity come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HitSource {
+    /// Marching the baked density texture cubes (the kernel the farm runs).
+    DensityCubes,
+    /// Marching the radiance field's density network ("i-NOLF base" in table 5).
+    DensityNetwork,
+}
+
+/// Bytes of each part an i-NOLF kernel holds in memory (0 for a part it does not have).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct KernelMemory {
+    pub density_cubes: u64,
+    pub diffuse_cubes: u64,
+    /// Hash grid and diffuse MLP.
+    pub diffuse_network: u64,
+    /// PSH offset and key tables.
+    pub psh_tables: u64,
+    pub psh_features: u64,
+    pub specular_mlp: u64,
+    /// Radiance field (hash grid, both MLPs, occupancy bits) when it gives the hit point.
+    pub density_network: u64,
+    /// What the current configuration reads while rendering.
+    pub in_use: u64,
+}
+
 /// An i-NOLF object ready to render.
 #[derive(Debug, Clone)]
 pub struct InolfKernel {
     density: DensityCubes,
+    hit_field: Option<Arc<RadianceField>>,
     diffuse_cubes: Option<SparseCubes>,
     diffuse_net: Option<(HashGrid, Mlp)>,
     grid_bounds: Bounds,
@@ -62,6 +96,7 @@ impl InolfKernel {
         let source = if asset.diffuse.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
         Ok(InolfKernel {
             density: asset.density,
+            hit_field: None,
             diffuse_cubes: asset.diffuse,
             diffuse_net: heads.diffuse,
             grid_bounds: heads.grid_bounds,
@@ -82,6 +117,7 @@ impl InolfKernel {
         let source = if diffuse_cubes.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
         InolfKernel {
             density,
+            hit_field: None,
             diffuse_cubes,
             diffuse_net: Some((model.grid.clone(), model.diffuse.clone())),
             grid_bounds: model.bounds,
@@ -109,23 +145,73 @@ impl InolfKernel {
         self.source
     }
 
+    /// Takes hit points and coarse opacities from `field`'s density network instead of the
+    /// density cubes (the field the asset was baked from; the cubes cache its density).
+    pub fn use_density_network(&mut self, field: RadianceField) {
+        self.hit_field = Some(Arc::new(field));
+    }
+
+    pub fn hit_source(&self) -> HitSource {
+        if self.hit_field.is_some() { HitSource::DensityNetwork } else { HitSource::DensityCubes }
+    }
+
+    /// Bytes of every part, and of those the current configuration reads.
+    pub fn memory(&self) -> KernelMemory {
+        let mlp = |m: &Mlp| 4 * m.num_params() as u64;
+        let mut m = KernelMemory {
+            density_cubes: self.density.cubes().footprint().bytes,
+            diffuse_cubes: self.diffuse_cubes.as_ref().map_or(0, |c| c.footprint().bytes),
+            diffuse_network: self.diffuse_net.as_ref().map_or(0, |(g, d)| 4 * g.num_params() as u64 + mlp(d)),
+            psh_tables: self.psh.table.table_bytes() as u64,
+            psh_features: 4 * self.psh.features.len() as u64,
+            specular_mlp: mlp(&self.specular),
+            density_network: self.hit_field.as_ref().map_or(0, |f| 4 * f.num_params() as u64 + 8 * f.occupancy().words().len() as u64),
+            in_use: 0,
+        };
+        let hit = if self.hit_field.is_some() { m.density_network } else { m.density_cubes };
+        let diffuse = match self.source {
+            DiffuseSource::Cubes => m.diffuse_cubes,
+            DiffuseSource::Network => m.diffuse_network,
+        };
+        m.in_use = hit + diffuse + m.psh_tables + m.psh_features + m.specular_mlp;
+        m
+    }
+
     pub fn density(&self) -> &DensityCubes {
         &self.density
     }
 
-    /// Renders one chunk of pixels into the given output slices.
-    fn render_chunk(&self, camera: &Camera, pixels: &[u32], color: &mut [[f32; 3]], opacity: &mut [f32], depth: &mut [f32]) -> Result<u64, ModelError> {
+    /// The specular branch's PSH encoding (its lattice side is `psh().table.domain()`).
+    pub fn psh(&self) -> &PshEncoding {
+        &self.psh
+    }
+
+    /// Renders one chunk of pixels into the given output slices; returns the rays that hit
+    /// and the density-network samples taken (0 with the density cubes).
+    fn render_chunk(&self, camera: &Camera, pixels: &[u32], color: &mut [[f32; 3]], opacity: &mut [f32], depth: &mut [f32]) -> Result<(u64, u64), ModelError> {
         let width = camera.width();
         let mut hits: Vec<(usize, Vec3, Vec3, f32)> = Vec::with_capacity(pixels.len());
+        let mut field_scratch = self.hit_field.as_ref().map(|_| FieldScratch::new());
+        let mut network_samples = 0u64;
         for (k, &p) in pixels.iter().enumerate() {
             let ray = camera.pixel_center_ray(p % width, p / width);
-            let h = self.density.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
-            if h.opacity >= HIT_OPACITY {
-                hits.push((k, ray.at(h.t), ray.direction, h.opacity));
+            let (opacity, t) = match (&self.hit_field, &mut field_scratch) {
+                (Some(field), Some(scratch)) => {
+                    let r = field.density_hit(ray.origin, ray.direction, RAY_NEAR, scratch);
+                    network_samples += u64::from(r.samples);
+                    (r.opacity, r.peak_distance)
+                }
+                _ => {
+                    let h = self.density.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+                    (h.opacity, h.t)
+                }
+            };
+            if opacity >= HIT_OPACITY {
+                hits.push((k, ray.at(t), ray.direction, opacity));
             }
         }
         if hits.is_empty() {
-            return Ok(0);
+            return Ok((0, network_samples));
         }
         let n = hits.len();
         // Diffuse colour and tint.
@@ -171,7 +257,7 @@ impl InolfKernel {
                 depth[k] = d;
             }
         }
-        Ok(n as u64)
+        Ok((n as u64, network_samples))
     }
 }
 
@@ -187,17 +273,21 @@ impl RayKernel for InolfKernel {
     fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
         validate_pixels(camera, pixels)?;
         let mut out = PixelResults::with_len(pixels.len());
-        let hit_counts: Vec<Result<u64, ModelError>> = pixels
+        let hit_counts: Vec<Result<(u64, u64), ModelError>> = pixels
             .par_chunks(CHUNK)
             .zip(out.color.par_chunks_mut(CHUNK))
             .zip(out.opacity.par_chunks_mut(CHUNK))
             .zip(out.depth.par_chunks_mut(CHUNK))
             .map(|(((p, c), o), d)| self.render_chunk(camera, p, c, o, d))
             .collect();
-        let mut rays_hit = 0;
+        let (mut rays_hit, mut network_samples) = (0, 0);
         for h in hit_counts {
-            rays_hit += h.map_err(|e| KernelError::Failed(e.to_string()))?;
+            let (hit, samples) = h.map_err(|e| KernelError::Failed(e.to_string()))?;
+            rays_hit += hit;
+            network_samples += samples;
         }
-        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries: rays_hit }))
+        // One heads query per hitting ray, plus the density network's samples if it gives
+        // the hit point.
+        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries: rays_hit + network_samples }))
     }
 }

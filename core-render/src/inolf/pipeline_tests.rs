@@ -10,7 +10,7 @@ use super::asset::Asset;
 use super::bake::{bake_diffuse_cubes, to_asset};
 use super::cubes::{CubeOptions, DensityCubes};
 use super::encoding::PshEncoding;
-use super::kernel::{DiffuseSource, InolfKernel};
+use super::kernel::{DiffuseSource, HitSource, InolfKernel};
 use super::model::{HeadsShape, InolfModel};
 use super::psh::PshOptions;
 use super::train::{TrainOptions, TrainingView, collect_hit_points, train};
@@ -167,10 +167,43 @@ fn camera_strategy() -> impl Strategy<Value = Camera> {
         })
 }
 
+/// Every pixel sane: finite non-negative colour, opacity in [0, 1], positive finite depth
+/// where opacity > 0 and nothing at all where it is 0.
+fn check_frame(out: &crate::kernel::PixelResults) -> Result<(), TestCaseError> {
+    for i in 0..out.opacity.len() {
+        prop_assert!(out.color[i].iter().all(|c| c.is_finite() && *c >= 0.0));
+        prop_assert!((0.0..=1.0).contains(&out.opacity[i]));
+        prop_assert!(out.depth[i].is_finite());
+        if out.opacity[i] > 0.0 {
+            prop_assert!(out.depth[i] > 0.0);
+        } else {
+            prop_assert_eq!(out.depth[i], 0.0);
+            prop_assert_eq!(out.color[i], [0.0; 3]);
+        }
+    }
+    Ok(())
+}
+
+/// An untrained radiance field over the box: a translucent fog everywhere, the worst case
+/// for the "i-NOLF base" hit point (density network marched along every ray).
+fn fog_field() -> crate::ngp::RadianceField {
+    let config = crate::ngp::FieldConfig {
+        grid: crate::nn::HashGridConfig::with_finest_resolution(4, 12, 4, 32),
+        density_hidden: 16,
+        color_hidden: 16,
+        color_hidden_layers: 1,
+        steps_per_diagonal: 64,
+        occupancy_resolution: 16,
+        ..crate::ngp::FieldConfig::default()
+    };
+    crate::ngp::RadianceField::new(config, bounds().min, 2.0, 11).expect("field")
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 
-    /// Hard cases: cameras outside, inside the box, inside the object, looking anywhere.
+    /// Hard cases: cameras outside, inside the box, inside the object, looking anywhere;
+    /// hit points from the density cubes and from a density network.
     #[test]
     fn kernel_outputs_are_always_sane(camera in camera_strategy()) {
         let t = trained();
@@ -179,24 +212,36 @@ proptest! {
         let (out, stats) = kernel.render_pixels(&camera, &pixels).expect("render");
         prop_assert_eq!(stats.rays, pixels.len() as u64);
         prop_assert_eq!(stats.queries, stats.rays_hit);
-        for i in 0..pixels.len() {
-            prop_assert!(out.color[i].iter().all(|c| c.is_finite() && *c >= 0.0));
-            prop_assert!((0.0..=1.0).contains(&out.opacity[i]));
-            prop_assert!(out.depth[i].is_finite());
-            if out.opacity[i] > 0.0 {
-                prop_assert!(out.depth[i] > 0.0);
-            } else {
-                prop_assert_eq!(out.depth[i], 0.0);
-                prop_assert_eq!(out.color[i], [0.0; 3]);
-            }
-        }
+        check_frame(&out)?;
         // Inside the object every ray sees it at once.
         if camera.position().length() < RADIUS - 0.1 {
             prop_assert!(stats.rays_hit == stats.rays);
         }
+
+        let mut network = kernel.clone();
+        network.use_density_network(fog_field());
+        prop_assert_eq!(network.hit_source(), HitSource::DensityNetwork);
+        let (out, stats) = network.render_pixels(&camera, &pixels).expect("render");
+        prop_assert_eq!(stats.rays, pixels.len() as u64);
+        // Each ray that hits costs its density samples plus one heads query.
+        prop_assert!(stats.queries >= 2 * stats.rays_hit, "{stats:?}");
+        check_frame(&out)?;
     }
 }
 
+/// `bench inolf`'s model bytes: the parts the kernel reads, by hit source and diffuse source.
+#[test]
+fn memory_counts_the_parts_in_use() {
+    let t = trained();
+    let mut kernel = InolfKernel::from_model(&t.model, t.cubes.clone(), None);
+    let m = kernel.memory();
+    assert_eq!(m.in_use, m.density_cubes + m.diffuse_network + m.psh_tables + m.psh_features + m.specular_mlp);
+    assert!(m.density_cubes > 0 && m.diffuse_network > 0 && m.psh_features > 0 && m.specular_mlp > 0 && m.density_network == 0);
+    kernel.use_density_network(fog_field());
+    let m = kernel.memory();
+    assert!(m.density_network > 0);
+    assert_eq!(m.in_use, m.density_network + m.diffuse_network + m.psh_tables + m.psh_features + m.specular_mlp);
+}
 
 /// A meta section describing networks that do not match the stored weights (or absurdly
 /// large ones) is rejected before any network is allocated.

@@ -293,6 +293,18 @@ impl RadianceField {
     /// sigma_j delta_j)`, marching the occupied cells only and stopping once `T` falls below
     /// [`EARLY_STOP_TRANSMITTANCE`].
     pub fn render_ray(&self, origin: Vec3, dir: Vec3, t_min: f32, scratch: &mut FieldScratch) -> RayResult {
+        self.march_ray(origin, dir, t_min, scratch, true)
+    }
+
+    /// The density network's answer alone, no colour: accumulated opacity `sum_i w_i`,
+    /// expected and peak-weight distances, samples evaluated (`color` stays zero). The hit
+    /// point of the "i-NOLF base" variant of NEPHELE table 5, which queries the density
+    /// network along the ray instead of the baked density cubes.
+    pub fn density_hit(&self, origin: Vec3, dir: Vec3, t_min: f32, scratch: &mut FieldScratch) -> RayResult {
+        self.march_ray(origin, dir, t_min, scratch, false)
+    }
+
+    fn march_ray(&self, origin: Vec3, dir: Vec3, t_min: f32, scratch: &mut FieldScratch, with_color: bool) -> RayResult {
         let mut result = RayResult::default();
         let dt = self.step_size();
         let Some(mut marcher) = Marcher::new(origin, dir, self.min, self.size, dt, t_min, 0.5, self.occupancy.resolution()) else {
@@ -340,7 +352,7 @@ impl RadianceField {
                     result.peak_distance = ts[i];
                 }
                 transmittance *= 1.0 - alpha;
-                if w >= MIN_COLOR_WEIGHT {
+                if with_color && w >= MIN_COLOR_WEIGHT {
                     colored += 1;
                 }
                 if transmittance < EARLY_STOP_TRANSMITTANCE {
@@ -378,8 +390,9 @@ impl RadianceField {
                     weighted_t += w * ts[i];
                 }
             }
-            // Low-weight samples still count towards opacity and depth.
-            for i in (0..n).filter(|&i| weights[i] < MIN_COLOR_WEIGHT) {
+            // Low-weight samples (all of them without colour) still count towards opacity
+            // and depth.
+            for i in (0..n).filter(|&i| !with_color || weights[i] < MIN_COLOR_WEIGHT) {
                 result.opacity += weights[i];
                 weighted_t += weights[i] * ts[i];
             }

@@ -113,6 +113,7 @@ fn training_on_a_sphere_lowers_the_loss_and_beats_a_constant() {
     assert!(stats.queries > 0 && stats.rays_hit >= 1);
 
     hit_points_agree_with_density_cubes(&kernel, &test);
+    density_hit_matches_the_full_render(&kernel, &test);
 
     // Round trip through the file gives the same image.
     let dir = tempfile::tempdir().expect("tempdir");
@@ -277,4 +278,23 @@ fn hit_points_agree_with_density_cubes(kernel: &NgpKernel, camera: &Camera) {
     assert!(compared > 50, "only {compared} pixels where both see the sphere");
     assert!(fraction >= 0.95, "{:.1} % of hit points within one cube cell", 100.0 * fraction);
     assert!(worst_peak <= 2.0 * cell && worst_mean <= 2.0 * cell, "worst {worst_peak} / {worst_mean} against a cube cell of {cell}");
+}
+
+/// The density network alone ("i-NOLF base"'s hit point) gives the full render's opacity,
+/// depth and peak-weight sample with the same samples and no colour query.
+fn density_hit_matches_the_full_render(kernel: &NgpKernel, camera: &Camera) {
+    let field = kernel.field();
+    let mut scratch = FieldScratch::new();
+    let mut hits = 0;
+    for &p in &all_pixels(camera) {
+        let ray = camera.pixel_center_ray(p % camera.width(), p / camera.width());
+        let full = field.render_ray(ray.origin, ray.direction, 0.0, &mut scratch);
+        let density = field.density_hit(ray.origin, ray.direction, 0.0, &mut scratch);
+        assert_eq!((density.samples, density.color_queries, density.color), (full.samples, 0, [0.0; 3]));
+        assert_eq!(density.peak_distance, full.peak_distance);
+        assert!((density.opacity - full.opacity).abs() < 1e-5, "{density:?} vs {full:?}");
+        assert!((density.distance - full.distance).abs() < 1e-4, "{density:?} vs {full:?}");
+        hits += usize::from(full.opacity > 0.5);
+    }
+    assert!(hits > 50, "{hits} pixels see the sphere");
 }
