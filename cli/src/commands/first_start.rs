@@ -59,6 +59,9 @@ pub struct Recipe {
     /// views here, as good as 8 on held-out views, and marches 1.5x faster with half the
     /// asset (BENCHMARKS.md, "First start").
     pub cube_res: u32,
+    /// PSH lattice side: 128 for the built-in objects' 128x128 path-traced views, whose
+    /// 32-spp noise a larger lattice learns too (held-out PSNR +0.05 to +1.1 dB against
+    /// 256 on every object, half the asset; BENCHMARKS.md, "table 5 on the built-in objects").
     pub psh_res: u32,
 }
 
@@ -121,7 +124,7 @@ impl BakeQuality {
                 batch: 4096,
                 cubes: 48,
                 cube_res: 5,
-                psh_res: 256,
+                psh_res: 128,
             }),
             BakeQuality::Quick => Some(Recipe {
                 size: 48,
@@ -148,7 +151,7 @@ impl BakeQuality {
     /// mix. Bump the suffix when a recipe or the asset format changes.
     pub fn folder(self) -> &'static str {
         match self {
-            BakeQuality::Standard => "standard-v2",
+            BakeQuality::Standard => "standard-v3",
             BakeQuality::Quick => "quick-v2",
             BakeQuality::Off => "path-traced",
         }
