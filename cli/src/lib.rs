@@ -99,7 +99,7 @@ enum Command {
     /// processes; prints the URL to open; Ctrl-C stops everything.
     ///
     /// The scene's built-in objects are served as i-NOLF assets: the first start bakes them
-    /// (about 10 minutes for the default scene on two cores, with progress bars) into a
+    /// (about 7 minutes for the default scene on two cores, with progress bars) into a
     /// cache folder that later starts reuse. `--bake quick` bakes in seconds (blurry),
     /// `--bake off` path traces the objects instead.
     Up(commands::up::Args),
