@@ -431,8 +431,12 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     }
     data.views.truncate(args.views.max(1));
     let ngp = NgpKernel::load(&args.field).with_context(|| format!("loading {}", args.field.display()))?;
-    let field_bytes = 4 * ngp.field().num_params() as u64 + 8 * ngp.field().occupancy().words().len() as u64;
-    let mut variants = vec![Variant { name: "i-NGP baseline".into(), kernel: Box::new(ngp.clone()), model_bytes: field_bytes }];
+    let bounds = ngp.field().bounds();
+    let centre = 0.5 * (bounds.min + bounds.max);
+    let field_bytes = ngp.field().memory_bytes();
+    // The "i-NOLF base" row's density network (the first asset's); the baseline keeps `ngp`.
+    let mut base_field = Some(ngp.field().clone());
+    let mut variants = vec![Variant { name: "i-NGP baseline".into(), kernel: Box::new(ngp), model_bytes: field_bytes }];
     let mut main_inolf = 0;
     for (i, path) in args.asset.iter().enumerate() {
         let mut cubes = InolfKernel::load(path).with_context(|| format!("loading {}", path.display()))?;
@@ -446,7 +450,9 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
         };
         if i == 0 {
             let mut base = if has_network { network.clone() } else { cubes.clone() };
-            base.use_density_network(ngp.field().clone());
+            if let Some(field) = base_field.take() {
+                base.use_density_network(field);
+            }
             let diffuse = if has_network { "diffuse MLP" } else { "diffuse cubes" };
             variants.push(variant(format!("i-NOLF base (density network, {diffuse}, PSH {psh}^3)"), base));
             if has_network {
@@ -528,8 +534,6 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
         println!("asset {}: {:.2} MiB on disk", path.display(), mib(file as f64));
     }
 
-    let bounds = ngp.field().bounds();
-    let centre = 0.5 * (bounds.min + bounds.max);
     let inolf = &variants[main_inolf];
     // Distance curve: one camera, moved towards the object's centre.
     if !args.distances.0.is_empty() {

@@ -165,7 +165,7 @@ impl InolfKernel {
             psh_tables: self.psh.table.table_bytes() as u64,
             psh_features: 4 * self.psh.features.len() as u64,
             specular_mlp: mlp(&self.specular),
-            density_network: self.hit_field.as_ref().map_or(0, |f| 4 * f.num_params() as u64 + 8 * f.occupancy().words().len() as u64),
+            density_network: self.hit_field.as_ref().map_or(0, |f| f.memory_bytes()),
             in_use: 0,
         };
         let hit = if self.hit_field.is_some() { m.density_network } else { m.density_cubes };

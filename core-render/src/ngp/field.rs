@@ -204,6 +204,11 @@ impl RadianceField {
         self.grid.num_params() + self.density.num_params() + self.color.num_params()
     }
 
+    /// Bytes the field holds in memory: parameters (f32) and occupancy bits.
+    pub fn memory_bytes(&self) -> u64 {
+        4 * self.num_params() as u64 + 8 * self.occupancy.words().len() as u64
+    }
+
     /// World point to unit-cube coordinates of the field's box.
     #[inline]
     pub fn to_unit(&self, p: Vec3) -> Vec3 {
