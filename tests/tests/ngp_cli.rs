@@ -92,6 +92,14 @@ fn bake_then_bench_inolf_prints_the_ablation_rows() {
 
     let err = nephele_err(&[&bench[..], &["--asset", &first, "--distances", "1,-2"]].concat());
     assert!(err.contains("'-2' is not a positive distance factor"), "{err}");
+    // Refused before anything renders.
+    let err = nephele_err(&[&bench[..], &["--asset", &first, "--large-frame", "40x30", "--large-distance=0"]].concat());
+    assert!(err.contains("'0' is not a positive distance factor"), "{err}");
+    let err = nephele_err(&[&bench[..], &["--asset", &first, "--large-frame", "0x30"]].concat());
+    assert!(err.contains("positive"), "{err}");
+    let missing = path("missing.nolf");
+    let err = nephele_err(&[&bench[..], &["--asset", &format!("{first},{missing}")]].concat());
+    assert!(err.contains("loading") && err.contains("missing.nolf"), "{err}");
     let skipped = nephele_ok(&[&bench[..], &["--distances", "none", "--asset", &second]].concat());
     assert!(!skipped.contains("distance curve") && skipped.contains("i-NOLF base (density network, diffuse MLP, PSH 32^3)"), "{skipped}");
 }

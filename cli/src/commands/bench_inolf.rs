@@ -122,7 +122,7 @@ pub struct InolfArgs {
     #[arg(long, value_parser = super::parse_size, value_name = "WxH")]
     large_frame: Option<(u32, u32)>,
     /// Multiple of the first view's distance for `--large-frame`.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value = "0.5", value_parser = parse_factor)]
     large_distance: f32,
 }
 
@@ -135,13 +135,15 @@ fn parse_factors(text: &str) -> Result<Factors, String> {
     if text.is_empty() || text.eq_ignore_ascii_case("none") {
         return Ok(Factors(Vec::new()));
     }
-    text.split(',')
-        .map(|f| match f.trim().parse::<f32>() {
-            Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
-            _ => Err(format!("'{}' is not a positive distance factor", f.trim())),
-        })
-        .collect::<Result<Vec<_>, _>>()
-        .map(Factors)
+    text.split(',').map(parse_factor).collect::<Result<Vec<_>, _>>().map(Factors)
+}
+
+/// One positive, finite distance factor.
+fn parse_factor(text: &str) -> Result<f32, String> {
+    match text.trim().parse::<f32>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("'{}' is not a positive distance factor", text.trim())),
+    }
 }
 
 fn scene_names(requested: &[String]) -> Vec<String> {
