@@ -23,7 +23,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 use std::time::Instant;
 
-use nephele_render::kernel::PixelResults;
+use nephele_geometry::PixelResults;
 use rayon::prelude::*;
 use thiserror::Error;
 

@@ -22,7 +22,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use futures_util::SinkExt;
 use nephele_proto::stream::{framed, handshake, recv};
 use nephele_proto::{ClientPose, CloseStream, ComposerRegister, FrameConfig, FramePlan, Message, Role, StreamOpened, WireCamera};
-use nephele_render::kernel::PixelResults;
+use nephele_geometry::PixelResults;
 use tokio::net::TcpStream;
 use tokio::sync::{mpsc, watch};
 

@@ -36,7 +36,7 @@
 use std::time::{Duration, Instant};
 
 use glam::Mat4;
-use nephele_render::camera::Camera;
+use nephele_geometry::camera::Camera;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 

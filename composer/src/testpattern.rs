@@ -4,8 +4,8 @@
 //! composer without workers still exercises fusion, encoding and streaming, and the picture
 //! follows the pose.
 
-use nephele_render::camera::Camera;
-use nephele_render::kernel::PixelResults;
+use nephele_geometry::camera::Camera;
+use nephele_geometry::PixelResults;
 
 use crate::fusion::{BatchKey, BatchResult, FrameLayout, PlannedBatch, SessionId};
 use crate::wire::PlanBody;

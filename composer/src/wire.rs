@@ -16,7 +16,7 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use nephele_render::kernel::PixelResults;
+use nephele_geometry::PixelResults;
 use thiserror::Error;
 
 use crate::fusion::{BatchKey, BatchResult, FrameLayout, FramePlan, PlannedBatch};

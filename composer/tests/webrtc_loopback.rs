@@ -10,7 +10,7 @@ use nephele_composer::fusion::{BatchKey, BatchResult, FrameLayout, PlannedBatch}
 use nephele_composer::pose::{Control, Pose, look_at_pose};
 use nephele_composer::service::{Composer, ComposerConfig, FrameSource};
 use nephele_composer::wire::{self, PlanBody};
-use nephele_render::kernel::PixelResults;
+use nephele_geometry::PixelResults;
 use tokio::io::AsyncWriteExt;
 use tokio::net::TcpStream;
 

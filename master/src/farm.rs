@@ -30,7 +30,7 @@ use nephele_proto::{
     BatchIds, Cancel, CancelTarget, ClientPose, CloseStream, ComposerRegister, ErrorCode, FramePlan, LoadReport, Message,
     OpenStream, PlanPart, RayBatch, Register, ReleaseTask, StreamOpened, WireCamera,
 };
-use nephele_render::camera::Camera;
+use nephele_geometry::camera::Camera;
 use nephele_scheduler::{
     Action, Admission as SchedAdmission, BatchId, BatchSpec, FrameId, FramePart, ObjectId, ObjectInfo, SchedError, Scheduler,
     SchedulerConfig, SessionId, SessionSpec, Time, ViewMatrices, WorkerId,

@@ -14,8 +14,8 @@
 //! `assembly`, `furnace`).
 
 use glam::Vec3;
-use nephele_render::kernel::Bounds;
-use nephele_render::scenes::{self, Framing};
+use nephele_geometry::Bounds;
+use nephele_pathtracer::scenes::{self, Framing};
 use thiserror::Error;
 
 use crate::http::SceneView;
@@ -163,7 +163,7 @@ pub fn default_layout(boxes: &[Bounds; 3], gap: f32) -> [Vec3; 3] {
     [t_left, t_right, t_back]
 }
 
-fn mesh_bounds(name: &str, scene: &nephele_render::reference::Scene) -> Result<Bounds, CatalogError> {
+fn mesh_bounds(name: &str, scene: &nephele_pathtracer::Scene) -> Result<Bounds, CatalogError> {
     let (min, max) = scene.bounds().ok_or_else(|| CatalogError::Asset { asset: name.into(), reason: "the scene has no geometry".into() })?;
     if !(min.is_finite() && max.is_finite()) {
         return Err(CatalogError::Asset { asset: name.into(), reason: "non-finite bounds".into() });
@@ -217,7 +217,7 @@ mod tests {
             Bounds { min: Vec3::new(1.0, 1.0, -0.5), max: Vec3::new(2.0, 2.0, 0.5) },
         ];
         let view = frame_view(&boxes);
-        let camera = nephele_render::camera::Camera::look_at(
+        let camera = nephele_geometry::camera::Camera::look_at(
             200,
             200,
             view.fov_y_deg.to_radians(),

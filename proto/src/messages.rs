@@ -153,7 +153,7 @@ pub struct BatchIds {
 /// A camera as WebXR gives it, with no dependency on the render crate: image size and
 /// column-major 4x4 matrices. `view` is world-to-camera (`XRView.transform.inverse.matrix`),
 /// `projection` OpenGL clip conventions. The worker converts it with
-/// `nephele_render::camera::Camera::from_view_projection`.
+/// `nephele_geometry::camera::Camera::from_view_projection`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct WireCamera {
     pub width: u32,
@@ -182,7 +182,7 @@ pub struct RayBatch {
     pub composer: String,
 }
 
-/// Work a kernel did for a batch (mirrors `nephele_render::kernel::KernelStats`).
+/// Work a kernel did for a batch (mirrors `nephele_kernels::kernel::KernelStats`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct KernelStats {
     pub rays: u64,

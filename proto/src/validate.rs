@@ -8,7 +8,7 @@ use crate::messages::{
     LoadReport, Message, OpenStream, RayBatch, Register, Registered, StreamOpened, WireCamera,
 };
 
-/// Largest image side (as `nephele_render::camera`).
+/// Largest image side (as `nephele_geometry::camera`).
 pub const MAX_IMAGE_SIDE: u32 = 16384;
 /// Most pixels in one batch: 2 Mi pixels, a 48 MiB result, under the default frame limit.
 pub const MAX_BATCH_PIXELS: usize = 1 << 21;

@@ -11,8 +11,8 @@
 //! [`PixelSet::indices`].
 
 use glam::{DVec3, Vec3};
-use nephele_render::camera::Camera;
-use nephele_render::kernel::Bounds;
+use nephele_geometry::camera::Camera;
+use nephele_geometry::Bounds;
 use serde::{Deserialize, Serialize};
 
 use crate::config::ShareTolerance;
@@ -462,7 +462,7 @@ pub fn reprojection_error_px(a: &Camera, b: &Camera, bounds: &Bounds) -> f32 {
 mod tests {
     use super::*;
     use glam::Mat4;
-    use nephele_render::camera::{quilt_rig, stereo_pair};
+    use nephele_geometry::camera::{quilt_rig, stereo_pair};
     use proptest::prelude::*;
 
     fn camera(eye: Vec3, target: Vec3, w: u32, h: u32) -> Camera {

@@ -49,8 +49,8 @@ use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::time::Duration;
 
 use glam::Mat4;
-use nephele_render::camera::Camera;
-use nephele_render::kernel::Bounds;
+use nephele_geometry::camera::Camera;
+use nephele_geometry::Bounds;
 use serde::{Deserialize, Serialize};
 
 use crate::assign::{self, CameraKey, OccupancyGrid, PixelSet, TaskClass};

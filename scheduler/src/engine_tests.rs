@@ -1,6 +1,6 @@
 use super::*;
 use glam::Vec3;
-use nephele_render::camera::stereo_pair;
+use nephele_geometry::camera::stereo_pair;
 
 const OBJ: ObjectId = ObjectId(1);
 

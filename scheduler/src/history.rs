@@ -95,7 +95,7 @@ mod tests {
     use super::*;
     use crate::config::ShareTolerance;
     use glam::Vec3;
-    use nephele_render::camera::Camera;
+    use nephele_geometry::camera::Camera;
 
     fn key(x: f32) -> ResultKey {
         let cam = Camera::look_at(8, 8, 1.0, Vec3::new(x, -3.0, 0.0), Vec3::ZERO, Vec3::Z).expect("camera");

@@ -19,7 +19,7 @@
 //! ```
 //! use std::time::Duration;
 //! use glam::Vec3;
-//! use nephele_render::{camera::Camera, kernel::Bounds};
+//! use nephele_geometry::{Bounds, Camera};
 //! use nephele_scheduler::*;
 //!
 //! let mut s = Scheduler::new(SchedulerConfig::default())?;

@@ -1,8 +1,8 @@
 //! What a simulation is made of: objects, users with camera paths, workers, parameters.
 
 use glam::Vec3;
-use nephele_render::camera::{Camera, CameraError, quilt_rig, stereo_pair};
-use nephele_render::kernel::Bounds;
+use nephele_geometry::camera::{Camera, CameraError, quilt_rig, stereo_pair};
+use nephele_geometry::Bounds;
 
 /// Interpupillary distance of simulated headsets, metres.
 pub const IPD_M: f32 = 0.064;

@@ -11,7 +11,7 @@ use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap, VecDeque};
 use std::time::Duration;
 
-use nephele_render::camera::CameraError;
+use nephele_geometry::camera::CameraError;
 use nephele_scheduler::{
     Action, BatchId, ObjectId, ObjectInfo, Policy, SchedError, Scheduler, SchedulerConfig, SessionId, SessionSpec, Time, WorkerId,
 };

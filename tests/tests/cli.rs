@@ -1,6 +1,6 @@
 //! The `nephele` command as a user runs it: real processes, real files.
 
-use nephele_render::dataset;
+use nephele_train::dataset;
 use nephele_tests::{nephele_err, nephele_ok, shared_data};
 
 #[test]
@@ -18,7 +18,7 @@ fn help_explains_every_subcommand() {
 #[test]
 fn scenes_lists_every_builtin_scene() {
     let list = nephele_ok(&["scenes"]);
-    for name in nephele_render::scenes::names() {
+    for name in nephele_pathtracer::scenes::names() {
         assert!(list.contains(name), "{name} missing from:\n{list}");
     }
 }

@@ -27,10 +27,10 @@ use nephele_proto::{
     BatchResult, ClientPose, ComposerRegister, ErrorCode, FrameConfig, FramePlan, FrameReader, FrameWriter, Message, Role,
     StreamOpened, WireCamera,
 };
-use nephele_render::camera::Camera;
-use nephele_render::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
-use nephele_render::reference::Renderer;
-use nephele_render::scenes;
+use nephele_geometry::camera::Camera;
+use nephele_kernels::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
+use nephele_pathtracer::Renderer;
+use nephele_pathtracer::scenes;
 use nephele_tests::nephele_bin;
 use serde_json::{Value, json};
 

@@ -17,10 +17,10 @@ use nephele_proto::{
     BatchIds, BatchResult, Cancel, CancelTarget, ErrorCode, FrameConfig, FrameReader, FrameWriter, Hello, Message, RayBatch,
     Register, Registered, Rejected, Role, WireCamera, encode_frame_unchecked,
 };
-use nephele_render::camera::Camera;
-use nephele_render::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
-use nephele_render::reference::Renderer;
-use nephele_render::scenes;
+use nephele_geometry::camera::Camera;
+use nephele_kernels::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
+use nephele_pathtracer::Renderer;
+use nephele_pathtracer::scenes;
 use nephele_tests::nephele_bin;
 
 const WAIT: Duration = Duration::from_secs(30);

@@ -1,10 +1,11 @@
 //! Assets on demand: an asset id from a [`nephele_proto::RayBatch`] becomes a kernel.
 //!
 //! [`DirAssetLoader`] resolves an id in this order:
-//! 1. a file `<dir>/<id>.<ext>` for a registered format (see [`DirAssetLoader::register_format`]):
-//!    `.nolf` (i-NOLF, one network query per ray), `.ngp` (the i-NGP-style volumetric
-//!    baseline) and `.glb` / `.gltf` (path-traced);
-//! 2. a built-in scene (`nephele_render::scenes::builtin`), rendered by the path tracer at
+//! 1. a file `<dir>/<id>.<ext>` for a format of the kernels' registry
+//!    ([`nephele_kernels::assets::FORMATS`]: `.nolf` i-NOLF, `.ngp` the i-NGP-style
+//!    baseline, `.glb` / `.gltf` path-traced) or one added with
+//!    [`DirAssetLoader::register_format`];
+//! 2. a built-in scene (`nephele_pathtracer::scenes::builtin`), rendered by the path tracer at
 //!    low samples per pixel;
 //! 3. otherwise [`AssetError::Unknown`].
 //!
@@ -18,9 +19,9 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 use nephele_proto::{ErrorCode, ValidationError, validate};
-use nephele_render::kernel::{PathTracedKernel, RayKernel};
-use nephele_render::reference::Renderer;
-use nephele_render::scenes;
+use nephele_kernels::assets::{self, LoadOptions};
+use nephele_kernels::kernel::RayKernel;
+use nephele_pathtracer::scenes;
 use thiserror::Error;
 
 /// A kernel ready to render batches.
@@ -72,6 +73,12 @@ pub struct AssetOptions {
     pub max_cached: usize,
 }
 
+impl AssetOptions {
+    fn load(&self) -> LoadOptions {
+        LoadOptions { pathtrace_spp: self.pathtrace_spp, pathtrace_bounces: self.pathtrace_bounces }
+    }
+}
+
 impl Default for AssetOptions {
     fn default() -> AssetOptions {
         AssetOptions { pathtrace_spp: 4, pathtrace_bounces: 4, max_cached: 32 }
@@ -108,29 +115,18 @@ impl fmt::Debug for DirAssetLoader {
 }
 
 impl DirAssetLoader {
-    /// A loader for `dir` (which must exist) with the glTF format registered.
+    /// A loader for `dir` (which must exist) with every format of the kernels' registry.
     pub fn new(dir: &Path, options: AssetOptions) -> std::io::Result<DirAssetLoader> {
         let dir = dir.canonicalize()?;
         if !dir.is_dir() {
             return Err(std::io::Error::new(std::io::ErrorKind::NotADirectory, format!("{} is not a directory", dir.display())));
         }
         let mut loader = DirAssetLoader { dir, options, formats: Vec::new(), cache: Mutex::new((HashMap::new(), Vec::new())) };
-        let gltf: FormatHandler = Arc::new(|path, options| {
-            let scene = nephele_render::reference::gltf_import::import_gltf(path).map_err(|e| e.to_string())?;
-            path_traced(scene, options)
-        });
-        loader.register_format("glb", "pathtrace", gltf.clone());
-        loader.register_format("gltf", "pathtrace", gltf);
-        let inolf: FormatHandler = Arc::new(|path, _options| {
-            let kernel = nephele_render::inolf::kernel::InolfKernel::load(path).map_err(|e| e.to_string())?;
-            Ok(Arc::new(kernel) as Kernel)
-        });
-        loader.register_format("nolf", "inolf", inolf);
-        let ngp: FormatHandler = Arc::new(|path, _options| {
-            let kernel = nephele_render::ngp::NgpKernel::load(path).map_err(|e| e.to_string())?;
-            Ok(Arc::new(kernel) as Kernel)
-        });
-        loader.register_format("ngp", "ngp", ngp);
+        for format in assets::FORMATS {
+            let load = format.load;
+            let handler: FormatHandler = Arc::new(move |path, options| load(path, &options.load()).map_err(|e| e.to_string()));
+            loader.register_format(format.extension, format.kernel_kind, handler);
+        }
         Ok(loader)
     }
 
@@ -175,11 +171,8 @@ impl DirAssetLoader {
 }
 
 /// The reference path tracer over `scene` as a kernel.
-pub fn path_traced(scene: nephele_render::reference::Scene, options: &AssetOptions) -> Result<Kernel, String> {
-    let renderer = Renderer::new(scene).map_err(|e| e.to_string())?;
-    let kernel =
-        PathTracedKernel::new(renderer, options.pathtrace_spp, options.pathtrace_bounces).map_err(|e| e.to_string())?;
-    Ok(Arc::new(kernel))
+pub fn path_traced(scene: nephele_pathtracer::Scene, options: &AssetOptions) -> Result<Kernel, String> {
+    assets::path_traced(scene, &options.load()).map_err(|e| e.to_string())
 }
 
 impl AssetLoader for DirAssetLoader {

@@ -3,7 +3,7 @@
 //! A worker connects to the master, says hello, registers (name, threads, kernel kinds and
 //! the throughput a short calibration render measured), then serves [`nephele_proto::RayBatch`]es:
 //! it loads the batch's asset on demand ([`assets`]), renders the pixel set with the asset's
-//! [`nephele_render::kernel::RayKernel`] on its own rayon pool (never on the async runtime's
+//! [`nephele_kernels::kernel::RayKernel`] on its own rayon pool (never on the async runtime's
 //! threads), sends the [`nephele_proto::BatchResult`] straight to the composer the batch names
 //! (one cached connection per composer) and tells the master `BatchDone` or `BatchFailed`.
 //! It reports its load periodically (the heartbeat), honours cancellations, reconnects if it

@@ -21,8 +21,8 @@ use nephele_proto::{
     KernelStats, LoadReport, Message, ProtoError, RayBatch, Register, Registered, Role, WireCamera, clip_text,
     error_message, validate,
 };
-use nephele_render::camera::{Camera, CameraError};
-use nephele_render::kernel::all_pixels;
+use nephele_geometry::camera::{Camera, CameraError};
+use nephele_kernels::kernel::all_pixels;
 use thiserror::Error;
 use tokio::net::TcpStream;
 use tokio::sync::mpsc;

@@ -10,16 +10,17 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use nephele_render::dataset;
-use nephele_render::inolf::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
-use nephele_render::inolf::cubes::{CubeOptions, DensityCubes};
-use nephele_render::inolf::encoding::PshEncoding;
-use nephele_render::inolf::model::{HeadsShape, InolfModel};
-use nephele_render::inolf::psh::PshOptions;
-use nephele_render::inolf::train::{TrainOptions, collect_hit_points, train, training_views};
-use nephele_render::kernel::Bounds;
-use nephele_render::nn::HashGridConfig;
-use nephele_render::ngp::{FieldConfig, RadianceField, TrainConfig, Trainer, load_field, save_field};
+use nephele_train::dataset;
+use nephele_train::inolf::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
+use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes};
+use nephele_kernels::inolf::encoding::PshEncoding;
+use nephele_kernels::inolf::model::{HeadsShape, InolfModel};
+use nephele_kernels::inolf::psh::PshOptions;
+use nephele_train::inolf::train::{TrainOptions, collect_hit_points, train, training_views};
+use nephele_geometry::Bounds;
+use nephele_nn::HashGridConfig;
+use nephele_kernels::ngp::{FieldConfig, RadianceField, load_field, save_field};
+use nephele_train::ngp::{TrainConfig, Trainer};
 use serde_json::json;
 
 use crate::progress::Progress;

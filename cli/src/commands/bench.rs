@@ -5,11 +5,11 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use glam::Vec3;
-use nephele_render::camera::Camera;
-use nephele_render::metrics;
-use nephele_render::reference::integrator::Aov;
-use nephele_render::reference::{RenderOptions, Renderer};
-use nephele_render::scenes;
+use nephele_geometry::camera::Camera;
+use nephele_imaging::metrics;
+use nephele_pathtracer::integrator::Aov;
+use nephele_pathtracer::{RenderOptions, Renderer};
+use nephele_pathtracer::scenes;
 use serde_json::json;
 
 use crate::progress::Progress;

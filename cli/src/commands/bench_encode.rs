@@ -13,8 +13,8 @@ use nephele_composer::encode::{Effort, EncoderSettings, FrameKind, H264Encoder};
 use nephele_composer::fusion::{BatchKey, BatchResult, Compositor, FrameLayout, FusionLimits, PlannedBatch};
 use nephele_composer::testpattern;
 use nephele_composer::yuv::Yuv420;
-use nephele_render::camera::Camera;
-use nephele_render::kernel::PixelResults;
+use nephele_geometry::camera::Camera;
+use nephele_geometry::PixelResults;
 use openh264_decode::decode_psnr;
 use serde_json::json;
 

@@ -7,14 +7,14 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use glam::Vec3;
-use nephele_render::camera::Camera;
-use nephele_render::inolf::cubes::{CubeOptions, DensityCubes};
-use nephele_render::inolf::encoding::PshEncoding;
-use nephele_render::inolf::psh::{PshOptions, PshTable};
-use nephele_render::inolf::voxel::{VoxelBits, VoxelGrid, surface_bits};
-use nephele_render::kernel::{Bounds, all_pixels};
-use nephele_render::nn::{HashGrid, HashGridConfig};
-use nephele_render::scenes;
+use nephele_geometry::camera::Camera;
+use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes};
+use nephele_kernels::inolf::encoding::PshEncoding;
+use nephele_kernels::inolf::psh::{PshOptions, PshTable};
+use nephele_pathtracer::voxel::{VoxelBits, VoxelGrid, surface_bits};
+use nephele_kernels::kernel::{Bounds, all_pixels};
+use nephele_nn::{HashGrid, HashGridConfig};
+use nephele_pathtracer::scenes;
 use serde_json::json;
 
 use crate::progress::Progress;
@@ -402,13 +402,13 @@ fn write_json(path: Option<PathBuf>, rows: Vec<serde_json::Value>) -> Result<()>
 /// One row of the table: a kernel and the bytes of the parts it reads.
 struct Variant {
     name: String,
-    kernel: Box<dyn nephele_render::kernel::RayKernel>,
+    kernel: Box<dyn nephele_kernels::kernel::RayKernel>,
     model_bytes: u64,
 }
 
 /// The first view's camera moved along its line to the object's centre by `factor`, at
 /// `width x height` with the same horizontal field of view.
-fn moved_camera(data: &nephele_render::dataset::Dataset, view: usize, centre: Vec3, factor: f32, width: u32, height: u32) -> Result<(Camera, f32)> {
+fn moved_camera(data: &nephele_train::dataset::Dataset, view: usize, centre: Vec3, factor: f32, width: u32, height: u32) -> Result<(Camera, f32)> {
     anyhow::ensure!(factor.is_finite() && factor > 0.0, "{factor} is not a positive distance factor");
     let mut c2w = data.views[view].camera_to_world;
     let eye = c2w.w_axis.truncate();
@@ -421,14 +421,14 @@ fn moved_camera(data: &nephele_render::dataset::Dataset, view: usize, centre: Ve
 /// (over white, as NeRF papers), time per frame, rays per second and memory, measured in
 /// one run; the ablation rows of NEPHELE table 5.
 pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
-    use nephele_render::inolf::kernel::{DiffuseSource, InolfKernel};
-    use nephele_render::kernel::frame_to_image;
-    use nephele_render::metrics::psnr_and_ssim;
-    use nephele_render::ngp::NgpKernel;
+    use nephele_kernels::inolf::kernel::{DiffuseSource, InolfKernel};
+    use nephele_kernels::kernel::frame_to_image;
+    use nephele_imaging::metrics::psnr_and_ssim;
+    use nephele_kernels::ngp::NgpKernel;
 
-    let mut data = nephele_render::dataset::load_split(&args.dataset, &args.split, args.downscale)?;
+    let mut data = nephele_train::dataset::load_split(&args.dataset, &args.split, args.downscale)?;
     if args.holdout_every > 1 {
-        data.views = nephele_render::dataset::split_holdout(std::mem::take(&mut data.views), args.holdout_every).1;
+        data.views = nephele_train::dataset::split_holdout(std::mem::take(&mut data.views), args.holdout_every).1;
         anyhow::ensure!(!data.views.is_empty(), "no view left out by --holdout-every {}", args.holdout_every);
     }
     data.views.truncate(args.views.max(1));
@@ -572,7 +572,7 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
 }
 
 /// Milliseconds to render every pixel of `camera`, and the fraction with opacity > 0.5.
-fn time_frame(kernel: &dyn nephele_render::kernel::RayKernel, camera: &Camera) -> Result<(f64, f64)> {
+fn time_frame(kernel: &dyn nephele_kernels::kernel::RayKernel, camera: &Camera) -> Result<(f64, f64)> {
     let pixels = all_pixels(camera);
     let start = Instant::now();
     let (out, _) = kernel.render_pixels(camera, &pixels)?;

@@ -4,8 +4,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, ensure};
 use glam::Vec3;
-use nephele_render::camera::{Camera, quilt_rig};
-use nephele_render::kernel::Bounds;
+use nephele_geometry::camera::{Camera, quilt_rig};
+use nephele_geometry::Bounds;
 use nephele_scheduler::{Action, ObjectId, ObjectInfo, Policy, Scheduler, SchedulerConfig, SessionSpec, Time, WorkerId};
 
 use crate::progress::Progress;

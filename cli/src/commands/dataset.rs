@@ -4,12 +4,12 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use glam::{Mat4, Vec3};
-use nephele_render::camera::Camera;
-use nephele_render::dataset::{self, Frame, Transforms};
-use nephele_render::reference::integrator::Aov;
-use nephele_render::reference::sampling::Rng;
-use nephele_render::reference::{RenderOptions, Renderer};
-use nephele_render::scenes::{BuiltinScene, Framing};
+use nephele_geometry::camera::Camera;
+use nephele_train::dataset::{self, Frame, Transforms};
+use nephele_pathtracer::integrator::Aov;
+use nephele_pathtracer::sampling::Rng;
+use nephele_pathtracer::{RenderOptions, Renderer};
+use nephele_pathtracer::scenes::{BuiltinScene, Framing};
 
 use crate::progress::Progress;
 

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use nephele_render::metrics;
+use nephele_imaging::metrics;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {

@@ -20,10 +20,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use nephele_render::camera::Camera;
-use nephele_render::inolf::kernel::InolfKernel;
-use nephele_render::kernel::{RayKernel, all_pixels, frame_to_image};
-use nephele_render::metrics::psnr_and_ssim;
+use nephele_geometry::camera::Camera;
+use nephele_kernels::inolf::kernel::InolfKernel;
+use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
+use nephele_imaging::metrics::psnr_and_ssim;
 
 use crate::progress::Progress;
 
@@ -270,7 +270,7 @@ fn bake_object(dir: &Path, name: &str, recipe: &Recipe, progress: &Progress) -> 
 /// Mean PSNR (over white) of the asset on the dataset's test views.
 fn score(asset: &Path, dataset: &Path) -> Result<f64> {
     let kernel = InolfKernel::load(asset)?;
-    let data = nephele_render::dataset::load_split(dataset, "test", 1)?;
+    let data = nephele_train::dataset::load_split(dataset, "test", 1)?;
     anyhow::ensure!(!data.views.is_empty(), "the dataset has no test views");
     let mut sum = 0.0;
     for view in &data.views {

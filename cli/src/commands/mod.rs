@@ -69,12 +69,12 @@ pub fn parse_background(text: &str) -> Result<[f32; 3], String> {
 }
 
 /// Loads a built-in scene by name, or a glTF file (path ending in .gltf/.glb).
-pub fn load_scene(name_or_path: &str) -> Result<nephele_render::scenes::BuiltinScene> {
-    use nephele_render::scenes;
+pub fn load_scene(name_or_path: &str) -> Result<nephele_pathtracer::scenes::BuiltinScene> {
+    use nephele_pathtracer::scenes;
     let lower = name_or_path.to_ascii_lowercase();
     if lower.ends_with(".gltf") || lower.ends_with(".glb") {
         let path = std::path::Path::new(name_or_path);
-        let scene = nephele_render::reference::gltf_import::import_gltf(path)
+        let scene = nephele_pathtracer::gltf_import::import_gltf(path)
             .with_context(|| format!("importing {}", path.display()))?;
         return scenes::BuiltinScene::from_imported(scene).context("framing the imported scene");
     }

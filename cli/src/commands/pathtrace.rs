@@ -4,9 +4,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use glam::Vec3;
-use nephele_render::camera::Camera;
-use nephele_render::reference::integrator::Aov;
-use nephele_render::reference::{Background, RenderOptions, RenderOutput, Renderer};
+use nephele_geometry::camera::Camera;
+use nephele_pathtracer::integrator::Aov;
+use nephele_pathtracer::{Background, RenderOptions, RenderOutput, Renderer};
 
 use crate::progress::Progress;
 

@@ -1,16 +1,14 @@
 //! `nephele render`: render every pose of a NeRF-synthetic transforms file with a trained
 //! asset, to RGBA PNG files named like the dataset's, so that `nephele eval` can score them.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
-use nephele_render::camera::Camera;
-use nephele_render::dataset;
-use nephele_render::image::RgbaImage;
-use nephele_render::kernel::{RayKernel, all_pixels, frame_to_image};
-use nephele_render::ngp::{self, NgpKernel};
+use anyhow::{Context, Result};
+use nephele_geometry::camera::Camera;
+use nephele_train::dataset;
+use nephele_imaging::image::RgbaImage;
+use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
 
 use crate::progress::Progress;
 
@@ -38,19 +36,9 @@ pub struct Args {
     limit: Option<usize>,
 }
 
-/// Opens an asset, choosing the kernel by the file's magic bytes.
-pub fn load_kernel(path: &Path) -> Result<Box<dyn RayKernel>> {
-    let mut magic = [0u8; 8];
-    std::fs::File::open(path)
-        .and_then(|mut f| f.read_exact(&mut magic))
-        .with_context(|| format!("reading {}", path.display()))?;
-    if magic == ngp::FILE_MAGIC {
-        return Ok(Box::new(NgpKernel::load(path)?));
-    }
-    if magic == nephele_render::inolf::asset::MAGIC {
-        return Ok(Box::new(nephele_render::inolf::kernel::InolfKernel::load(path)?));
-    }
-    bail!("{} is not a known asset format (first bytes {:?})", path.display(), String::from_utf8_lossy(&magic))
+/// Opens an asset, choosing the kernel by the file's magic bytes (the kernels' registry).
+pub fn load_kernel(path: &Path) -> Result<std::sync::Arc<dyn RayKernel>> {
+    Ok(nephele_kernels::assets::load_by_magic(path, &nephele_kernels::assets::LoadOptions::default())?)
 }
 
 /// The image file a frame names, relative to the transforms file's folder.

@@ -1,7 +1,7 @@
 //! `nephele scenes`: the built-in scenes and what each is for.
 
 use anyhow::Result;
-use nephele_render::scenes;
+use nephele_pathtracer::scenes;
 
 pub fn list() -> Result<()> {
     println!("{:<12} {:>10}  description", "name", "triangles");

@@ -4,12 +4,13 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use nephele_render::camera::Camera;
-use nephele_render::dataset::{self, Dataset};
-use nephele_render::kernel::{RayKernel, all_pixels, frame_to_image};
-use nephele_render::metrics;
-use nephele_render::ngp::{FieldConfig, NgpKernel, TrainConfig, Trainer, save_field};
-use nephele_render::nn::HashGridConfig;
+use nephele_geometry::camera::Camera;
+use nephele_train::dataset::{self, Dataset};
+use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
+use nephele_imaging::metrics;
+use nephele_kernels::ngp::{FieldConfig, NgpKernel, save_field};
+use nephele_train::ngp::{TrainConfig, Trainer};
+use nephele_nn::HashGridConfig;
 
 use crate::progress::Progress;
 
@@ -137,7 +138,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let start = Instant::now();
     let (mut rays, mut samples) = (0u64, 0u64);
     let mut recent = Vec::new();
-    let mut last = nephele_render::ngp::StepStats::default();
+    let mut last = nephele_train::ngp::StepStats::default();
     let mut phases = [0.0f64; 4];
     for step in 0..args.steps {
         let elapsed = start.elapsed().as_secs_f64();

@@ -1,0 +1,136 @@
+//! The one registry of asset formats: which file becomes which kernel.
+//!
+//! The worker (assets named by id, `<id>.<extension>` in its asset folder) and
+//! `nephele render` (a file given on the command line, recognised by its first bytes) both
+//! open assets through [`FORMATS`], so a new kernel family (the GPU backend, NeLF, stereo
+//! GI) is added here once.
+
+use std::io::Read;
+use std::path::Path;
+use std::sync::Arc;
+
+use thiserror::Error;
+
+use crate::inolf::kernel::InolfKernel;
+use crate::kernel::{PathTracedKernel, RayKernel};
+use crate::ngp::NgpKernel;
+
+/// Knobs for kernels whose cost is chosen at load time (path-traced assets).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LoadOptions {
+    /// Samples per pixel of path-traced assets (built-in scenes, glTF).
+    pub pathtrace_spp: u32,
+    /// Bounces of path-traced assets.
+    pub pathtrace_bounces: u32,
+}
+
+impl Default for LoadOptions {
+    fn default() -> LoadOptions {
+        LoadOptions { pathtrace_spp: 4, pathtrace_bounces: 4 }
+    }
+}
+
+/// Why an asset file did not become a kernel.
+#[derive(Debug, Error)]
+pub enum LoadError {
+    #[error("reading {path}: {source}")]
+    Io { path: String, source: std::io::Error },
+    #[error("{path} is not a known asset format (first bytes {magic:?}; known: {known})")]
+    UnknownFormat { path: String, magic: String, known: String },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// One asset format: its file extension, the kernel kind it yields and how to load it.
+#[derive(Debug, Clone, Copy)]
+pub struct AssetFormat {
+    /// File extension, lower case, without the dot.
+    pub extension: &'static str,
+    /// The kernel kind it produces ([`RayKernel::kind`]).
+    pub kernel_kind: &'static str,
+    /// The file's first eight bytes, where the format has a magic number.
+    pub magic: Option<[u8; 8]>,
+    /// Opens a file of this format.
+    pub load: fn(&Path, &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError>,
+}
+
+/// Every format this build can load.
+pub const FORMATS: &[AssetFormat] = &[
+    AssetFormat { extension: "nolf", kernel_kind: "inolf", magic: Some(crate::inolf::asset::MAGIC), load: load_inolf },
+    AssetFormat { extension: "ngp", kernel_kind: "ngp", magic: Some(crate::ngp::FILE_MAGIC), load: load_ngp },
+    AssetFormat { extension: "glb", kernel_kind: "pathtrace", magic: None, load: load_gltf },
+    AssetFormat { extension: "gltf", kernel_kind: "pathtrace", magic: None, load: load_gltf },
+];
+
+fn load_inolf(path: &Path, _: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
+    Ok(Arc::new(InolfKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?))
+}
+
+fn load_ngp(path: &Path, _: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
+    Ok(Arc::new(NgpKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?))
+}
+
+fn load_gltf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
+    let scene = nephele_pathtracer::gltf_import::import_gltf(path).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    path_traced(scene, options)
+}
+
+/// The reference path tracer over `scene` as a kernel.
+pub fn path_traced(scene: nephele_pathtracer::Scene, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
+    let invalid = |e: &dyn std::fmt::Display| LoadError::Invalid(e.to_string());
+    let renderer = nephele_pathtracer::Renderer::new(scene).map_err(|e| invalid(&e))?;
+    let kernel = PathTracedKernel::new(renderer, options.pathtrace_spp, options.pathtrace_bounces).map_err(|e| invalid(&e))?;
+    Ok(Arc::new(kernel))
+}
+
+/// Opens an asset file whose format has a magic number, recognised by its first bytes
+/// whatever its name.
+pub fn load_by_magic(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
+    let mut magic = [0u8; 8];
+    std::fs::File::open(path)
+        .and_then(|mut f| f.read_exact(&mut magic))
+        .map_err(|source| LoadError::Io { path: path.display().to_string(), source })?;
+    match FORMATS.iter().find(|f| f.magic == Some(magic)) {
+        Some(format) => (format.load)(path, options),
+        None => Err(LoadError::UnknownFormat {
+            path: path.display().to_string(),
+            magic: String::from_utf8_lossy(&magic).into_owned(),
+            known: FORMATS.iter().filter(|f| f.magic.is_some()).map(|f| format!(".{}", f.extension)).collect::<Vec<_>>().join(", "),
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn extensions_are_unique_and_magic_numbers_distinct() {
+        for (i, a) in FORMATS.iter().enumerate() {
+            for b in &FORMATS[i + 1..] {
+                assert_ne!(a.extension, b.extension);
+                if a.magic.is_some() {
+                    assert_ne!(a.magic, b.magic);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn unknown_and_short_files_are_clear_errors() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let unknown = dir.path().join("x.bin");
+        std::fs::write(&unknown, b"NOTANASSET").expect("write");
+        let err = load_by_magic(&unknown, &LoadOptions::default()).expect_err("unknown");
+        assert!(matches!(err, LoadError::UnknownFormat { .. }), "{err}");
+        assert!(err.to_string().contains(".nolf"), "{err}");
+        let short = dir.path().join("short.nolf");
+        std::fs::write(&short, b"NO").expect("write");
+        assert!(matches!(load_by_magic(&short, &LoadOptions::default()), Err(LoadError::Io { .. })));
+        let corrupt = dir.path().join("corrupt.ngp");
+        let mut bytes = crate::ngp::FILE_MAGIC.to_vec();
+        bytes.extend_from_slice(b"garbage");
+        std::fs::write(&corrupt, bytes).expect("write");
+        assert!(matches!(load_by_magic(&corrupt, &LoadOptions::default()), Err(LoadError::Invalid(_))));
+    }
+}

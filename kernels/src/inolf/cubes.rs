@@ -1,0 +1,799 @@
+//! Sparse texture cubes (NEPHELE section 4.1): a coarse index grid over the object's box
+//! pointing into a table of small dense cubes, stored only where the scene has matter.
+//!
+//! * [`SparseCubes`] is the container shared by the density cubes and the diffuse cubes:
+//!   `dims` coarse cells of side `cell`, each either empty or the index of a cube of
+//!   `cube_res^3` samples of `channels` bytes. Samples sit on the cell's *vertices*
+//!   (`cube_res` per side, faces shared with the neighbours), so trilinear interpolation
+//!   never leaves the cube and is continuous across cubes.
+//! * [`DensityCubes`] holds one channel, the opacity of one sample step quantised to 8 bits
+//!   (`q = 255 (1 - exp(-sigma * step))`, decoded through a 256-entry table): a quarter of
+//!   f32 storage, and densities too thin to show at 8 bits vanish, which is what lets whole
+//!   cubes be dropped.
+//!
+//! [`DensityCubes::march`] walks the coarse grid with a 3D DDA (Amanatides and Woo), so an
+//! empty cell costs a few comparisons, samples occupied cells at a fixed step and returns
+//! the sample of largest blending weight `w_i = T_i alpha_i` (the hit point, NEPHELE
+//! section 4.1) and the accumulated weight `sum w_i = 1 - T` (the coarse opacity, eq. 4).
+
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use glam::Vec3;
+use rayon::prelude::*;
+use thiserror::Error;
+
+use nephele_geometry::Bounds;
+
+/// Index-grid entry of a cell without a cube.
+pub const EMPTY_CELL: u32 = u32::MAX;
+/// Largest coarse grid side.
+pub const MAX_GRID_SIDE: u32 = 1024;
+/// Largest number of coarse cells.
+pub const MAX_CELLS: u64 = 1 << 27;
+/// Largest cube side in samples.
+pub const MAX_CUBE_RES: u32 = 32;
+/// Largest number of bytes per sample.
+pub const MAX_CHANNELS: u32 = 16;
+
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum CubeError {
+    #[error("bad cube options: {0}")]
+    BadOptions(String),
+    #[error("bad scene box: {0}")]
+    BadBounds(String),
+    #[error("inconsistent cube tables: {0}")]
+    Inconsistent(String),
+}
+
+/// A coarse grid of small dense cubes of 8-bit samples.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SparseCubes {
+    min: Vec3,
+    cell: f32,
+    dims: [u32; 3],
+    cube_res: u32,
+    channels: u32,
+    /// One entry per coarse cell, `x + dims.x (y + dims.y z)`: a cube index or [`EMPTY_CELL`].
+    index: Vec<u32>,
+    /// Cubes one after another; inside a cube, samples `x + c (y + c z)`, channels fastest.
+    data: Vec<u8>,
+}
+
+/// Sizes of a cube table against a dense grid of the same resolution.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CubeFootprint {
+    pub cells: u64,
+    pub occupied_cells: u64,
+    /// Bytes of the index grid plus the cube table.
+    pub bytes: u64,
+    /// Bytes of a dense grid of samples at the same resolution and channel count.
+    pub dense_bytes: u64,
+}
+
+impl SparseCubes {
+    /// Checks and assembles stored parts.
+    pub fn from_parts(
+        min: Vec3,
+        cell: f32,
+        dims: [u32; 3],
+        cube_res: u32,
+        channels: u32,
+        index: Vec<u32>,
+        data: Vec<u8>,
+    ) -> Result<SparseCubes, CubeError> {
+        let bad = |s: String| Err(CubeError::Inconsistent(s));
+        if !(min.is_finite() && cell.is_finite() && cell > 0.0) {
+            return bad(format!("origin {min} / cell size {cell} not finite and positive"));
+        }
+        if dims.iter().any(|&d| d == 0 || d > MAX_GRID_SIDE) {
+            return bad(format!("grid {dims:?} outside 1..={MAX_GRID_SIDE}"));
+        }
+        if !(2..=MAX_CUBE_RES).contains(&cube_res) || !(1..=MAX_CHANNELS).contains(&channels) {
+            return bad(format!("cube side {cube_res} or {channels} channels out of range"));
+        }
+        let cells = dims.iter().map(|&d| d as u64).product::<u64>();
+        if cells > MAX_CELLS || index.len() as u64 != cells {
+            return bad(format!("{} index entries for {cells} cells", index.len()));
+        }
+        let cube_bytes = u64::from(cube_res).pow(3) * u64::from(channels);
+        if !(data.len() as u64).is_multiple_of(cube_bytes) {
+            return bad(format!("{} data bytes is not a whole number of cubes", data.len()));
+        }
+        let count = data.len() as u64 / cube_bytes;
+        let mut used = vec![false; count as usize];
+        for &e in &index {
+            if e == EMPTY_CELL {
+                continue;
+            }
+            match used.get_mut(e as usize) {
+                Some(u) if !*u => *u = true,
+                Some(_) => return bad(format!("cube {e} referenced twice")),
+                None => return bad(format!("cube {e} out of {count}")),
+            }
+        }
+        if used.iter().any(|&u| !u) {
+            return bad("a cube is referenced by no cell".into());
+        }
+        if !(min + cell * Vec3::new(dims[0] as f32, dims[1] as f32, dims[2] as f32)).is_finite() {
+            return bad("grid extent overflows".into());
+        }
+        Ok(SparseCubes { min, cell, dims, cube_res, channels, index, data })
+    }
+
+    pub fn min(&self) -> Vec3 {
+        self.min
+    }
+    pub fn cell(&self) -> f32 {
+        self.cell
+    }
+    pub fn dims(&self) -> [u32; 3] {
+        self.dims
+    }
+    pub fn cube_res(&self) -> u32 {
+        self.cube_res
+    }
+    pub fn channels(&self) -> u32 {
+        self.channels
+    }
+    pub fn index(&self) -> &[u32] {
+        &self.index
+    }
+    pub fn data(&self) -> &[u8] {
+        &self.data
+    }
+    /// Distance between samples, `cell / (cube_res - 1)`.
+    pub fn sample_step(&self) -> f32 {
+        self.cell / (self.cube_res - 1) as f32
+    }
+    pub fn max(&self) -> Vec3 {
+        self.min + self.cell * Vec3::new(self.dims[0] as f32, self.dims[1] as f32, self.dims[2] as f32)
+    }
+    pub fn cube_count(&self) -> usize {
+        self.data.len() / self.cube_len()
+    }
+    fn cube_len(&self) -> usize {
+        (self.cube_res as usize).pow(3) * self.channels as usize
+    }
+
+    pub fn footprint(&self) -> CubeFootprint {
+        let cells = self.index.len() as u64;
+        let side = |d: u32| u64::from(d) * u64::from(self.cube_res - 1) + 1;
+        CubeFootprint {
+            cells,
+            occupied_cells: self.cube_count() as u64,
+            bytes: cells * 4 + self.data.len() as u64,
+            dense_bytes: side(self.dims[0]) * side(self.dims[1]) * side(self.dims[2]) * u64::from(self.channels),
+        }
+    }
+
+    /// Coarse cell holding `p` (points on the far faces belong to the last cell).
+    #[inline]
+    pub fn cell_of(&self, p: Vec3) -> Option<[u32; 3]> {
+        let f = (p - self.min) / self.cell;
+        let d = self.dims;
+        if !(f.x >= 0.0 && f.y >= 0.0 && f.z >= 0.0) || f.x > d[0] as f32 || f.y > d[1] as f32 || f.z > d[2] as f32 {
+            return None;
+        }
+        Some([(f.x as u32).min(d[0] - 1), (f.y as u32).min(d[1] - 1), (f.z as u32).min(d[2] - 1)])
+    }
+
+    #[inline]
+    fn cell_index(&self, c: [u32; 3]) -> usize {
+        c[0] as usize + self.dims[0] as usize * (c[1] as usize + self.dims[1] as usize * c[2] as usize)
+    }
+
+    /// Cube of a cell, if stored.
+    #[inline]
+    pub fn cube_at(&self, c: [u32; 3]) -> Option<u32> {
+        let e = self.index[self.cell_index(c)];
+        (e != EMPTY_CELL).then_some(e)
+    }
+
+    /// Corner sample offsets and trilinear weights of `p` inside cube `cube` of cell `c`.
+    #[inline]
+    fn corners(&self, cube: u32, c: [u32; 3], p: Vec3) -> ([usize; 8], [f32; 8]) {
+        let res = self.cube_res as usize;
+        let top = (self.cube_res - 1) as f32;
+        let cell_min = self.min + self.cell * Vec3::new(c[0] as f32, c[1] as f32, c[2] as f32);
+        let f = ((p - cell_min) / self.sample_step()).clamp(Vec3::ZERO, Vec3::splat(top));
+        // `f` is clamped to >= 0 (NaN clamps to 0 too), so truncation is floor: a cast, not a
+        // libm `floorf` call per axis (without SSE4.1 `floor` is not one instruction, and
+        // this runs for every marching sample).
+        let last = res.saturating_sub(2);
+        let (ix, iy, iz) = ((f.x as usize).min(last), (f.y as usize).min(last), (f.z as usize).min(last));
+        let w = f - Vec3::new(ix as f32, iy as f32, iz as f32);
+        let base = cube as usize * res * res * res;
+        let mut offs = [0usize; 8];
+        let mut ws = [0f32; 8];
+        for k in 0..8 {
+            let (dx, dy, dz) = (k & 1, (k >> 1) & 1, k >> 2);
+            offs[k] = (base + (ix + dx) + res * ((iy + dy) + res * (iz + dz))) * self.channels as usize;
+            ws[k] = (if dx == 1 { w.x } else { 1.0 - w.x }) * (if dy == 1 { w.y } else { 1.0 - w.y }) * (if dz == 1 { w.z } else { 1.0 - w.z });
+        }
+        (offs, ws)
+    }
+
+    /// Trilinear interpolation of the raw samples (`byte / 255`) at `p`, into `out`
+    /// (`channels` values). Returns `false` (and zeros) where no cube covers `p`.
+    pub fn sample(&self, p: Vec3, out: &mut [f32]) -> bool {
+        out.iter_mut().for_each(|v| *v = 0.0);
+        let Some(c) = self.cell_of(p) else { return false };
+        let Some(cube) = self.cube_at(c) else { return false };
+        let (offs, ws) = self.corners(cube, c, p);
+        for (o, w) in offs.iter().zip(ws) {
+            for (ch, v) in out.iter_mut().enumerate().take(self.channels as usize) {
+                *v += w * f32::from(self.data[o + ch]) / 255.0;
+            }
+        }
+        true
+    }
+}
+
+/// How to build density cubes from a density function.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CubeOptions {
+    /// Coarse cells along the longest side of the box (NEPHELE uses 128).
+    pub resolution: u32,
+    /// Samples per cube side (vertex-centred, so `cube_res - 1` sample steps per cell).
+    pub cube_res: u32,
+    /// Probe samples per cell side when deciding which cells hold matter.
+    pub probe: u32,
+    /// Cells of margin added around the cells found occupied (catches matter that the
+    /// probe lattice stepped over).
+    pub dilate: u32,
+}
+
+impl Default for CubeOptions {
+    fn default() -> Self {
+        CubeOptions { resolution: 64, cube_res: 8, probe: 4, dilate: 1 }
+    }
+}
+
+/// Progress of a build, reported per batch of cells.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BuildProgress {
+    pub phase: &'static str,
+    pub done: u64,
+    pub total: u64,
+}
+
+/// Density texture cubes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DensityCubes {
+    cubes: SparseCubes,
+    /// `sigma` of each 8-bit code.
+    lut: [f32; 256],
+}
+
+/// Result of marching one ray.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct MarchHit {
+    /// Accumulated blending weight `1 - T`, in `[0, 1]` (the coarse opacity).
+    pub opacity: f32,
+    /// Distance along the (unit) direction of the sample of largest weight; 0 if none.
+    pub t: f32,
+    /// That largest weight.
+    pub max_weight: f32,
+    /// Density samples taken.
+    pub samples: u32,
+    /// Coarse cells visited (empty or not).
+    pub cells: u32,
+}
+
+/// Transmittance below which marching stops.
+pub const MIN_TRANSMITTANCE: f32 = 1e-3;
+
+fn quantise(sigma: f32, step: f32) -> u8 {
+    let alpha = 1.0 - (-sigma.max(0.0) * step).exp();
+    if alpha.is_nan() { 0 } else { (alpha * 255.0).round().clamp(0.0, 255.0) as u8 }
+}
+
+fn decode_table(step: f32) -> [f32; 256] {
+    let mut lut = [0f32; 256];
+    for (q, v) in lut.iter_mut().enumerate() {
+        // Code 255 stands for "opaque": alpha 1 - 0.5/255 per step.
+        let alpha = if q == 255 { 1.0 - 0.5 / 255.0 } else { q as f32 / 255.0 };
+        *v = -(1.0 - alpha).ln() / step;
+    }
+    lut
+}
+
+impl DensityCubes {
+    /// Wraps a one-channel [`SparseCubes`] holding quantised opacities.
+    pub fn from_cubes(cubes: SparseCubes) -> Result<DensityCubes, CubeError> {
+        if cubes.channels != 1 {
+            return Err(CubeError::Inconsistent(format!("density cubes have {} channels", cubes.channels)));
+        }
+        let lut = decode_table(cubes.sample_step());
+        Ok(DensityCubes { cubes, lut })
+    }
+
+    pub fn cubes(&self) -> &SparseCubes {
+        &self.cubes
+    }
+
+    pub fn bounds(&self) -> Bounds {
+        Bounds { min: self.cubes.min, max: self.cubes.max() }
+    }
+
+    /// Builds the cubes of `bounds` from a batched density function (`sigma` per point, per
+    /// unit length): probes every cell on a `probe^3` lattice, keeps the cells where some
+    /// probe is visible at 8 bits (plus `dilate` cells of margin), samples their cubes and
+    /// drops cubes that quantise to all zeros.
+    pub fn build<F>(
+        bounds: Bounds,
+        options: &CubeOptions,
+        density: F,
+        progress: &(dyn Fn(BuildProgress) + Sync),
+    ) -> Result<DensityCubes, CubeError>
+    where
+        F: Fn(&[Vec3], &mut [f32]) + Sync,
+    {
+        let o = options;
+        if !(1..=MAX_GRID_SIDE).contains(&o.resolution) || !(2..=MAX_CUBE_RES).contains(&o.cube_res) || !(1..=16).contains(&o.probe) || o.dilate > 8 {
+            return Err(CubeError::BadOptions(format!("{o:?}")));
+        }
+        let size = bounds.size();
+        if !(bounds.min.is_finite() && size.is_finite() && size.min_element() >= 0.0 && size.max_element() > 0.0) {
+            return Err(CubeError::BadBounds(format!("{bounds:?}")));
+        }
+        let cell = size.max_element() / o.resolution as f32;
+        let dims = [0, 1, 2].map(|a| ((size[a] / cell).ceil() as u32).clamp(1, o.resolution));
+        let (nx, ny, nz) = (dims[0] as usize, dims[1] as usize, dims[2] as usize);
+        let cells = nx * ny * nz;
+        let step = cell / (o.cube_res - 1) as f32;
+        let lut = decode_table(step);
+        let cell_min = |c: usize| bounds.min + cell * Vec3::new((c % nx) as f32, ((c / nx) % ny) as f32, (c / (nx * ny)) as f32);
+
+        // Phase 1: which cells hold matter visible at 8 bits.
+        let done = AtomicU64::new(0);
+        let total = cells as u64;
+        let probe = o.probe as usize;
+        let occupied: Vec<bool> = (0..cells)
+            .into_par_iter()
+            .map_init(
+                || (Vec::new(), Vec::new()),
+                |(points, values): &mut (Vec<Vec3>, Vec<f32>), c| {
+                    let base = cell_min(c);
+                    points.clear();
+                    for k in 0..=probe {
+                        for j in 0..=probe {
+                            for i in 0..=probe {
+                                points.push(base + cell / probe as f32 * Vec3::new(i as f32, j as f32, k as f32));
+                            }
+                        }
+                    }
+                    values.resize(points.len(), 0.0);
+                    density(points, values);
+                    let n = done.fetch_add(1, Ordering::Relaxed) + 1;
+                    if n.is_multiple_of(4096) || n == total {
+                        progress(BuildProgress { phase: "probe", done: n, total });
+                    }
+                    values.iter().any(|&s| quantise(s, step) > 0)
+                },
+            )
+            .collect();
+        let occupied = dilate(&occupied, dims, o.dilate);
+
+        // Phase 2: sample the cubes of the occupied cells.
+        let todo: Vec<usize> = (0..cells).filter(|&c| occupied[c]).collect();
+        let res = o.cube_res as usize;
+        let done = AtomicU64::new(0);
+        let total = todo.len() as u64;
+        let cubes: Vec<Option<Vec<u8>>> = todo
+            .par_iter()
+            .map_init(
+                || (Vec::new(), Vec::new()),
+                |(points, values): &mut (Vec<Vec3>, Vec<f32>), &c| {
+                    // Global vertex coordinates, so shared faces get bit-identical positions.
+                    let g = [(c % nx) * (res - 1), ((c / nx) % ny) * (res - 1), (c / (nx * ny)) * (res - 1)];
+                    points.clear();
+                    for k in 0..res {
+                        for j in 0..res {
+                            for i in 0..res {
+                                let v = Vec3::new((g[0] + i) as f32, (g[1] + j) as f32, (g[2] + k) as f32);
+                                points.push(bounds.min + v * step);
+                            }
+                        }
+                    }
+                    values.resize(points.len(), 0.0);
+                    density(points, values);
+                    let n = done.fetch_add(1, Ordering::Relaxed) + 1;
+                    if n.is_multiple_of(1024) || n == total {
+                        progress(BuildProgress { phase: "cubes", done: n, total });
+                    }
+                    let q: Vec<u8> = values.iter().map(|&s| quantise(s, step)).collect();
+                    q.iter().any(|&b| b > 0).then_some(q)
+                },
+            )
+            .collect();
+        let mut index = vec![EMPTY_CELL; cells];
+        let mut data = Vec::new();
+        let mut count = 0u32;
+        for (&c, cube) in todo.iter().zip(cubes) {
+            if let Some(q) = cube {
+                index[c] = count;
+                count += 1;
+                data.extend_from_slice(&q);
+            }
+        }
+        let cubes = SparseCubes { min: bounds.min, cell, dims, cube_res: o.cube_res, channels: 1, index, data };
+        Ok(DensityCubes { cubes, lut })
+    }
+
+    /// Interpolated density (`sigma`) at `p`; 0 outside the cubes.
+    pub fn density(&self, p: Vec3) -> f32 {
+        let Some(c) = self.cubes.cell_of(p) else { return 0.0 };
+        let Some(cube) = self.cubes.cube_at(c) else { return 0.0 };
+        self.density_in(cube, c, p)
+    }
+
+    #[inline]
+    fn density_in(&self, cube: u32, c: [u32; 3], p: Vec3) -> f32 {
+        let (offs, ws) = self.cubes.corners(cube, c, p);
+        let d = &self.cubes.data;
+        let mut s = 0.0;
+        for k in 0..8 {
+            s += ws[k] * self.lut[d[offs[k]] as usize];
+        }
+        s
+    }
+
+    /// Marches the ray `origin + t dir` (`dir` of unit length) over `[t_near, t_far]`
+    /// through the occupied cells. Non-finite input gives an empty hit.
+    pub fn march(&self, origin: Vec3, dir: Vec3, t_near: f32, t_far: f32) -> MarchHit {
+        let mut hit = MarchHit::default();
+        if !(origin.is_finite() && dir.is_finite() && t_near.is_finite() && !t_far.is_nan()) || dir == Vec3::ZERO {
+            return hit;
+        }
+        let cubes = &self.cubes;
+        let (lo, hi) = (cubes.min, cubes.max());
+        // Slab test; a zero direction component restricts nothing if the origin is inside
+        // that slab and misses otherwise (no 0 * inf).
+        let (mut t0, mut t1) = (t_near.max(0.0), t_far);
+        for a in 0..3 {
+            if dir[a] == 0.0 {
+                if origin[a] < lo[a] || origin[a] > hi[a] {
+                    return hit;
+                }
+            } else {
+                let inv = 1.0 / dir[a];
+                let (ta, tb) = ((lo[a] - origin[a]) * inv, (hi[a] - origin[a]) * inv);
+                t0 = t0.max(ta.min(tb));
+                t1 = t1.min(ta.max(tb));
+            }
+        }
+        // Also a miss when either bound is NaN.
+        if t0.partial_cmp(&t1) != Some(std::cmp::Ordering::Less) {
+            return hit;
+        }
+        let step = cubes.sample_step();
+        let d = cubes.dims;
+        // DDA set-up from the entry point.
+        let entry = origin + dir * t0;
+        let f = (entry - lo) / cubes.cell;
+        let mut c = [0i64; 3];
+        let mut t_next = [f32::INFINITY; 3];
+        let mut t_delta = [f32::INFINITY; 3];
+        let mut stepdir = [0i64; 3];
+        for a in 0..3 {
+            c[a] = (f[a].floor() as i64).clamp(0, i64::from(d[a]) - 1);
+            if dir[a] > 0.0 {
+                stepdir[a] = 1;
+                t_next[a] = (lo[a] + (c[a] + 1) as f32 * cubes.cell - origin[a]) / dir[a];
+                t_delta[a] = cubes.cell / dir[a];
+            } else if dir[a] < 0.0 {
+                stepdir[a] = -1;
+                t_next[a] = (lo[a] + c[a] as f32 * cubes.cell - origin[a]) / dir[a];
+                t_delta[a] = -cubes.cell / dir[a];
+            }
+        }
+        let mut transmittance = 1.0f32;
+        let mut t_cur = t0;
+        // Samples sit at t0 + (k + 1/2) step, whatever cell they fall in.
+        let mut k = 0u64;
+        let max_cells = (d[0] + d[1] + d[2]) as usize + 3;
+        for _ in 0..max_cells {
+            let axis = if t_next[0] <= t_next[1] && t_next[0] <= t_next[2] {
+                0
+            } else if t_next[1] <= t_next[2] {
+                1
+            } else {
+                2
+            };
+            let t_exit = t_next[axis].min(t1);
+            hit.cells += 1;
+            let cell = [c[0] as u32, c[1] as u32, c[2] as u32];
+            if let Some(cube) = cubes.cube_at(cell) {
+                // First sample index at or after t_cur.
+                let first = ((t_cur - t0) / step - 0.5).ceil().max(0.0) as u64;
+                k = k.max(first);
+                loop {
+                    let t = t0 + (k as f32 + 0.5) * step;
+                    if t >= t_exit {
+                        break;
+                    }
+                    k += 1;
+                    let sigma = self.density_in(cube, cell, origin + dir * t);
+                    hit.samples += 1;
+                    if sigma <= 0.0 {
+                        continue;
+                    }
+                    let alpha = 1.0 - (-sigma * step).exp();
+                    let w = transmittance * alpha;
+                    if w > hit.max_weight {
+                        hit.max_weight = w;
+                        hit.t = t;
+                    }
+                    transmittance *= 1.0 - alpha;
+                    if transmittance < MIN_TRANSMITTANCE {
+                        hit.opacity = (1.0 - transmittance).clamp(0.0, 1.0);
+                        return hit;
+                    }
+                }
+            }
+            if t_exit >= t1 {
+                break;
+            }
+            t_cur = t_exit;
+            c[axis] += stepdir[axis];
+            if c[axis] < 0 || c[axis] >= i64::from(d[axis]) {
+                break;
+            }
+            t_next[axis] += t_delta[axis];
+        }
+        hit.opacity = (1.0 - transmittance).clamp(0.0, 1.0);
+        hit
+    }
+}
+
+/// Marks every cell within `r` cells (Chebyshev distance) of a marked cell.
+pub fn dilate(marks: &[bool], dims: [u32; 3], r: u32) -> Vec<bool> {
+    let mut cur = marks.to_vec();
+    let (nx, ny, nz) = (dims[0] as usize, dims[1] as usize, dims[2] as usize);
+    let r = r as usize;
+    if r == 0 {
+        return cur;
+    }
+    // Separable max filter, one axis at a time.
+    for (axis, n, stride) in [(0, nx, 1), (1, ny, nx), (2, nz, nx * ny)] {
+        let _ = axis;
+        let src = cur.clone();
+        for (i, v) in cur.iter_mut().enumerate() {
+            if *v {
+                continue;
+            }
+            let pos = (i / stride) % n;
+            let lo = pos.saturating_sub(r);
+            let hi = (pos + r).min(n - 1);
+            *v = (lo..=hi).any(|p| src[i - pos * stride + p * stride]);
+        }
+    }
+    cur
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    const CENTER: Vec3 = Vec3::new(0.1, -0.05, 0.02);
+    const RADIUS: f32 = 0.5;
+
+    fn sphere_density(points: &[Vec3], out: &mut [f32]) {
+        for (p, o) in points.iter().zip(out) {
+            *o = if p.distance(CENTER) < RADIUS { 400.0 } else { 0.0 };
+        }
+    }
+
+    fn box_density(points: &[Vec3], out: &mut [f32]) {
+        for (p, o) in points.iter().zip(out) {
+            *o = if p.abs().cmplt(Vec3::splat(0.5)).all() { 400.0 } else { 0.0 };
+        }
+    }
+
+    fn unit_box() -> Bounds {
+        Bounds { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) }
+    }
+
+    fn build(density: fn(&[Vec3], &mut [f32])) -> DensityCubes {
+        let options = CubeOptions { resolution: 16, cube_res: 8, probe: 2, dilate: 1 };
+        DensityCubes::build(unit_box(), &options, density, &|_| {}).expect("build")
+    }
+
+    fn sphere_cubes() -> &'static DensityCubes {
+        static CUBES: std::sync::OnceLock<DensityCubes> = std::sync::OnceLock::new();
+        CUBES.get_or_init(|| build(sphere_density))
+    }
+
+    fn box_cubes() -> &'static DensityCubes {
+        static CUBES: std::sync::OnceLock<DensityCubes> = std::sync::OnceLock::new();
+        CUBES.get_or_init(|| build(box_density))
+    }
+
+    /// Entry distance of a ray into the analytic sphere (0 if starting inside), the length
+    /// of its path inside, and the ray's closest approach to the centre.
+    fn sphere_hit(o: Vec3, d: Vec3) -> (Option<(f32, f32)>, f32) {
+        let oc = o - CENTER;
+        let b = oc.dot(d);
+        let closest = (oc - d * b).length();
+        let disc = b * b - (oc.length_squared() - RADIUS * RADIUS);
+        if disc < 0.0 {
+            return (None, closest);
+        }
+        let (enter, exit) = (-b - disc.sqrt(), -b + disc.sqrt());
+        if exit <= 0.0 {
+            return (None, closest);
+        }
+        (Some((enter.max(0.0), exit - enter.max(0.0))), closest)
+    }
+
+    fn check_sane(h: &MarchHit) {
+        assert!(h.opacity.is_finite() && (0.0..=1.0).contains(&h.opacity), "{h:?}");
+        assert!(h.t.is_finite() && h.t >= 0.0, "{h:?}");
+        assert!(h.max_weight.is_finite() && h.max_weight <= h.opacity + 1e-6, "{h:?}");
+        if h.opacity > 0.0 {
+            assert!(h.t > 0.0, "{h:?}");
+        }
+    }
+
+    #[test]
+    fn only_matter_is_stored() {
+        let cubes = sphere_cubes();
+        let fp = cubes.cubes().footprint();
+        assert_eq!(fp.cells, 16 * 16 * 16);
+        // The sphere (radius 4 cells) touches about (4/3) pi 5^3 ~ 520 cells.
+        assert!(fp.occupied_cells > 200 && fp.occupied_cells < 800, "{fp:?}");
+        assert!(fp.bytes < fp.dense_bytes, "{fp:?}");
+        assert!(cubes.density(CENTER) > 100.0);
+        assert_eq!(cubes.density(Vec3::new(0.9, 0.9, 0.9)), 0.0);
+        // Corner cells are empty.
+        assert_eq!(cubes.cubes().cube_at([0, 0, 0]), None);
+    }
+
+    #[test]
+    fn axis_rays_hit_the_sphere_where_expected() {
+        let cubes = sphere_cubes();
+        for a in 0..3 {
+            for sign in [-1.0f32, 1.0] {
+                let mut d = Vec3::ZERO;
+                d[a] = sign;
+                let o = CENTER - d * 3.0;
+                let h = cubes.march(o, d, 0.0, f32::INFINITY);
+                check_sane(&h);
+                assert!(h.opacity > 0.99, "{h:?}");
+                assert!((h.t - (3.0 - RADIUS)).abs() < cubes.cubes().sample_step() * 1.5, "{h:?}");
+                // Marching skipped most samples: only cells with matter are sampled.
+                assert!(h.samples < 40, "{h:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn missing_rays_cost_nothing_and_see_nothing() {
+        let cubes = sphere_cubes();
+        // Misses the box entirely.
+        let h = cubes.march(Vec3::new(5.0, 5.0, 5.0), Vec3::X, 0.0, f32::INFINITY);
+        assert_eq!((h.opacity, h.samples, h.cells), (0.0, 0, 0));
+        // Crosses the box through empty cells only.
+        let h = cubes.march(Vec3::new(-3.0, 0.9, 0.9), Vec3::X, 0.0, f32::INFINITY);
+        assert_eq!((h.opacity, h.samples), (0.0, 0));
+        assert!(h.cells > 0);
+        // Degenerate input.
+        assert_eq!(cubes.march(Vec3::NAN, Vec3::X, 0.0, 1.0), MarchHit::default());
+        assert_eq!(cubes.march(Vec3::ZERO, Vec3::ZERO, 0.0, 1.0), MarchHit::default());
+    }
+
+    #[test]
+    fn camera_inside_the_object_sees_it_at_once() {
+        let cubes = sphere_cubes();
+        let h = cubes.march(CENTER, Vec3::new(0.3, -0.5, 0.8).normalize(), 0.01, f32::INFINITY);
+        check_sane(&h);
+        assert!(h.opacity > 0.99 && h.t < 0.05, "{h:?}");
+    }
+
+    #[test]
+    fn bad_options_are_errors() {
+        let bad = CubeOptions { cube_res: 1, ..CubeOptions::default() };
+        assert!(DensityCubes::build(unit_box(), &bad, sphere_density, &|_| {}).is_err());
+        let flat = Bounds { min: Vec3::ZERO, max: Vec3::ZERO };
+        assert!(DensityCubes::build(flat, &CubeOptions::default(), sphere_density, &|_| {}).is_err());
+        let nan = Bounds { min: Vec3::NAN, max: Vec3::ONE };
+        assert!(DensityCubes::build(nan, &CubeOptions::default(), sphere_density, &|_| {}).is_err());
+    }
+
+    #[test]
+    fn from_parts_round_trips_and_rejects_garbage() {
+        let c = sphere_cubes().cubes();
+        let again = SparseCubes::from_parts(c.min(), c.cell(), c.dims(), c.cube_res(), 1, c.index().to_vec(), c.data().to_vec());
+        assert_eq!(again.as_ref(), Ok(c));
+        let mut index = c.index().to_vec();
+        let first = index.iter().position(|&e| e != EMPTY_CELL).expect("a cube");
+        index[first] = c.cube_count() as u32;
+        assert!(SparseCubes::from_parts(c.min(), c.cell(), c.dims(), c.cube_res(), 1, index, c.data().to_vec()).is_err());
+        let mut data = c.data().to_vec();
+        data.pop();
+        assert!(SparseCubes::from_parts(c.min(), c.cell(), c.dims(), c.cube_res(), 1, c.index().to_vec(), data).is_err());
+    }
+
+    /// A ray origin: anywhere (often inside the box or the sphere), or on a cell boundary
+    /// (grazing faces, edges and corners).
+    fn origin() -> impl Strategy<Value = Vec3> {
+        prop_oneof![
+            (-3.0f32..3.0, -3.0f32..3.0, -3.0f32..3.0).prop_map(|(x, y, z)| Vec3::new(x, y, z)),
+            (-8i32..=8, -8i32..=8, -8i32..=8).prop_map(|(x, y, z)| Vec3::new(x as f32, y as f32, z as f32) / 8.0),
+            (-8i32..=8, -8i32..=8, -3.0f32..3.0).prop_map(|(x, y, z)| Vec3::new(x as f32 / 8.0, y as f32 / 8.0, z)),
+        ]
+    }
+
+    /// A unit direction, often with zero components (axis-parallel rays).
+    fn direction() -> impl Strategy<Value = Vec3> {
+        ((-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0), 0u8..8, any::<bool>()).prop_filter_map("zero", |((x, y, z), mask, keep)| {
+            let mut d = Vec3::new(x, y, z);
+            if !keep {
+                for a in 0..3 {
+                    if mask & (1 << a) != 0 {
+                        d[a] = 0.0;
+                    }
+                }
+            }
+            (d.length() > 1e-3).then(|| d.normalize())
+        })
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(600))]
+
+        #[test]
+        fn sphere_rays_are_sane_and_hit_where_the_sphere_is(o in origin(), d in direction(), near in 0.0f32..0.2) {
+            let cubes = sphere_cubes();
+            let h = cubes.march(o, d, near, f32::INFINITY);
+            check_sane(&h);
+            let cell = cubes.cubes().cell();
+            let step = cubes.cubes().sample_step();
+            let start = o + d * near;
+            let (analytic, closest) = sphere_hit(start, d);
+            if closest > RADIUS + 2.0 * step {
+                prop_assert_eq!(h.opacity, 0.0);
+            }
+            if let Some((t, inside)) = analytic && inside > 2.0 * cell {
+                prop_assert!(h.opacity > 0.9, "{:?} analytic {}", h, t);
+                // Within one cube cell of the analytic hit.
+                prop_assert!((h.t - near - t).abs() <= cell, "{:?} analytic {}", h, t + near);
+            }
+        }
+
+        #[test]
+        fn box_rays_are_sane_and_hit_where_the_box_is(o in origin(), d in direction()) {
+            let cubes = box_cubes();
+            let h = cubes.march(o, d, 0.0, f32::INFINITY);
+            check_sane(&h);
+            // Analytic slab test against the box [-0.5, 0.5]^3.
+            let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+            let mut inside_slabs = true;
+            for a in 0..3 {
+                if d[a] == 0.0 {
+                    inside_slabs &= o[a].abs() < 0.5 - 0.2;
+                } else {
+                    let (ta, tb) = ((-0.5 - o[a]) / d[a], (0.5 - o[a]) / d[a]);
+                    t0 = t0.max(ta.min(tb));
+                    t1 = t1.min(ta.max(tb));
+                }
+            }
+            let cell = cubes.cubes().cell();
+            if inside_slabs && t1 - t0 > 2.0 * cell {
+                prop_assert!(h.opacity > 0.9, "{:?} analytic {}", h, t0);
+                prop_assert!((h.t - t0).abs() <= cell, "{:?} analytic {}", h, t0);
+            }
+        }
+
+        #[test]
+        fn bounded_interval_is_respected(o in origin(), d in direction(), far in 0.0f32..4.0) {
+            let h = sphere_cubes().march(o, d, 0.0, far);
+            check_sane(&h);
+            if h.opacity > 0.0 {
+                prop_assert!(h.t <= far);
+            }
+        }
+    }
+}

@@ -1,0 +1,297 @@
+//! The i-NOLF CPU kernel: one small-network query per ray that hits.
+//!
+//! Per batch of pixels (rayon, 1024 pixels per task): generate the rays, march them through
+//! the density cubes (a ray that misses every occupied cell costs a slab test and a few DDA
+//! steps, and nothing else), compact the hitting rays, look their diffuse colour and tint up
+//! in the diffuse cubes (or run the diffuse network), build the specular MLP's input rows
+//! (PSH features, SH of the direction, coarse opacity) in one contiguous batch and run the
+//! specular MLP once over it, then combine (eq. 7).
+//!
+//! For the ablation of NEPHELE table 5 the hit point can instead come from marching the
+//! radiance field's density network ([`InolfKernel::use_density_network`], "i-NOLF base"):
+//! same heads, many network queries per ray.
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use super::asset::Asset;
+use super::heads::{decode_diffuse, load_heads};
+use super::cubes::{DensityCubes, SparseCubes};
+use super::encoding::PshEncoding;
+use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT, combine, specular_activation};
+use nephele_geometry::camera::Camera;
+use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
+use crate::ngp::{FieldScratch, RadianceField};
+use nephele_nn::{HashGrid, Mlp, MlpWorkspace, sh_coefficient_count, sh_encode};
+
+/// Rays whose coarse opacity is below this are treated as misses (kernel and training).
+pub const HIT_OPACITY: f32 = 1e-3;
+/// Near distance of camera rays.
+pub const RAY_NEAR: f32 = 1e-3;
+
+/// Where the diffuse colour and tint come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DiffuseSource {
+    /// Baked diffuse texture cubes (the default when present).
+    Cubes,
+    /// The hash grid and diffuse MLP (one more network query per ray).
+    Network,
+}
+
+/// Where the hit point and the coarse opacity come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HitSource {
+    /// Marching the baked density texture cubes (the kernel the farm runs).
+    DensityCubes,
+    /// Marching the radiance field's density network ("i-NOLF base" in table 5).
+    DensityNetwork,
+}
+
+/// Bytes of each part an i-NOLF kernel holds in memory (0 for a part it does not have).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct KernelMemory {
+    pub density_cubes: u64,
+    pub diffuse_cubes: u64,
+    /// Hash grid and diffuse MLP.
+    pub diffuse_network: u64,
+    /// PSH offset and key tables.
+    pub psh_tables: u64,
+    pub psh_features: u64,
+    pub specular_mlp: u64,
+    /// Radiance field (hash grid, both MLPs, occupancy bits) when it gives the hit point.
+    pub density_network: u64,
+    /// What the current configuration reads while rendering.
+    pub in_use: u64,
+}
+
+/// An i-NOLF object ready to render.
+#[derive(Debug, Clone)]
+pub struct InolfKernel {
+    density: DensityCubes,
+    hit_field: Option<Arc<RadianceField>>,
+    diffuse_cubes: Option<SparseCubes>,
+    diffuse_net: Option<(HashGrid, Mlp)>,
+    grid_bounds: Bounds,
+    psh: PshEncoding,
+    specular: Mlp,
+    shape: HeadsShape,
+    source: DiffuseSource,
+}
+
+/// Why an asset file could not be opened as a kernel.
+#[derive(Debug, thiserror::Error)]
+pub enum LoadError {
+    #[error(transparent)]
+    Asset(#[from] super::asset::AssetError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+}
+
+/// Pixels per rayon task.
+const CHUNK: usize = 1024;
+
+impl InolfKernel {
+    /// From a loaded asset (meta, tensors and sections checked against each other).
+    pub fn from_asset(asset: Asset) -> Result<InolfKernel, ModelError> {
+        let heads = load_heads(&asset)?;
+        let psh = asset.psh.ok_or_else(|| ModelError::Shape("no PSH section".into()))?;
+        let source = if asset.diffuse.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
+        Ok(InolfKernel {
+            density: asset.density,
+            hit_field: None,
+            diffuse_cubes: asset.diffuse,
+            diffuse_net: heads.diffuse,
+            grid_bounds: heads.grid_bounds,
+            psh,
+            specular: heads.specular,
+            shape: heads.meta.shape,
+            source,
+        })
+    }
+
+    /// Loads and validates a `.nolf` file (first bytes [`super::asset::MAGIC`]).
+    pub fn load(path: &std::path::Path) -> Result<InolfKernel, LoadError> {
+        Ok(InolfKernel::from_asset(Asset::load(path)?)?)
+    }
+
+    /// From a model in memory (tests, and rendering right after training).
+    pub fn from_model(model: &InolfModel, density: DensityCubes, diffuse_cubes: Option<SparseCubes>) -> InolfKernel {
+        let source = if diffuse_cubes.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
+        InolfKernel {
+            density,
+            hit_field: None,
+            diffuse_cubes,
+            diffuse_net: Some((model.grid.clone(), model.diffuse.clone())),
+            grid_bounds: model.bounds,
+            psh: model.psh.clone(),
+            specular: model.specular.clone(),
+            shape: model.shape,
+            source,
+        }
+    }
+
+    /// Chooses the diffuse source; fails if that part is not in the asset.
+    pub fn set_diffuse_source(&mut self, source: DiffuseSource) -> Result<(), ModelError> {
+        let ok = match source {
+            DiffuseSource::Cubes => self.diffuse_cubes.is_some(),
+            DiffuseSource::Network => self.diffuse_net.is_some(),
+        };
+        if !ok {
+            return Err(ModelError::Shape(format!("the asset has no {source:?} diffuse part")));
+        }
+        self.source = source;
+        Ok(())
+    }
+
+    pub fn diffuse_source(&self) -> DiffuseSource {
+        self.source
+    }
+
+    /// Takes hit points and coarse opacities from `field`'s density network instead of the
+    /// density cubes (the field the asset was baked from; the cubes cache its density).
+    pub fn use_density_network(&mut self, field: RadianceField) {
+        self.hit_field = Some(Arc::new(field));
+    }
+
+    pub fn hit_source(&self) -> HitSource {
+        if self.hit_field.is_some() { HitSource::DensityNetwork } else { HitSource::DensityCubes }
+    }
+
+    /// Bytes of every part, and of those the current configuration reads.
+    pub fn memory(&self) -> KernelMemory {
+        let mlp = |m: &Mlp| 4 * m.num_params() as u64;
+        let mut m = KernelMemory {
+            density_cubes: self.density.cubes().footprint().bytes,
+            diffuse_cubes: self.diffuse_cubes.as_ref().map_or(0, |c| c.footprint().bytes),
+            diffuse_network: self.diffuse_net.as_ref().map_or(0, |(g, d)| 4 * g.num_params() as u64 + mlp(d)),
+            psh_tables: self.psh.table.table_bytes() as u64,
+            psh_features: 4 * self.psh.features.len() as u64,
+            specular_mlp: mlp(&self.specular),
+            density_network: self.hit_field.as_ref().map_or(0, |f| f.memory_bytes()),
+            in_use: 0,
+        };
+        let hit = if self.hit_field.is_some() { m.density_network } else { m.density_cubes };
+        let diffuse = match self.source {
+            DiffuseSource::Cubes => m.diffuse_cubes,
+            DiffuseSource::Network => m.diffuse_network,
+        };
+        m.in_use = hit + diffuse + m.psh_tables + m.psh_features + m.specular_mlp;
+        m
+    }
+
+    pub fn density(&self) -> &DensityCubes {
+        &self.density
+    }
+
+    /// The specular branch's PSH encoding (its lattice side is `psh().table.domain()`).
+    pub fn psh(&self) -> &PshEncoding {
+        &self.psh
+    }
+
+    /// Renders one chunk of pixels into the given output slices; returns the rays that hit
+    /// and the density-network samples taken (0 with the density cubes).
+    fn render_chunk(&self, camera: &Camera, pixels: &[u32], color: &mut [[f32; 3]], opacity: &mut [f32], depth: &mut [f32]) -> Result<(u64, u64), ModelError> {
+        let width = camera.width();
+        let mut hits: Vec<(usize, Vec3, Vec3, f32)> = Vec::with_capacity(pixels.len());
+        let mut field_scratch = self.hit_field.as_ref().map(|_| FieldScratch::new());
+        let mut network_samples = 0u64;
+        for (k, &p) in pixels.iter().enumerate() {
+            let ray = camera.pixel_center_ray(p % width, p / width);
+            let (opacity, t) = match (&self.hit_field, &mut field_scratch) {
+                (Some(field), Some(scratch)) => {
+                    let r = field.density_hit(ray.origin, ray.direction, RAY_NEAR, scratch);
+                    network_samples += u64::from(r.samples);
+                    (r.opacity, r.peak_distance)
+                }
+                _ => {
+                    let h = self.density.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+                    (h.opacity, h.t)
+                }
+            };
+            if opacity >= HIT_OPACITY {
+                hits.push((k, ray.at(t), ray.direction, opacity));
+            }
+        }
+        if hits.is_empty() {
+            return Ok((0, network_samples));
+        }
+        let n = hits.len();
+        // Diffuse colour and tint.
+        let mut diffuse = vec![0.0f32; n * DIFFUSE_OUT];
+        match (self.source, &self.diffuse_cubes, &self.diffuse_net) {
+            (DiffuseSource::Cubes, Some(cubes), _) => {
+                for (row, h) in diffuse.chunks_exact_mut(DIFFUSE_OUT).zip(&hits) {
+                    cubes.sample(h.1, row);
+                    row.iter_mut().for_each(|v| *v = decode_diffuse(*v));
+                }
+            }
+            (_, _, Some((grid, mlp))) => {
+                let size = self.grid_bounds.size();
+                let points: Vec<[f32; 3]> = hits.iter().map(|h| ((h.1 - self.grid_bounds.min) / size).to_array()).collect();
+                let mut enc = vec![0.0; n * grid.output_dim()];
+                grid.encode_batch(&points, &mut enc)?;
+                mlp.infer(&enc, &mut diffuse, &mut MlpWorkspace::new())?;
+            }
+            _ => return Err(ModelError::Shape("no diffuse part".into())),
+        }
+        // Specular branch: one MLP query per hitting ray, as one batch.
+        let f = self.psh.dim();
+        let sh = sh_coefficient_count(self.shape.sh_degree);
+        let s_in = f + sh + 1;
+        let mut input = vec![0.0f32; n * s_in];
+        for (row, h) in input.chunks_exact_mut(s_in).zip(&hits) {
+            self.psh.encode(h.1, &mut row[..f]);
+            sh_encode(h.2.to_array(), self.shape.sh_degree, &mut row[f..f + sh]);
+            row[f + sh] = h.3;
+        }
+        let mut specular = vec![0.0f32; n * SPECULAR_OUT];
+        self.specular.infer(&input, &mut specular, &mut MlpWorkspace::new())?;
+        for (raw, h) in specular.chunks_exact_mut(SPECULAR_OUT).zip(&hits) {
+            specular_activation(raw, h.3);
+        }
+        for (i, h) in hits.iter().enumerate() {
+            let (c, a) = combine(&diffuse[i * DIFFUSE_OUT..(i + 1) * DIFFUSE_OUT], &specular[i * SPECULAR_OUT..(i + 1) * SPECULAR_OUT]);
+            let k = h.0;
+            let d = camera.view_depth(h.1);
+            if a > 0.0 && a.is_finite() && d.is_finite() && d > 0.0 && c.iter().all(|v| v.is_finite()) {
+                color[k] = c.map(|v| v.max(0.0));
+                opacity[k] = a.clamp(0.0, 1.0);
+                depth[k] = d;
+            }
+        }
+        Ok((n as u64, network_samples))
+    }
+}
+
+impl RayKernel for InolfKernel {
+    fn kind(&self) -> &'static str {
+        "inolf"
+    }
+
+    fn bounds(&self) -> Bounds {
+        self.density.bounds()
+    }
+
+    fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
+        validate_pixels(camera, pixels)?;
+        let mut out = PixelResults::with_len(pixels.len());
+        let hit_counts: Vec<Result<(u64, u64), ModelError>> = pixels
+            .par_chunks(CHUNK)
+            .zip(out.color.par_chunks_mut(CHUNK))
+            .zip(out.opacity.par_chunks_mut(CHUNK))
+            .zip(out.depth.par_chunks_mut(CHUNK))
+            .map(|(((p, c), o), d)| self.render_chunk(camera, p, c, o, d))
+            .collect();
+        let (mut rays_hit, mut network_samples) = (0, 0);
+        for h in hit_counts {
+            let (hit, samples) = h.map_err(|e| KernelError::Failed(e.to_string()))?;
+            rays_hit += hit;
+            network_samples += samples;
+        }
+        // One heads query per hitting ray, plus the density network's samples if it gives
+        // the hit point.
+        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries: rays_hit + network_samples }))
+    }
+}

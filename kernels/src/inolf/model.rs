@@ -1,0 +1,250 @@
+//! The i-NOLF heads (NEPHELE section 4.2, eqs. 5-8).
+//!
+//! Given the hit point `x` and coarse opacity `a_c` from the density cubes and the view
+//! direction `d` of a ray:
+//!
+//! * **diffuse branch** (eq. 5): multiresolution hash grid of `x` -> MLP -> diffuse colour
+//!   `c_d` and specular tint `s` (sigmoids); view-independent, so it can be baked into
+//!   diffuse texture cubes after training;
+//! * **specular branch** (eq. 6): `[PSH(x), SH(d), a_c]` -> tiny MLP -> specular colour
+//!   `c_s` and refined opacity `a` (sigmoids; `a` as a correction of `a_c`, see
+//!   [`specular_activation`]);
+//! * **colour** (eq. 7): `c = c_d + s * c_s`; the pixel gets `a * c` (premultiplied) and `a`;
+//! * **loss** (eq. 8): L2 on the premultiplied colour and on the opacity.
+//!
+//! Colours are linear RGB. The gradient of the loss with respect to every head output is
+//! written out in [`head_gradients`] and checked against finite differences in the tests.
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use super::encoding::PshEncoding;
+use nephele_geometry::Bounds;
+use nephele_nn::{Activation, HashGrid, HashGridConfig, Mlp, MlpConfig, MlpWorkspace, NnError, sh_coefficient_count, sh_encode};
+
+/// Outputs of the diffuse MLP: diffuse RGB, tint RGB.
+pub const DIFFUSE_OUT: usize = 6;
+/// Outputs of the specular MLP: specular RGB, refined opacity.
+pub const SPECULAR_OUT: usize = 4;
+
+#[derive(Debug, Error)]
+pub enum ModelError {
+    #[error(transparent)]
+    Nn(#[from] NnError),
+    #[error("bad model description: {0}")]
+    Shape(String),
+}
+
+/// Sizes of the heads (stored in the asset's meta section).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct HeadsShape {
+    pub grid_levels: u32,
+    pub grid_log2_table: u32,
+    pub grid_base: u32,
+    pub grid_scale: f32,
+    pub diffuse_hidden: usize,
+    pub diffuse_layers: usize,
+    pub sh_degree: u32,
+    pub specular_hidden: usize,
+    pub specular_layers: usize,
+}
+
+impl Default for HeadsShape {
+    /// Sized for CPU training on 2 cores: 12 levels of 2^17 entries up to 1024^3, a 64-wide
+    /// diffuse MLP, a 32-wide two-layer specular MLP.
+    fn default() -> Self {
+        let grid = HashGridConfig::with_finest_resolution(12, 17, 16, 1024);
+        HeadsShape {
+            grid_levels: grid.levels,
+            grid_log2_table: grid.log2_table_size,
+            grid_base: grid.base_resolution,
+            grid_scale: grid.per_level_scale,
+            diffuse_hidden: 64,
+            diffuse_layers: 1,
+            sh_degree: 4,
+            specular_hidden: 32,
+            specular_layers: 2,
+        }
+    }
+}
+
+impl HeadsShape {
+    pub fn grid(&self) -> HashGridConfig {
+        HashGridConfig { levels: self.grid_levels, log2_table_size: self.grid_log2_table, base_resolution: self.grid_base, per_level_scale: self.grid_scale }
+    }
+
+    pub fn diffuse_mlp(&self) -> MlpConfig {
+        MlpConfig {
+            input: self.grid().output_dim(),
+            hidden: self.diffuse_hidden,
+            hidden_layers: self.diffuse_layers,
+            output: DIFFUSE_OUT,
+            output_activation: Activation::Sigmoid,
+        }
+    }
+
+    pub fn specular_input(&self, psh_features: u32) -> usize {
+        psh_features as usize + sh_coefficient_count(self.sh_degree) + 1
+    }
+
+    pub fn specular_mlp(&self, psh_features: u32) -> MlpConfig {
+        MlpConfig {
+            input: self.specular_input(psh_features),
+            hidden: self.specular_hidden,
+            hidden_layers: self.specular_layers,
+            output: SPECULAR_OUT,
+            // Raw outputs; see [`specular_activation`].
+            output_activation: Activation::None,
+        }
+    }
+}
+
+/// Turns the specular MLP's raw outputs into specular RGB (sigmoid) and the refined opacity
+/// as a correction of the coarse one, `a = sigmoid(logit(a_c) + z_a)`: with no evidence
+/// the refined opacity is the coarse opacity, which keeps unseen views and untrained PSH
+/// slots close to the density field instead of at an arbitrary value.
+#[inline]
+pub fn specular_activation(raw: &mut [f32], coarse_opacity: f32) {
+    let a = coarse_opacity.clamp(1e-4, 1.0 - 1e-4);
+    let logit = (a / (1.0 - a)).ln();
+    for v in raw[..3].iter_mut() {
+        *v = Activation::Sigmoid.apply(*v);
+    }
+    raw[3] = Activation::Sigmoid.apply(raw[3] + logit);
+}
+
+/// Derivative of an output of [`specular_activation`] with respect to its raw input, from
+/// the output.
+#[inline]
+pub fn specular_activation_derivative(y: f32) -> f32 {
+    y * (1.0 - y)
+}
+
+/// The trained heads.
+#[derive(Debug, Clone)]
+pub struct InolfModel {
+    pub shape: HeadsShape,
+    /// Box the hash grid's unit cube maps to.
+    pub bounds: Bounds,
+    pub grid: HashGrid,
+    pub diffuse: Mlp,
+    pub psh: PshEncoding,
+    pub specular: Mlp,
+}
+
+impl InolfModel {
+    pub fn new(shape: HeadsShape, bounds: Bounds, psh: PshEncoding, seed: u64) -> Result<InolfModel, ModelError> {
+        if !(bounds.min.is_finite() && bounds.max.is_finite() && bounds.size().min_element() > 0.0) {
+            return Err(ModelError::Shape(format!("bad bounds {bounds:?}")));
+        }
+        if !(1..=5).contains(&shape.sh_degree) {
+            return Err(ModelError::Shape(format!("SH degree {}", shape.sh_degree)));
+        }
+        let grid = HashGrid::new(shape.grid(), seed)?;
+        let diffuse = Mlp::new(shape.diffuse_mlp(), seed ^ 1)?;
+        let specular = Mlp::new(shape.specular_mlp(psh.feature_dim), seed ^ 2)?;
+        Ok(InolfModel { shape, bounds, grid, diffuse, psh, specular })
+    }
+
+    /// Hash-grid input: `x` mapped to the unit cube of `bounds` (clamped by the grid).
+    #[inline]
+    pub fn grid_input(&self, x: Vec3) -> [f32; 3] {
+        ((x - self.bounds.min) / self.bounds.size()).to_array()
+    }
+
+    /// Writes the specular MLP's input row for one ray; returns the PSH corners used.
+    #[inline]
+    pub fn specular_row(&self, x: Vec3, dir: Vec3, coarse_opacity: f32, row: &mut [f32]) -> super::encoding::Corners {
+        let f = self.psh.dim();
+        let corners = self.psh.encode(x, &mut row[..f]);
+        let sh = sh_coefficient_count(self.shape.sh_degree);
+        sh_encode(dir.to_array(), self.shape.sh_degree, &mut row[f..f + sh]);
+        row[f + sh] = coarse_opacity;
+        corners
+    }
+
+    /// Diffuse colour and tint of a batch of points through the hash grid and MLP
+    /// (`out`: `n x 6`).
+    pub fn diffuse_batch(&self, points: &[[f32; 3]], out: &mut [f32], scratch: &mut (Vec<f32>, MlpWorkspace)) -> Result<(), ModelError> {
+        scratch.0.resize(points.len() * self.grid.output_dim(), 0.0);
+        self.grid.encode_batch(points, &mut scratch.0)?;
+        self.diffuse.infer(&scratch.0, out, &mut scratch.1)?;
+        Ok(())
+    }
+}
+
+/// Colour, opacity and the loss gradient of one ray (eqs. 7-8).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeadGradients {
+    pub loss: f32,
+    /// dL / d(diffuse RGB, tint RGB).
+    pub d_diffuse: [f32; DIFFUSE_OUT],
+    /// dL / d(specular RGB, opacity).
+    pub d_specular: [f32; SPECULAR_OUT],
+}
+
+/// Combines the head outputs into the premultiplied colour and opacity of a pixel.
+#[inline]
+pub fn combine(diffuse: &[f32], specular: &[f32]) -> ([f32; 3], f32) {
+    let a = specular[3];
+    let mut c = [0.0; 3];
+    for k in 0..3 {
+        c[k] = a * (diffuse[k] + diffuse[3 + k] * specular[k]);
+    }
+    (c, a)
+}
+
+/// Loss `|a c - target_rgb|^2 + w |a - target_a|^2` (target premultiplied, linear) and its
+/// gradient with respect to the head outputs.
+#[inline]
+pub fn head_gradients(diffuse: &[f32], specular: &[f32], target: [f32; 4], opacity_weight: f32) -> HeadGradients {
+    let a = specular[3];
+    let mut g = HeadGradients { loss: 0.0, d_diffuse: [0.0; DIFFUSE_OUT], d_specular: [0.0; SPECULAR_OUT] };
+    let mut d_a = 0.0;
+    for k in 0..3 {
+        let c = diffuse[k] + diffuse[3 + k] * specular[k];
+        let e = a * c - target[k];
+        g.loss += e * e;
+        // d/d(a c) = 2 e; chain to c and a.
+        let d_c = 2.0 * e * a;
+        d_a += 2.0 * e * c;
+        g.d_diffuse[k] = d_c;
+        g.d_diffuse[3 + k] = d_c * specular[k];
+        g.d_specular[k] = d_c * diffuse[3 + k];
+    }
+    let ea = a - target[3];
+    g.loss += opacity_weight * ea * ea;
+    g.d_specular[3] = d_a + 2.0 * opacity_weight * ea;
+    g
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn head_gradients_match_finite_differences() {
+        let diffuse = [0.3f32, 0.6, 0.2, 0.5, 0.4, 0.9];
+        let specular = [0.7f32, 0.1, 0.35, 0.8];
+        let target = [0.2, 0.5, 0.1, 1.0];
+        let g = head_gradients(&diffuse, &specular, target, 0.5);
+        let h = 1e-3;
+        for i in 0..DIFFUSE_OUT {
+            let (mut p, mut m) = (diffuse, diffuse);
+            p[i] += h;
+            m[i] -= h;
+            let num = (head_gradients(&p, &specular, target, 0.5).loss - head_gradients(&m, &specular, target, 0.5).loss) / (2.0 * h);
+            assert!((num - g.d_diffuse[i]).abs() < 1e-3, "diffuse {i}: {num} vs {}", g.d_diffuse[i]);
+        }
+        for i in 0..SPECULAR_OUT {
+            let (mut p, mut m) = (specular, specular);
+            p[i] += h;
+            m[i] -= h;
+            let num = (head_gradients(&diffuse, &p, target, 0.5).loss - head_gradients(&diffuse, &m, target, 0.5).loss) / (2.0 * h);
+            assert!((num - g.d_specular[i]).abs() < 1e-3, "specular {i}: {num} vs {}", g.d_specular[i]);
+        }
+        let (c, a) = combine(&diffuse, &specular);
+        assert!((c[0] - 0.8 * (0.3 + 0.5 * 0.7)).abs() < 1e-6 && a == 0.8);
+    }
+}

@@ -1,0 +1,18 @@
+//! `nephele-kernels`: the runtime render kernels behind one interface.
+//!
+//! * [`kernel`]: [`kernel::RayKernel`] (a camera and a pixel set in, colour, opacity and
+//!   depth out), its errors and statistics, and the reference path tracer as a farm kernel;
+//! * [`ngp`]: the i-NGP-style radiance field (the baseline): its inference, occupancy
+//!   skipping and file format;
+//! * [`inolf`]: i-NOLF (NEPHELE section 4): density and diffuse texture cubes, perfect
+//!   spatial hashing, the heads, the `.nolf` asset and its kernel;
+//! * [`assets`]: the one registry of asset formats, shared by the worker and `nephele render`.
+//!
+//! Depends on `nephele-geometry`, `nephele-imaging`, `nephele-nn` and `nephele-pathtracer`
+//! (for the path-traced kernel); never on trainers (`nephele-train`) or services. The worker
+//! links this crate and nothing that trains.
+
+pub mod assets;
+pub mod inolf;
+pub mod kernel;
+pub mod ngp;

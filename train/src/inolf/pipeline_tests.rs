@@ -1,0 +1,271 @@
+//! End to end on an analytic object: density cubes of a sphere, views rendered
+//! analytically, training, baking, the asset round trip and the kernel's hard cases.
+
+use std::sync::OnceLock;
+
+use glam::Vec3;
+use proptest::prelude::*;
+
+use super::bake::{bake_diffuse_cubes, to_asset};
+use super::train::{TrainOptions, TrainingView, collect_hit_points, train};
+use nephele_geometry::camera::Camera;
+use nephele_kernels::inolf::asset::Asset;
+use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes};
+use nephele_kernels::inolf::encoding::PshEncoding;
+use nephele_kernels::inolf::kernel::{DiffuseSource, HitSource, InolfKernel};
+use nephele_kernels::inolf::model::{HeadsShape, InolfModel};
+use nephele_kernels::inolf::psh::PshOptions;
+use nephele_kernels::kernel::{Bounds, RayKernel, all_pixels};
+
+const RADIUS: f32 = 0.6;
+
+fn bounds() -> Bounds {
+    Bounds { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) }
+}
+
+fn sphere_cubes() -> DensityCubes {
+    let options = CubeOptions { resolution: 16, cube_res: 6, probe: 2, dilate: 1 };
+    DensityCubes::build(bounds(), &options, |p: &[Vec3], out: &mut [f32]| p.iter().zip(out).for_each(|(p, o)| *o = if p.length() < RADIUS { 300.0 } else { 0.0 }), &|_| {})
+        .expect("cubes")
+}
+
+/// Analytic view: a sphere whose linear colour varies with the surface normal.
+fn view(eye: Vec3, size: u32) -> TrainingView {
+    let camera = Camera::look_at(size, size, 0.7, eye, Vec3::ZERO, Vec3::Z).expect("camera");
+    let target = all_pixels(&camera)
+        .iter()
+        .map(|&p| {
+            let ray = camera.pixel_center_ray(p % size, p / size);
+            let b = ray.origin.dot(ray.direction);
+            // The cubes' sphere is about half a sample step fatter than RADIUS (trilinear
+            // interpolation of the density); the images show that sphere.
+            let r = RADIUS + 0.012;
+            let disc = b * b - (ray.origin.length_squared() - r * r);
+            if disc < 0.0 {
+                return [0.0; 4];
+            }
+            let n = ray.at(-b - disc.sqrt()).normalize();
+            [0.2 + 0.3 * (n.x * 0.5 + 0.5), 0.1 + 0.5 * (n.z * 0.5 + 0.5), 0.3, 1.0]
+        })
+        .collect();
+    TrainingView { camera, target }
+}
+
+fn views() -> Vec<TrainingView> {
+    (0..16)
+        .map(|i| {
+            let a = i as f32 * std::f32::consts::FRAC_PI_8;
+            view(Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), if i % 2 == 0 { 1.0 } else { -0.8 }), 24)
+        })
+        .collect()
+}
+
+fn small_shape() -> HeadsShape {
+    HeadsShape { grid_levels: 4, grid_log2_table: 12, grid_base: 4, grid_scale: 2.0, diffuse_hidden: 16, diffuse_layers: 1, sh_degree: 2, specular_hidden: 16, specular_layers: 1 }
+}
+
+struct Trained {
+    model: InolfModel,
+    cubes: DensityCubes,
+    hits: Vec<Vec3>,
+    first_loss: f32,
+    last_loss: f32,
+}
+
+fn trained() -> &'static Trained {
+    static T: OnceLock<Trained> = OnceLock::new();
+    T.get_or_init(|| {
+        let cubes = sphere_cubes();
+        let views = views();
+        let hits = collect_hit_points(&cubes, &views, 1);
+        let psh = PshEncoding::from_points(&hits, bounds().min, 2.0 / 31.0, 32, 4, &PshOptions::coherent()).expect("psh");
+        let mut model = InolfModel::new(small_shape(), bounds(), psh, 3).expect("model");
+        let mut first_loss = f32::NAN;
+        let options = TrainOptions { steps: 1000, batch: 512, ..TrainOptions::default() };
+        let report = train(&mut model, &cubes, &views, &options, &mut |step, loss| {
+            if step == 5 {
+                first_loss = loss;
+            }
+        })
+        .expect("train");
+        Trained { model, cubes, hits, first_loss, last_loss: report.smoothed_loss }
+    })
+}
+
+fn psnr_against(kernel: &InolfKernel, v: &TrainingView) -> f64 {
+    let (out, stats) = kernel.render_pixels(&v.camera, &all_pixels(&v.camera)).expect("render");
+    assert_eq!(stats.rays, v.target.len() as u64);
+    let mut se = 0.0f64;
+    for (i, t) in v.target.iter().enumerate() {
+        for (c, x) in out.color[i].iter().zip(t) {
+            se += f64::from(c - x).powi(2);
+        }
+        se += f64::from(out.opacity[i] - t[3]).powi(2);
+    }
+    -10.0 * (se / (v.target.len() * 4) as f64).log10()
+}
+
+#[test]
+fn training_fits_the_views_and_the_asset_renders_the_same() {
+    let t = trained();
+    eprintln!("loss {} -> {}", t.first_loss, t.last_loss);
+    assert!(t.last_loss < t.first_loss * 0.2, "loss {} -> {}", t.first_loss, t.last_loss);
+    let views = views();
+    let net = InolfKernel::from_model(&t.model, t.cubes.clone(), None);
+    let psnr_net = psnr_against(&net, &views[0]);
+    // Bake the diffuse branch and go through the file format.
+    let diffuse = bake_diffuse_cubes(&t.model, &t.cubes, &t.hits, 1, 6).expect("bake");
+    assert!(diffuse.cube_count() > 0 && diffuse.cube_count() <= t.cubes.cubes().cube_count());
+    let asset = to_asset(&t.model, t.cubes.clone(), Some(diffuse), true, serde_json::json!({"test": true})).expect("asset");
+    let bytes = asset.to_bytes().expect("encode");
+    let mut kernel = InolfKernel::from_asset(Asset::from_bytes(&bytes).expect("decode")).expect("kernel");
+    assert_eq!(kernel.diffuse_source(), DiffuseSource::Cubes);
+    let psnr_cubes = psnr_against(&kernel, &views[0]);
+    kernel.set_diffuse_source(DiffuseSource::Network).expect("network kept");
+    let psnr_loaded_net = psnr_against(&kernel, &views[0]);
+    eprintln!("PSNR (linear, premultiplied + alpha): network {psnr_net:.2} dB, diffuse cubes {psnr_cubes:.2} dB, loaded network {psnr_loaded_net:.2} dB");
+    assert!(psnr_net > 35.0, "{psnr_net}");
+    assert!((psnr_loaded_net - psnr_net).abs() < 1e-6, "the asset holds the same network");
+    assert!(psnr_cubes > psnr_net - 3.0, "baking loses little: {psnr_cubes} vs {psnr_net}");
+    // A held-out view.
+    let held_out = view(Vec3::new(0.5, -2.9, 0.4), 24);
+    let psnr_held = psnr_against(&kernel, &held_out);
+    eprintln!("held-out view {psnr_held:.2} dB");
+    assert!(psnr_held > 22.0, "{psnr_held}");
+}
+
+#[test]
+fn asset_without_diffuse_network_renders_from_cubes_only() {
+    let t = trained();
+    let diffuse = bake_diffuse_cubes(&t.model, &t.cubes, &t.hits, 1, 4).expect("bake");
+    let asset = to_asset(&t.model, t.cubes.clone(), Some(diffuse), false, serde_json::Value::Null).expect("asset");
+    assert_eq!(asset.tensors.len(), 1);
+    let mut kernel = InolfKernel::from_asset(asset).expect("kernel");
+    assert!(kernel.set_diffuse_source(DiffuseSource::Network).is_err());
+    // No diffuse part at all is an error, not a broken kernel.
+    let mut bare = to_asset(&t.model, t.cubes.clone(), None, false, serde_json::Value::Null).expect("asset");
+    bare.tensors.retain(|x| x.name == "specular.mlp");
+    assert!(InolfKernel::from_asset(bare).is_err());
+}
+
+fn camera_strategy() -> impl Strategy<Value = Camera> {
+    (
+        prop_oneof![
+            (-4.0f32..4.0, -4.0f32..4.0, -4.0f32..4.0).prop_map(|(x, y, z)| Vec3::new(x, y, z)),
+            (-0.5f32..0.5, -0.5f32..0.5, -0.5f32..0.5).prop_map(|(x, y, z)| Vec3::new(x, y, z) * 0.6),
+            (-8i32..=8, -8i32..=8).prop_map(|(x, y)| Vec3::new(x as f32 / 8.0, y as f32 / 8.0, 3.0)),
+        ],
+        (-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0),
+        0.2f32..2.5,
+    )
+        .prop_filter_map("degenerate", |(eye, (x, y, z), fov)| {
+            let dir = Vec3::new(x, y, z);
+            (dir.length() > 0.1).then_some(())?;
+            let forward = dir.normalize();
+            let up = if forward.z.abs() > 0.9 { Vec3::X } else { Vec3::Z };
+            Camera::look_at(9, 7, fov, eye, eye + forward, up).ok()
+        })
+}
+
+/// Every pixel sane: finite non-negative colour, opacity in [0, 1], positive finite depth
+/// where opacity > 0 and nothing at all where it is 0.
+fn check_frame(out: &nephele_kernels::kernel::PixelResults) -> Result<(), TestCaseError> {
+    for i in 0..out.opacity.len() {
+        prop_assert!(out.color[i].iter().all(|c| c.is_finite() && *c >= 0.0));
+        prop_assert!((0.0..=1.0).contains(&out.opacity[i]));
+        prop_assert!(out.depth[i].is_finite());
+        if out.opacity[i] > 0.0 {
+            prop_assert!(out.depth[i] > 0.0);
+        } else {
+            prop_assert_eq!(out.depth[i], 0.0);
+            prop_assert_eq!(out.color[i], [0.0; 3]);
+        }
+    }
+    Ok(())
+}
+
+/// An untrained radiance field over the box: a translucent fog everywhere, the worst case
+/// for the "i-NOLF base" hit point (density network marched along every ray).
+fn fog_field() -> nephele_kernels::ngp::RadianceField {
+    let config = nephele_kernels::ngp::FieldConfig {
+        grid: nephele_nn::HashGridConfig::with_finest_resolution(4, 12, 4, 32),
+        density_hidden: 16,
+        color_hidden: 16,
+        color_hidden_layers: 1,
+        steps_per_diagonal: 64,
+        occupancy_resolution: 16,
+        ..nephele_kernels::ngp::FieldConfig::default()
+    };
+    nephele_kernels::ngp::RadianceField::new(config, bounds().min, 2.0, 11).expect("field")
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// Hard cases: cameras outside, inside the box, inside the object, looking anywhere;
+    /// hit points from the density cubes and from a density network.
+    #[test]
+    fn kernel_outputs_are_always_sane(camera in camera_strategy()) {
+        let t = trained();
+        let kernel = InolfKernel::from_model(&t.model, t.cubes.clone(), None);
+        let pixels = all_pixels(&camera);
+        let (out, stats) = kernel.render_pixels(&camera, &pixels).expect("render");
+        prop_assert_eq!(stats.rays, pixels.len() as u64);
+        prop_assert_eq!(stats.queries, stats.rays_hit);
+        check_frame(&out)?;
+        // Inside the object every ray sees it at once.
+        if camera.position().length() < RADIUS - 0.1 {
+            prop_assert!(stats.rays_hit == stats.rays);
+        }
+
+        let mut network = kernel.clone();
+        network.use_density_network(fog_field());
+        prop_assert_eq!(network.hit_source(), HitSource::DensityNetwork);
+        let (out, stats) = network.render_pixels(&camera, &pixels).expect("render");
+        prop_assert_eq!(stats.rays, pixels.len() as u64);
+        // Each ray that hits costs its density samples plus one heads query.
+        prop_assert!(stats.queries >= 2 * stats.rays_hit, "{stats:?}");
+        check_frame(&out)?;
+    }
+}
+
+/// `bench inolf`'s model bytes: the parts the kernel reads, by hit source and diffuse source.
+#[test]
+fn memory_counts_the_parts_in_use() {
+    let t = trained();
+    let mut kernel = InolfKernel::from_model(&t.model, t.cubes.clone(), None);
+    let m = kernel.memory();
+    assert_eq!(m.in_use, m.density_cubes + m.diffuse_network + m.psh_tables + m.psh_features + m.specular_mlp);
+    assert!(m.density_cubes > 0 && m.diffuse_network > 0 && m.psh_features > 0 && m.specular_mlp > 0 && m.density_network == 0);
+    kernel.use_density_network(fog_field());
+    let m = kernel.memory();
+    assert!(m.density_network > 0);
+    assert_eq!(m.in_use, m.density_network + m.diffuse_network + m.psh_tables + m.psh_features + m.specular_mlp);
+}
+
+/// A meta section describing networks that do not match the stored weights (or absurdly
+/// large ones) is rejected before any network is allocated.
+#[test]
+fn meta_that_disagrees_with_the_weights_is_rejected() {
+    let t = trained();
+    let asset = to_asset(&t.model, t.cubes.clone(), None, true, serde_json::Value::Null).expect("asset");
+    for edit in [
+        |s: &mut HeadsShape| {
+            s.grid_levels = 32;
+            s.grid_log2_table = 26;
+        },
+        |s: &mut HeadsShape| s.specular_hidden = 100_000,
+        |s: &mut HeadsShape| s.diffuse_hidden += 1,
+        |s: &mut HeadsShape| s.sh_degree = 9,
+    ] {
+        let mut meta: nephele_kernels::inolf::heads::InolfMeta = serde_json::from_str(&asset.meta).expect("meta");
+        edit(&mut meta.shape);
+        let mut hostile = asset.clone();
+        hostile.meta = serde_json::to_string(&meta).expect("json");
+        assert!(InolfKernel::from_asset(hostile).is_err(), "{:?}", meta.shape);
+    }
+    let mut garbage = asset.clone();
+    garbage.meta = "{\"format\": \"something else\"}".into();
+    assert!(InolfKernel::from_asset(garbage).is_err());
+    assert!(InolfKernel::from_asset(asset).is_ok());
+}

@@ -1,0 +1,298 @@
+//! Training the i-NOLF heads from posed RGBA images (NEPHELE section 4.2).
+//!
+//! Each step draws a batch of pixels through an error map (16x16-pixel tiles of every view,
+//! drawn in proportion to a running average of their loss, mixed with uniform draws so that
+//! no tile starves), marches their rays through the density cubes to get hit point and
+//! coarse opacity, runs both heads forward and backward with the loss of eq. 8, and takes an
+//! Adam step on the hash grid, both MLPs and the PSH features. Rays that miss the cubes are
+//! not trained: the kernel renders them empty whatever the heads say.
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use nephele_kernels::inolf::cubes::{DensityCubes, MarchHit};
+use nephele_kernels::inolf::encoding::Corners;
+use nephele_kernels::inolf::kernel::{HIT_OPACITY, RAY_NEAR};
+use nephele_kernels::inolf::model::{DIFFUSE_OUT, InolfModel, ModelError, SPECULAR_OUT, head_gradients, specular_activation, specular_activation_derivative};
+use nephele_geometry::camera::{Camera, CameraError};
+use crate::dataset::Dataset;
+use nephele_imaging::image::srgb_to_linear;
+use nephele_nn::{Adam, AdamConfig, MlpWorkspace};
+
+/// One training view: its camera and the target per pixel (linear RGB premultiplied by
+/// alpha, then alpha), row-major.
+#[derive(Debug, Clone)]
+pub struct TrainingView {
+    pub camera: Camera,
+    pub target: Vec<[f32; 4]>,
+}
+
+/// The views of a loaded NeRF-synthetic split, as training targets.
+pub fn training_views(dataset: &Dataset) -> Result<Vec<TrainingView>, CameraError> {
+    dataset
+        .views
+        .iter()
+        .map(|v| {
+            let camera = Camera::from_fov_x(v.image.width(), v.image.height(), dataset.camera_angle_x, v.camera_to_world)?;
+            let target = v
+                .image
+                .pixels()
+                .iter()
+                .map(|p| {
+                    let a = p[3].clamp(0.0, 1.0);
+                    [srgb_to_linear(p[0]) * a, srgb_to_linear(p[1]) * a, srgb_to_linear(p[2]) * a, a]
+                })
+                .collect();
+            Ok(TrainingView { camera, target })
+        })
+        .collect()
+}
+
+/// Marches the centre ray of every pixel of every view (in parallel) and returns the hit
+/// points of the rays that hit: the occupancy the PSH is built from.
+pub fn collect_hit_points(cubes: &DensityCubes, views: &[TrainingView], stride: u32) -> Vec<Vec3> {
+    let stride = stride.max(1);
+    views
+        .par_iter()
+        .flat_map_iter(|v| {
+            let (w, h) = (v.camera.width(), v.camera.height());
+            (0..h).step_by(stride as usize).flat_map(move |y| (0..w).step_by(stride as usize).map(move |x| (x, y))).filter_map(|(x, y)| {
+                let ray = v.camera.pixel_center_ray(x, y);
+                let hit = cubes.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+                (hit.opacity >= HIT_OPACITY).then(|| ray.at(hit.t))
+            })
+        })
+        .collect()
+}
+
+/// Training settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrainOptions {
+    pub steps: u32,
+    /// Rays per step.
+    pub batch: usize,
+    pub learning_rate: f32,
+    /// Weight of the opacity term of the loss.
+    pub opacity_weight: f32,
+    /// Error-map tile side in pixels.
+    pub tile: u32,
+    /// Share of the batch drawn uniformly instead of through the error map.
+    pub uniform_fraction: f32,
+    pub seed: u64,
+}
+
+impl Default for TrainOptions {
+    fn default() -> Self {
+        TrainOptions { steps: 2000, batch: 4096, learning_rate: 1e-2, opacity_weight: 1.0, tile: 16, uniform_fraction: 0.25, seed: 1 }
+    }
+}
+
+/// What training reached.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct TrainReport {
+    pub steps: u32,
+    /// Mean loss of the last step's hitting rays.
+    pub last_loss: f32,
+    /// Running average of the loss over the last ~100 steps.
+    pub smoothed_loss: f32,
+    pub rays: u64,
+    pub rays_hit: u64,
+}
+
+#[derive(Debug)]
+struct Rng(u64);
+
+impl Rng {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    fn unit(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn below(&mut self, n: u64) -> u64 {
+        (self.unit() * n as f64) as u64 % n.max(1)
+    }
+}
+
+/// Tiles of all views with a running loss each.
+#[derive(Debug)]
+struct ErrorMap {
+    /// `(view, x0, y0, w, h)` per tile.
+    tiles: Vec<(u32, u32, u32, u32, u32)>,
+    error: Vec<f32>,
+    cdf: Vec<f64>,
+}
+
+impl ErrorMap {
+    fn new(views: &[TrainingView], tile: u32) -> ErrorMap {
+        let tile = tile.max(1);
+        let mut tiles = Vec::new();
+        for (i, v) in views.iter().enumerate() {
+            let (w, h) = (v.camera.width(), v.camera.height());
+            for y0 in (0..h).step_by(tile as usize) {
+                for x0 in (0..w).step_by(tile as usize) {
+                    tiles.push((i as u32, x0, y0, tile.min(w - x0), tile.min(h - y0)));
+                }
+            }
+        }
+        let n = tiles.len();
+        let mut map = ErrorMap { tiles, error: vec![1.0; n], cdf: Vec::new() };
+        map.rebuild();
+        map
+    }
+
+    fn rebuild(&mut self) {
+        let mut acc = 0.0;
+        self.cdf = self.error.iter().map(|&e| {
+            acc += f64::from(e.max(1e-6));
+            acc
+        }).collect();
+    }
+
+    fn draw(&self, rng: &mut Rng, uniform: bool) -> (usize, u32, u32, u32) {
+        let t = if uniform {
+            rng.below(self.tiles.len() as u64) as usize
+        } else {
+            let total = self.cdf.last().copied().unwrap_or(1.0);
+            let u = rng.unit() * total;
+            self.cdf.partition_point(|&c| c <= u).min(self.tiles.len() - 1)
+        };
+        let (view, x0, y0, w, h) = self.tiles[t];
+        (t, view, x0 + rng.below(u64::from(w)) as u32, y0 + rng.below(u64::from(h)) as u32)
+    }
+}
+
+/// Trains `model` on `views`; `progress(step, smoothed loss)` is called after every step.
+pub fn train(
+    model: &mut InolfModel,
+    cubes: &DensityCubes,
+    views: &[TrainingView],
+    options: &TrainOptions,
+    progress: &mut dyn FnMut(u32, f32),
+) -> Result<TrainReport, ModelError> {
+    if views.is_empty() || options.batch == 0 {
+        return Err(ModelError::Shape("no views or an empty batch".into()));
+    }
+    let mut rng = Rng(options.seed);
+    let mut map = ErrorMap::new(views, options.tile);
+    let adam = |lr: f32, decay: f32, len: usize| Adam::new(AdamConfig { learning_rate: lr, weight_decay: decay, ..AdamConfig::default() }, len);
+    let lr = options.learning_rate;
+    let mut opt_grid = adam(lr, 0.0, model.grid.num_params());
+    let mut opt_diffuse = adam(lr, 1e-6, model.diffuse.num_params());
+    let mut opt_psh = adam(lr, 0.0, model.psh.features.len());
+    let mut opt_specular = adam(lr, 1e-6, model.specular.num_params());
+    let mut g_grid = vec![0.0; model.grid.num_params()];
+    let mut g_diffuse = vec![0.0; model.diffuse.num_params()];
+    let mut g_psh = vec![0.0; model.psh.features.len()];
+    let mut g_specular = vec![0.0; model.specular.num_params()];
+    let (mut ws_d, mut ws_s) = (MlpWorkspace::new(), MlpWorkspace::new());
+    let f_dim = model.psh.dim();
+    let s_in = model.specular.config().input;
+    let e_dim = model.grid.output_dim();
+    let mut report = TrainReport::default();
+    let mut smoothed = f32::NAN;
+
+    for step in 0..options.steps {
+        // Learning-rate schedule: full rate, then x0.3 after half, x0.1 after 80 %.
+        let frac = step as f32 / options.steps.max(1) as f32;
+        let rate = lr * if frac < 0.5 { 1.0 } else if frac < 0.8 { 0.3 } else { 0.1 };
+        for o in [&mut opt_grid, &mut opt_diffuse, &mut opt_psh, &mut opt_specular] {
+            o.set_learning_rate(rate);
+        }
+        if step % 16 == 0 {
+            map.rebuild();
+        }
+        let draws: Vec<(usize, u32, u32, u32)> =
+            (0..options.batch)
+                .map(|_| {
+                    let uniform = rng.unit() < f64::from(options.uniform_fraction);
+                    map.draw(&mut rng, uniform)
+                })
+                .collect();
+        let marched: Vec<(MarchHit, Vec3, Vec3)> = draws
+            .par_iter()
+            .map(|&(_, view, x, y)| {
+                let ray = views[view as usize].camera.pixel_center_ray(x, y);
+                (cubes.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY), ray.origin, ray.direction)
+            })
+            .collect();
+        let kept: Vec<usize> = (0..draws.len()).filter(|&i| marched[i].0.opacity >= HIT_OPACITY).collect();
+        // A ray that misses cannot be improved: its tile's error decays so that tiles of
+        // empty background stop being drawn.
+        for (i, m) in marched.iter().enumerate() {
+            if m.0.opacity < HIT_OPACITY {
+                let tile = draws[i].0;
+                map.error[tile] *= 0.9;
+            }
+        }
+        report.rays += draws.len() as u64;
+        report.rays_hit += kept.len() as u64;
+        if kept.is_empty() {
+            progress(step + 1, smoothed);
+            continue;
+        }
+        let n = kept.len();
+        let points: Vec<[f32; 3]> = kept.iter().map(|&i| {
+            let (h, o, d) = marched[i];
+            model.grid_input(o + d * h.t)
+        }).collect();
+        let mut enc = vec![0.0; n * e_dim];
+        model.grid.encode_batch(&points, &mut enc)?;
+        let out_d = model.diffuse.forward(&enc, &mut ws_d)?.to_vec();
+        let mut s_input = vec![0.0; n * s_in];
+        let mut corners: Vec<Corners> = Vec::with_capacity(n);
+        for (k, &i) in kept.iter().enumerate() {
+            let (h, o, d) = marched[i];
+            corners.push(model.specular_row(o + d * h.t, d, h.opacity, &mut s_input[k * s_in..(k + 1) * s_in]));
+        }
+        let mut out_s = model.specular.forward(&s_input, &mut ws_s)?.to_vec();
+        for (k, &i) in kept.iter().enumerate() {
+            specular_activation(&mut out_s[k * SPECULAR_OUT..(k + 1) * SPECULAR_OUT], marched[i].0.opacity);
+        }
+        let mut d_out_d = vec![0.0; n * DIFFUSE_OUT];
+        let mut d_out_s = vec![0.0; n * SPECULAR_OUT];
+        let scale = 1.0 / n as f32;
+        let mut loss_sum = 0.0f64;
+        for (k, &i) in kept.iter().enumerate() {
+            let (tile, view, x, y) = draws[i];
+            let v = &views[view as usize];
+            let target = v.target[(y * v.camera.width() + x) as usize];
+            let g = head_gradients(&out_d[k * DIFFUSE_OUT..(k + 1) * DIFFUSE_OUT], &out_s[k * SPECULAR_OUT..(k + 1) * SPECULAR_OUT], target, options.opacity_weight);
+            loss_sum += f64::from(g.loss);
+            map.error[tile] = 0.9 * map.error[tile] + 0.1 * g.loss;
+            for j in 0..DIFFUSE_OUT {
+                d_out_d[k * DIFFUSE_OUT + j] = g.d_diffuse[j] * scale;
+            }
+            for j in 0..SPECULAR_OUT {
+                d_out_s[k * SPECULAR_OUT + j] = g.d_specular[j] * scale * specular_activation_derivative(out_s[k * SPECULAR_OUT + j]);
+            }
+        }
+        let mut d_s_input = vec![0.0; n * s_in];
+        model.specular.backward(&s_input, &mut ws_s, &d_out_s, &mut g_specular, Some(&mut d_s_input))?;
+        for (k, c) in corners.iter().enumerate() {
+            model.psh.backward(c, &d_s_input[k * s_in..k * s_in + f_dim], &mut g_psh);
+        }
+        let mut d_enc = vec![0.0; n * e_dim];
+        model.diffuse.backward(&enc, &mut ws_d, &d_out_d, &mut g_diffuse, Some(&mut d_enc))?;
+        model.grid.backward_batch_parallel(&points, &d_enc, &mut g_grid)?;
+
+        opt_grid.step(model.grid.params_mut(), &g_grid)?;
+        opt_diffuse.step(model.diffuse.params_mut(), &g_diffuse)?;
+        opt_psh.step(&mut model.psh.features, &g_psh)?;
+        opt_specular.step(model.specular.params_mut(), &g_specular)?;
+        for g in [&mut g_grid, &mut g_diffuse, &mut g_psh, &mut g_specular] {
+            g.iter_mut().for_each(|x| *x = 0.0);
+        }
+        let loss = (loss_sum / n as f64) as f32;
+        smoothed = if smoothed.is_nan() { loss } else { 0.98 * smoothed + 0.02 * loss };
+        report.last_loss = loss;
+        report.smoothed_loss = smoothed;
+        report.steps = step + 1;
+        progress(step + 1, smoothed);
+    }
+    Ok(report)
+}

@@ -1,0 +1,13 @@
+//! `nephele-train`: everything that learns or bakes, and the data it learns from.
+//!
+//! * [`dataset`]: NeRF-synthetic datasets (read, write, hold out views);
+//! * [`ngp`]: training the i-NGP-style radiance field (the baseline, and the density field
+//!   i-NOLF caches);
+//! * [`inolf`]: training the i-NOLF heads and baking the asset.
+//!
+//! Depends on every library below it (geometry, imaging, the path tracer, the neural
+//! blocks, the kernels); nothing at run time (worker, master, composer) depends on it.
+
+pub mod dataset;
+pub mod inolf;
+pub mod ngp;
