@@ -42,7 +42,9 @@ impl Supervisor {
     /// The first child that has exited, if any, with its status.
     pub fn exited(&mut self) -> Result<Option<(String, ExitStatus)>> {
         for supervised in &mut self.children {
-            if let Some(status) = supervised.child.try_wait().with_context(|| format!("waiting for {}", supervised.name))? {
+            if let Some(status) =
+                supervised.child.try_wait().with_context(|| format!("waiting for {}", supervised.name))?
+            {
                 return Ok(Some((supervised.name.clone(), status)));
             }
         }
@@ -107,7 +109,8 @@ impl Drop for Supervisor {
 pub fn stop_flag() -> Result<Arc<AtomicBool>> {
     let flag = Arc::new(AtomicBool::new(false));
     signal_hook::flag::register(signal_hook::consts::SIGINT, flag.clone()).context("installing the Ctrl-C handler")?;
-    signal_hook::flag::register(signal_hook::consts::SIGTERM, flag.clone()).context("installing the SIGTERM handler")?;
+    signal_hook::flag::register(signal_hook::consts::SIGTERM, flag.clone())
+        .context("installing the SIGTERM handler")?;
     Ok(flag)
 }
 

@@ -69,10 +69,17 @@ pub struct ClientOptions {
 }
 
 /// Minimal HTTP/1.1 request on a fresh connection; returns (status, body).
-pub async fn http_request(addr: SocketAddr, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> Result<(u16, String), ClientError> {
+pub async fn http_request(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+) -> Result<(u16, String), ClientError> {
     let io = |e: std::io::Error| ClientError::Http(format!("{method} {path}: {e}"));
     let mut s = TcpStream::connect(addr).await.map_err(io)?;
-    let mut req = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
+    let mut req =
+        format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
     for (k, v) in headers {
         req.push_str(&format!("{k}: {v}\r\n"));
     }
@@ -82,7 +89,11 @@ pub async fn http_request(addr: SocketAddr, method: &str, path: &str, headers: &
     let mut out = Vec::new();
     s.read_to_end(&mut out).await.map_err(io)?;
     let out = String::from_utf8_lossy(&out);
-    let status = out.split_whitespace().nth(1).and_then(|c| c.parse().ok()).ok_or_else(|| ClientError::Http(format!("bad response: {out}")))?;
+    let status = out
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .ok_or_else(|| ClientError::Http(format!("bad response: {out}")))?;
     let body = out.split_once("\r\n\r\n").map(|x| x.1.to_string()).unwrap_or_default();
     Ok((status, body))
 }
@@ -126,7 +137,8 @@ async fn receive_video(track: Arc<TrackRemote>, pictures: mpsc::UnboundedSender<
         if let Ok(Some(yuv)) = decoder.decode(&unit) {
             let (width, height) = yuv.dimensions();
             let stride = yuv.strides().0;
-            let luma: Vec<u8> = (0..height).flat_map(|r| yuv.y()[r * stride..r * stride + width].iter().copied()).collect();
+            let luma: Vec<u8> =
+                (0..height).flat_map(|r| yuv.y()[r * stride..r * stride + width].iter().copied()).collect();
             let mean_y = luma.iter().map(|&v| f64::from(v)).sum::<f64>() / luma.len().max(1) as f64;
             let picture = Picture { width, height, idr, bytes: unit.len(), mean_y, luma };
             if pictures.send(picture).is_err() {
@@ -159,7 +171,11 @@ impl Client {
         }
     }
 
-    async fn negotiate(http: SocketAddr, options: ClientOptions, pc: &Arc<RTCPeerConnection>) -> Result<Client, ClientError> {
+    async fn negotiate(
+        http: SocketAddr,
+        options: ClientOptions,
+        pc: &Arc<RTCPeerConnection>,
+    ) -> Result<Client, ClientError> {
         let init = RTCRtpTransceiverInit { direction: RTCRtpTransceiverDirection::Recvonly, send_encodings: vec![] };
         pc.add_transceiver_from_kind(RTPCodecType::Video, Some(init)).await?;
         let (pictures_tx, pictures) = mpsc::unbounded_channel();
@@ -182,7 +198,9 @@ impl Client {
         let offer = pc.create_offer(None).await?;
         let mut gathered = pc.gathering_complete_promise().await;
         pc.set_local_description(offer).await?;
-        tokio::time::timeout(Duration::from_secs(10), gathered.recv()).await.map_err(|_| ClientError::Timeout("ICE gathering"))?;
+        tokio::time::timeout(Duration::from_secs(10), gathered.recv())
+            .await
+            .map_err(|_| ClientError::Timeout("ICE gathering"))?;
         let offer = pc.local_description().await.ok_or(ClientError::Timeout("local description"))?;
         let offer_sdp = offer.sdp;
         let mut body = serde_json::json!({ "type": "offer", "sdp": offer_sdp }).to_string();
@@ -196,8 +214,10 @@ impl Client {
         if status != 201 {
             return Err(ClientError::Refused { status, body: reply });
         }
-        let answer: serde_json::Value = serde_json::from_str(&reply).map_err(|e| ClientError::Http(format!("answer is not JSON: {e}")))?;
-        let field = |k: &str| answer.get(k).cloned().ok_or_else(|| ClientError::Http(format!("answer lacks '{k}': {reply}")));
+        let answer: serde_json::Value =
+            serde_json::from_str(&reply).map_err(|e| ClientError::Http(format!("answer is not JSON: {e}")))?;
+        let field =
+            |k: &str| answer.get(k).cloned().ok_or_else(|| ClientError::Http(format!("answer lacks '{k}': {reply}")));
         let sdp = field("sdp")?.as_str().unwrap_or_default().to_string();
         // The composer answers `session` (a number), the master `session_id` (a name).
         let session_name = answer.get("session_id").and_then(|v| v.as_str()).map(str::to_owned);
@@ -207,12 +227,18 @@ impl Client {
         };
         let token = field("token")?.as_str().unwrap_or_default().to_string();
         pc.set_remote_description(RTCSessionDescription::answer(sdp.clone())?).await?;
-        tokio::time::timeout(Duration::from_secs(15), open_rx.recv()).await.map_err(|_| ClientError::Timeout("the data channel to open"))?;
+        tokio::time::timeout(Duration::from_secs(15), open_rx.recv())
+            .await
+            .map_err(|_| ClientError::Timeout("the data channel to open"))?;
         Ok(Client { pc: Arc::clone(pc), dc, pictures, texts, session, session_name, token, offer_sdp, answer_sdp: sdp })
     }
 
     /// The next decoded picture that satisfies `accept`, within `timeout`.
-    pub async fn next_picture(&mut self, timeout: Duration, accept: impl Fn(&Picture) -> bool) -> Result<Picture, ClientError> {
+    pub async fn next_picture(
+        &mut self,
+        timeout: Duration,
+        accept: impl Fn(&Picture) -> bool,
+    ) -> Result<Picture, ClientError> {
         let deadline = tokio::time::Instant::now() + timeout;
         loop {
             match tokio::time::timeout_at(deadline, self.pictures.recv()).await {

@@ -23,8 +23,8 @@
 
 use openh264::OpenH264API;
 use openh264::encoder::{
-    BitRate, Complexity, Encoder, EncoderConfig, FrameRate, FrameType, IntraFramePeriod, Profile, RateControlMode, SpsPpsStrategy,
-    TransferCharacteristics, UsageType, VuiConfig,
+    BitRate, Complexity, Encoder, EncoderConfig, FrameRate, FrameType, IntraFramePeriod, Profile, RateControlMode,
+    SpsPpsStrategy, TransferCharacteristics, UsageType, VuiConfig,
 };
 use openh264::formats::YUVSource;
 use thiserror::Error;
@@ -60,7 +60,9 @@ pub fn check_resolution(width: u32, height: u32) -> Result<(), EncodeError> {
     }
     let (long, short) = (width.max(height), width.min(height));
     if long > MAX_LONG_SIDE || short > MAX_SHORT_SIDE {
-        return fail(format!("the encoder's limit is {MAX_LONG_SIDE}x{MAX_SHORT_SIDE} (or {MAX_SHORT_SIDE}x{MAX_LONG_SIDE})"));
+        return fail(format!(
+            "the encoder's limit is {MAX_LONG_SIDE}x{MAX_SHORT_SIDE} (or {MAX_SHORT_SIDE}x{MAX_LONG_SIDE})"
+        ));
     }
     Ok(())
 }
@@ -116,7 +118,10 @@ impl EncoderSettings {
     pub fn validate(&self) -> Result<(), EncodeError> {
         check_resolution(self.width, self.height)?;
         if !(1_000..=200_000_000).contains(&self.bitrate_bps) {
-            return Err(EncodeError::Settings(format!("bitrate {} bit/s outside 1 kbit/s..200 Mbit/s", self.bitrate_bps)));
+            return Err(EncodeError::Settings(format!(
+                "bitrate {} bit/s outside 1 kbit/s..200 Mbit/s",
+                self.bitrate_bps
+            )));
         }
         if !(self.fps.is_finite() && (1.0..=240.0).contains(&self.fps)) {
             return Err(EncodeError::Settings(format!("frame rate {} outside 1..240", self.fps)));
@@ -235,7 +240,10 @@ pub struct H264Encoder {
 
 impl std::fmt::Debug for H264Encoder {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("H264Encoder").field("settings", &self.settings).field("stats", &self.stats).finish_non_exhaustive()
+        f.debug_struct("H264Encoder")
+            .field("settings", &self.settings)
+            .field("stats", &self.stats)
+            .finish_non_exhaustive()
     }
 }
 
@@ -261,7 +269,8 @@ impl H264Encoder {
             .sps_pps_strategy(SpsPpsStrategy::ConstantId)
             .num_threads(settings.threads)
             .vui(VuiConfig::bt709().transfer_characteristics(TransferCharacteristics::Srgb).full_range(false));
-        let inner = Encoder::with_api_config(OpenH264API::from_source(), config).map_err(|e| EncodeError::OpenH264(e.to_string()))?;
+        let inner = Encoder::with_api_config(OpenH264API::from_source(), config)
+            .map_err(|e| EncodeError::OpenH264(e.to_string()))?;
         Ok(H264Encoder {
             inner,
             settings,
@@ -288,7 +297,12 @@ impl H264Encoder {
     pub fn encode(&mut self, picture: &Yuv420, timestamp_ms: u64) -> Result<EncodedFrame, EncodeError> {
         let s = self.settings;
         if picture.width() != s.width || picture.height() != s.height {
-            return Err(EncodeError::FrameSize { width: s.width, height: s.height, got_w: picture.width(), got_h: picture.height() });
+            return Err(EncodeError::FrameSize {
+                width: s.width,
+                height: s.height,
+                got_w: picture.width(),
+                got_h: picture.height(),
+            });
         }
         // The first frame is an IDR anyway; forcing it before the encoder is initialised
         // (which happens inside the first encode) is not allowed by OpenH264.
@@ -539,7 +553,10 @@ mod tests {
             let kinds = types(&frame);
             if t == 0 || t == 5 {
                 assert_eq!(frame.kind, FrameKind::Idr, "frame {t}");
-                assert!(kinds.contains(&nal::SPS) && kinds.contains(&nal::PPS) && kinds.contains(&nal::IDR), "frame {t}: {kinds:?}");
+                assert!(
+                    kinds.contains(&nal::SPS) && kinds.contains(&nal::PPS) && kinds.contains(&nal::IDR),
+                    "frame {t}: {kinds:?}"
+                );
                 let sps = units.iter().find(|u| nal_type(u) == Some(nal::SPS)).unwrap();
                 let (profile, constraints, _level) = sps_profile(sps).unwrap();
                 assert_eq!(profile, 66, "baseline profile_idc");

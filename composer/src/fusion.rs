@@ -79,7 +79,9 @@ impl FrameLayout {
     pub fn grid(view_width: u32, view_height: u32, views: u16, columns: u16) -> Result<Self, FusionError> {
         let bad = |m: String| Err(FusionError::Layout(m));
         if view_width == 0 || view_height == 0 || view_width > MAX_VIEW_SIDE || view_height > MAX_VIEW_SIDE {
-            return bad(format!("view size {view_width}x{view_height} must be within 1..={MAX_VIEW_SIDE} on each side"));
+            return bad(format!(
+                "view size {view_width}x{view_height} must be within 1..={MAX_VIEW_SIDE} on each side"
+            ));
         }
         if views == 0 || views > MAX_VIEWS {
             return bad(format!("{views} views; must be within 1..={MAX_VIEWS}"));
@@ -89,7 +91,11 @@ impl FrameLayout {
         }
         let layout = FrameLayout { view_width, view_height, views, columns };
         if layout.pixel_count() as u64 > MAX_FRAME_PIXELS {
-            return bad(format!("packed frame {}x{} exceeds {MAX_FRAME_PIXELS} pixels", layout.width(), layout.height()));
+            return bad(format!(
+                "packed frame {}x{} exceeds {MAX_FRAME_PIXELS} pixels",
+                layout.width(),
+                layout.height()
+            ));
         }
         Ok(layout)
     }
@@ -230,7 +236,11 @@ impl BatchResult {
         // the offending item of a batch already known to be bad.
         let max_pixel = self.pixels.iter().fold(0u32, |m, &p| m.max(p));
         if n > 0 && u64::from(max_pixel) >= count {
-            return fail(format!("pixel {max_pixel} outside the {}x{} view", layout.view_width(), layout.view_height()));
+            return fail(format!(
+                "pixel {max_pixel} outside the {}x{} view",
+                layout.view_width(),
+                layout.view_height()
+            ));
         }
         // On the bit patterns (integer compares vectorise, and NaN needs no special case):
         // finite and >= 0 is +0..+MAX or -0; within [0, 1] is +0..=1.0 or -0.
@@ -436,7 +446,12 @@ impl Compositor {
         let count = plan.layout.view_pixel_count() as u64;
         for (i, b) in plan.batches.iter().enumerate() {
             if b.view >= plan.layout.views() {
-                return Err(FusionError::InvalidPlan(format!("batch {:?} in view {} of {}", b.key, b.view, plan.layout.views())));
+                return Err(FusionError::InvalidPlan(format!(
+                    "batch {:?} in view {} of {}",
+                    b.key,
+                    b.view,
+                    plan.layout.views()
+                )));
             }
             if let Some(p) = b.pixels.iter().find(|&&p| u64::from(p) >= count) {
                 return Err(FusionError::InvalidPlan(format!("batch {:?} plans pixel {p} outside its view", b.key)));
@@ -517,12 +532,8 @@ impl Compositor {
         ids.sort_unstable();
         for id in ids {
             let Some(state) = self.sessions.get_mut(&id) else { continue };
-            let ready = state
-                .pending
-                .iter()
-                .rev()
-                .find(|(_, p)| p.is_complete() || now >= p.plan.deadline)
-                .map(|(&f, _)| f);
+            let ready =
+                state.pending.iter().rev().find(|(_, p)| p.is_complete() || now >= p.plan.deadline).map(|(&f, _)| f);
             let Some(frame) = ready else { continue };
             let older: Vec<FrameId> = state.pending.range(..frame).map(|(&f, _)| f).collect();
             for f in older {
@@ -700,7 +711,15 @@ fn fuse(pending: &PendingFrame, last: Option<&[[f32; 3]]>, band_pixels: usize) -
                         break;
                     }
                     let target = OutRows { rows: &mut *out, width, x0: column * vw, first_row: row - first_row, vw };
-                    samples_fused += fuse_view_rows(batches, scratch, view as u16, (y0 * vw) as u32, (y1 * vw) as u32, background, target);
+                    samples_fused += fuse_view_rows(
+                        batches,
+                        scratch,
+                        view as u16,
+                        (y0 * vw) as u32,
+                        (y1 * vw) as u32,
+                        background,
+                        target,
+                    );
                 }
                 row = segment_end;
             }
@@ -740,7 +759,15 @@ struct OutRows<'a> {
 
 /// Fuses the pixels `[from, to)` (whole rows) of one view into `out`; returns the samples
 /// composited.
-fn fuse_view_rows(batches: &[BatchView], scratch: &mut FuseScratch, view: u16, from: u32, to: u32, background: [f32; 3], out: OutRows) -> u64 {
+fn fuse_view_rows(
+    batches: &[BatchView],
+    scratch: &mut FuseScratch,
+    view: u16,
+    from: u32,
+    to: u32,
+    background: [f32; 3],
+    out: OutRows,
+) -> u64 {
     let reaching = || batches.iter().filter(move |b| b.batch.view == view && b.max_pixel >= from && b.min_pixel < to);
     let span = (to - from) as usize;
     // ends[k + 1] counts the samples of pixel from + k; after the prefix sum, ends[k] is where
@@ -841,11 +868,31 @@ mod tests {
         PlannedBatch { key: BatchKey { object, batch }, view, pixels: pixels.into() }
     }
 
-    fn result(frame: FrameId, object: u32, batch: u32, view: u16, pixels: &[u32], items: &[([f32; 3], f32, f32)]) -> BatchResult {
-        BatchResult { session: 1, frame, view, key: BatchKey { object, batch }, pixels: pixels.to_vec(), results: results(items) }
+    fn result(
+        frame: FrameId,
+        object: u32,
+        batch: u32,
+        view: u16,
+        pixels: &[u32],
+        items: &[([f32; 3], f32, f32)],
+    ) -> BatchResult {
+        BatchResult {
+            session: 1,
+            frame,
+            view,
+            key: BatchKey { object, batch },
+            pixels: pixels.to_vec(),
+            results: results(items),
+        }
     }
 
-    fn plan(frame: FrameId, layout: FrameLayout, background: [f32; 3], deadline: Instant, batches: Vec<PlannedBatch>) -> FramePlan {
+    fn plan(
+        frame: FrameId,
+        layout: FrameLayout,
+        background: [f32; 3],
+        deadline: Instant,
+        batches: Vec<PlannedBatch>,
+    ) -> FramePlan {
         FramePlan { session: 1, frame, layout, background, deadline, batches }
     }
 
@@ -1057,12 +1104,19 @@ mod tests {
     #[test]
     fn edge_values_pass_validation() {
         let layout = FrameLayout::mono(4, 1).unwrap();
-        let ok = result(0, 0, 0, 0, &[0, 1, 2, 3], &[
-            ([-0.0, 0.0, f32::MAX], -0.0, 0.0),
-            ([0.0; 3], 0.0, 0.0),
-            ([1e-30, 2.0, 3.0], 1.0, f32::MAX),
-            ([0.5; 3], f32::MIN_POSITIVE, 1e-30),
-        ]);
+        let ok = result(
+            0,
+            0,
+            0,
+            0,
+            &[0, 1, 2, 3],
+            &[
+                ([-0.0, 0.0, f32::MAX], -0.0, 0.0),
+                ([0.0; 3], 0.0, 0.0),
+                ([1e-30, 2.0, 3.0], 1.0, f32::MAX),
+                ([0.5; 3], f32::MIN_POSITIVE, 1e-30),
+            ],
+        );
         assert_eq!(ok.validate(&layout), Ok(()));
         let bad = result(0, 0, 0, 0, &[0], &[([0.0; 3], 1.0 + f32::EPSILON, 1.0)]);
         assert!(bad.validate(&layout).is_err());
@@ -1074,7 +1128,8 @@ mod tests {
     fn pending_frames_and_early_batches_are_bounded() {
         let t0 = Instant::now();
         let layout = FrameLayout::mono(1, 1).unwrap();
-        let mut c = Compositor::new(FusionLimits { max_pending_frames: 2, max_early_batches: 1, ..FusionLimits::default() });
+        let mut c =
+            Compositor::new(FusionLimits { max_pending_frames: 2, max_early_batches: 1, ..FusionLimits::default() });
         c.open_session(1).unwrap();
         for f in 0..4 {
             c.plan_frame(plan(f, layout, [0.0; 3], t0 + Duration::from_secs(1), vec![planned(0, 0, 0, &[0])])).unwrap();

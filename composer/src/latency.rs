@@ -188,12 +188,31 @@ mod tests {
         tracker.pose_received(1, 7, at(0));
         assert_eq!(tracker.pose_time(1, 7), Some(at(0)));
         assert_eq!(tracker.pose_time(1, 8), None);
-        let timing = FrameTiming { pose_sequence: 7, client_time_ms: 140.0, pose_received: tracker.pose_time(1, 7), plan_received: at(2), results_complete: at(30), render_ms: Some(1.5) };
+        let timing = FrameTiming {
+            pose_sequence: 7,
+            client_time_ms: 140.0,
+            pose_received: tracker.pose_time(1, 7),
+            plan_received: at(2),
+            results_complete: at(30),
+            render_ms: Some(1.5),
+        };
         tracker.frame_planned(1, 3, timing);
         let timing = tracker.take_frame(1, 3).expect("planned");
         assert!(tracker.take_frame(1, 3).is_none());
         let stages = Stages::of(&timing, at(31), at(33), at(40), at(41));
-        assert_eq!(stages, Stages { total: Some(41.0), farm: Some(2.0), render: Some(1.5), results_wait: 28.0, fusion: 1.0, yuv: 2.0, encode: 7.0, send: 1.0 });
+        assert_eq!(
+            stages,
+            Stages {
+                total: Some(41.0),
+                farm: Some(2.0),
+                render: Some(1.5),
+                results_wait: 28.0,
+                fusion: 1.0,
+                yuv: 2.0,
+                encode: 7.0,
+                send: 1.0
+            }
+        );
         for _ in 0..98 {
             tracker.frame_sent(stages);
         }
@@ -214,7 +233,14 @@ mod tests {
         let now = Instant::now();
         for i in 0..10_000u32 {
             tracker.pose_received(1, i, now);
-            let timing = FrameTiming { pose_sequence: i, client_time_ms: 0.0, pose_received: None, plan_received: now + Duration::from_micros(u64::from(i)), results_complete: now, render_ms: None };
+            let timing = FrameTiming {
+                pose_sequence: i,
+                client_time_ms: 0.0,
+                pose_received: None,
+                plan_received: now + Duration::from_micros(u64::from(i)),
+                results_complete: now,
+                render_ms: None,
+            };
             tracker.frame_planned(1, u64::from(i), timing);
             tracker.frame_sent(Stages::default());
         }

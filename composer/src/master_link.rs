@@ -20,9 +20,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use futures_util::SinkExt;
-use nephele_proto::stream::{framed, handshake, recv};
-use nephele_proto::{ClientPose, CloseStream, ComposerRegister, FrameConfig, FramePlan, Message, Role, StreamOpened, WireCamera};
 use nephele_geometry::PixelResults;
+use nephele_proto::stream::{framed, handshake, recv};
+use nephele_proto::{
+    ClientPose, CloseStream, ComposerRegister, FrameConfig, FramePlan, Message, Role, StreamOpened, WireCamera,
+};
 use tokio::net::TcpStream;
 use tokio::sync::{mpsc, watch};
 
@@ -50,10 +52,23 @@ pub(crate) fn forward_pose(shared: &Shared, session: SessionId, pose: &Pose) {
     let views = pose
         .views
         .iter()
-        .map(|v| WireCamera { width: v.width, height: v.height, view: v.view.to_cols_array(), projection: v.projection.to_cols_array() })
+        .map(|v| WireCamera {
+            width: v.width,
+            height: v.height,
+            view: v.view.to_cols_array(),
+            projection: v.projection.to_cols_array(),
+        })
         .collect();
     lock(&shared.latency).pose_received(session, pose.seq, Instant::now());
-    to_master(shared, Message::ClientPose(ClientPose { session_id: session, sequence: pose.seq, client_time_ms: pose.client_time_ms, views }));
+    to_master(
+        shared,
+        Message::ClientPose(ClientPose {
+            session_id: session,
+            sequence: pose.seq,
+            client_time_ms: pose.client_time_ms,
+            views,
+        }),
+    );
 }
 
 /// Keeps a link to the master up until `stop`.
@@ -71,11 +86,18 @@ pub(crate) async fn run(shared: Arc<Shared>, master: String, results: SocketAddr
     }
 }
 
-async fn link(shared: &Arc<Shared>, master: &str, results: SocketAddr, stop: &mut watch::Receiver<bool>) -> Result<(), String> {
+async fn link(
+    shared: &Arc<Shared>,
+    master: &str,
+    results: SocketAddr,
+    stop: &mut watch::Receiver<bool>,
+) -> Result<(), String> {
     let stream = TcpStream::connect(master).await.map_err(|e| format!("connecting: {e}"))?;
     let _ = stream.set_nodelay(true);
     let mut conn = framed(stream, FrameConfig::default());
-    handshake(&mut conn, Role::Composer, &[Role::Master], HANDSHAKE_TIMEOUT).await.map_err(|e| format!("handshake: {e}"))?;
+    handshake(&mut conn, Role::Composer, &[Role::Master], HANDSHAKE_TIMEOUT)
+        .await
+        .map_err(|e| format!("handshake: {e}"))?;
     let register = ComposerRegister { name: shared.config.name.clone(), results_address: results.to_string() };
     conn.send(&Message::ComposerRegister(register)).await.map_err(|e| format!("registering: {e}"))?;
     match tokio::time::timeout(HANDSHAKE_TIMEOUT, recv(&mut conn)).await {
@@ -105,7 +127,10 @@ fn handle(shared: &Arc<Shared>, message: Message) {
             tokio::spawn(async move {
                 let answer = match layout_for(open.width, open.height, open.views.min(u32::from(u16::MAX)) as u16) {
                     Err(e) => Err(format!("bad view size: {e}")),
-                    Ok(layout) => open_viewer(&shared, open.session_id, open.offer_sdp, layout).await.map(|(_, sdp)| sdp).map_err(|(_, e)| e),
+                    Ok(layout) => open_viewer(&shared, open.session_id, open.offer_sdp, layout)
+                        .await
+                        .map(|(_, sdp)| sdp)
+                        .map_err(|(_, e)| e),
                 };
                 if let Err(e) = &answer {
                     tracing::info!(session = open.session_id, "stream refused: {e}");
@@ -182,14 +207,26 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
                     let mut covered = Vec::new();
                     for (j, r) in batches.iter().enumerate() {
                         if (r.width, r.height) != (plan.width, plan.height) {
-                            return Err(format!("task {} rendered {}x{}, the plan says {}x{}", part.task_id, r.width, r.height, plan.width, plan.height));
+                            return Err(format!(
+                                "task {} rendered {}x{}, the plan says {}x{}",
+                                part.task_id, r.width, r.height, plan.width, plan.height
+                            ));
                         }
-                        let key = BatchKey { object, batch: u32::try_from(j).map_err(|_| "too many batches".to_string())? };
+                        let key =
+                            BatchKey { object, batch: u32::try_from(j).map_err(|_| "too many batches".to_string())? };
                         planned.push(PlannedBatch { key, view, pixels: r.pixels.clone().into() });
                         covered.extend_from_slice(&r.pixels);
                         *render_us.entry(r.worker_id).or_default() += r.render_time_us;
-                        let results = PixelResults { color: r.color.clone(), opacity: r.opacity.clone(), depth: r.depth.clone() };
-                        arrived.push(fusion::BatchResult { session, frame, view, key, pixels: r.pixels.clone(), results });
+                        let results =
+                            PixelResults { color: r.color.clone(), opacity: r.opacity.clone(), depth: r.depth.clone() };
+                        arrived.push(fusion::BatchResult {
+                            session,
+                            frame,
+                            view,
+                            key,
+                            pixels: r.pixels.clone(),
+                            results,
+                        });
                     }
                     last.insert(key, covered.into());
                 }
@@ -197,7 +234,11 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
                     // Never arrived: plan the object's pixels of the previous frame without a
                     // result, so the compositor fills them from that frame.
                     if let Some(pixels) = last.get(&key) {
-                        planned.push(PlannedBatch { key: BatchKey { object, batch: 0 }, view, pixels: Arc::clone(pixels) });
+                        planned.push(PlannedBatch {
+                            key: BatchKey { object, batch: 0 },
+                            view,
+                            pixels: Arc::clone(pixels),
+                        });
                         missing = true;
                     }
                 }
@@ -209,7 +250,14 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
         let mut latency = lock(&shared.latency);
         let pose_received = latency.pose_time(session, plan.pose_sequence);
         let render_ms = render_us.values().max().map(|&us| us as f64 / 1e3);
-        let timing = FrameTiming { pose_sequence: plan.pose_sequence, client_time_ms: plan.client_time_ms, pose_received, plan_received, results_complete, render_ms };
+        let timing = FrameTiming {
+            pose_sequence: plan.pose_sequence,
+            client_time_ms: plan.client_time_ms,
+            pose_received,
+            plan_received,
+            results_complete,
+            render_ms,
+        };
         latency.frame_planned(session, frame, timing);
     }
     let plan = fusion::FramePlan { session, frame, layout, background: [0.0; 3], deadline, batches: planned };
@@ -227,7 +275,12 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
 }
 
 /// A worker's connection to the results listener: `Hello`, then `BatchResult`s.
-pub(crate) async fn read_results(shared: Arc<Shared>, stream: TcpStream, peer: SocketAddr, mut stop: watch::Receiver<bool>) {
+pub(crate) async fn read_results(
+    shared: Arc<Shared>,
+    stream: TcpStream,
+    peer: SocketAddr,
+    mut stop: watch::Receiver<bool>,
+) {
     let _ = stream.set_nodelay(true);
     let mut conn = framed(stream, FrameConfig::default());
     if let Err(e) = handshake(&mut conn, Role::Composer, &[Role::Worker, Role::Tool], HANDSHAKE_TIMEOUT).await {

@@ -191,8 +191,12 @@ pub enum Control {
     /// Ask for a keyframe (e.g. after a decoder error).
     Keyframe,
     /// Round-trip probe; answered with `Pong` carrying the same `t`.
-    Ping { t: f64 },
-    Pong { t: f64 },
+    Ping {
+        t: f64,
+    },
+    Pong {
+        t: f64,
+    },
 }
 
 /// Per-viewer pose counters.
@@ -211,7 +215,10 @@ pub enum PoseDrop {
     Malformed(PoseError),
     RateLimited,
     /// Older than (or the same as) the last accepted sequence number.
-    Stale { seq: u32, last: u32 },
+    Stale {
+        seq: u32,
+        last: u32,
+    },
 }
 
 /// Token bucket against pose floods, time passed in.
@@ -290,10 +297,18 @@ impl PoseInbox {
 
 /// A one-view pose looking at `target` from `eye` (world +Z up) with a symmetric frustum of
 /// vertical field of view `fov_y` (radians), for tests, benchmarks and headless clients.
-pub fn look_at_pose(seq: u32, width: u32, height: u32, fov_y: f32, eye: glam::Vec3, target: glam::Vec3) -> Result<Pose, PoseError> {
+pub fn look_at_pose(
+    seq: u32,
+    width: u32,
+    height: u32,
+    fov_y: f32,
+    eye: glam::Vec3,
+    target: glam::Vec3,
+) -> Result<Pose, PoseError> {
     let camera = Camera::look_at(width, height, fov_y, eye, target, glam::Vec3::Z)
         .map_err(|e| PoseError::BadView { view: 0, reason: e.to_string() })?;
-    let view = ViewPose { width, height, view: camera.world_to_camera(), projection: camera.projection_matrix(0.05, 100.0) };
+    let view =
+        ViewPose { width, height, view: camera.world_to_camera(), projection: camera.projection_matrix(0.05, 100.0) };
     Ok(Pose { seq, mode: 0, client_time_ms: f64::from(seq) * 20.0, views: vec![view] })
 }
 

@@ -204,7 +204,10 @@ pub struct Composer {
 
 impl std::fmt::Debug for Composer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Composer").field("http", &self.http_addr).field("results", &self.results_addr).finish_non_exhaustive()
+        f.debug_struct("Composer")
+            .field("http", &self.http_addr)
+            .field("results", &self.results_addr)
+            .finish_non_exhaustive()
     }
 }
 
@@ -221,15 +224,23 @@ impl Composer {
         }
         layout_for(config.default_view.0, config.default_view.1, 1).map_err(ServiceError::Config)?;
         let rtc = RtcStack::new(config.rtc.clone())?;
-        let http = TcpListener::bind(config.http_addr)
-            .await
-            .map_err(|source| ServiceError::Bind { what: "HTTP", addr: config.http_addr, source })?;
-        let results = TcpListener::bind(config.results_addr)
-            .await
-            .map_err(|source| ServiceError::Bind { what: "worker results", addr: config.results_addr, source })?;
-        let http_addr = http.local_addr().map_err(|source| ServiceError::Bind { what: "HTTP", addr: config.http_addr, source })?;
-        let results_addr =
-            results.local_addr().map_err(|source| ServiceError::Bind { what: "worker results", addr: config.results_addr, source })?;
+        let http = TcpListener::bind(config.http_addr).await.map_err(|source| ServiceError::Bind {
+            what: "HTTP",
+            addr: config.http_addr,
+            source,
+        })?;
+        let results = TcpListener::bind(config.results_addr).await.map_err(|source| ServiceError::Bind {
+            what: "worker results",
+            addr: config.results_addr,
+            source,
+        })?;
+        let http_addr =
+            http.local_addr().map_err(|source| ServiceError::Bind { what: "HTTP", addr: config.http_addr, source })?;
+        let results_addr = results.local_addr().map_err(|source| ServiceError::Bind {
+            what: "worker results",
+            addr: config.results_addr,
+            source,
+        })?;
         let (events_tx, events_rx) = mpsc::channel(4096);
         let (poses, _) = broadcast::channel(256);
         let shared = Arc::new(Shared {
@@ -268,7 +279,12 @@ impl Composer {
         tasks.push(tokio::spawn(fusion_loop(Arc::clone(&shared), stop_rx.clone())));
         tasks.push(tokio::spawn(event_loop(Arc::clone(&shared), events_rx, stop_rx.clone())));
         if let Some(master) = shared.config.master.clone() {
-            tasks.push(tokio::spawn(crate::master_link::run(Arc::clone(&shared), master, results_addr, stop_rx.clone())));
+            tasks.push(tokio::spawn(crate::master_link::run(
+                Arc::clone(&shared),
+                master,
+                results_addr,
+                stop_rx.clone(),
+            )));
         }
         if shared.config.source == FrameSource::TestPattern {
             tasks.push(tokio::spawn(test_pattern_loop(Arc::clone(&shared), stop_rx)));
@@ -373,13 +389,16 @@ async fn create_session(State(shared): State<Arc<Shared>>, body: axum::body::Byt
         return error(StatusCode::BAD_REQUEST, format!("expected an SDP offer, got type '{kind}'"));
     }
     let (dw, dh) = shared.config.default_view;
-    let layout = match layout_for(request.width.unwrap_or(dw), request.height.unwrap_or(dh), request.views.unwrap_or(1)) {
+    let layout = match layout_for(request.width.unwrap_or(dw), request.height.unwrap_or(dh), request.views.unwrap_or(1))
+    {
         Ok(l) => l,
         Err(e) => return error(StatusCode::BAD_REQUEST, format!("bad view size: {e}")),
     };
     let id = request.session.unwrap_or_else(|| shared.next_session.fetch_add(1, Ordering::Relaxed));
     match open_viewer(&shared, id, request.sdp, layout).await {
-        Ok((token, sdp)) => (StatusCode::CREATED, Json(AnswerResponse { session: id, token, kind: "answer", sdp })).into_response(),
+        Ok((token, sdp)) => {
+            (StatusCode::CREATED, Json(AnswerResponse { session: id, token, kind: "answer", sdp })).into_response()
+        }
         Err((status, message)) => {
             let mut r = error(status, message);
             if status == StatusCode::SERVICE_UNAVAILABLE {
@@ -392,7 +411,12 @@ async fn create_session(State(shared): State<Arc<Shared>>, body: axum::body::Byt
 
 /// Accepts a viewer's offer for session `id`: the peer connection, the fusion state and the
 /// media thread. Answers `(token, answer SDP)`, or the HTTP status and reason of a refusal.
-pub(crate) async fn open_viewer(shared: &Arc<Shared>, id: SessionId, offer: String, layout: FrameLayout) -> Result<(String, String), (StatusCode, String)> {
+pub(crate) async fn open_viewer(
+    shared: &Arc<Shared>,
+    id: SessionId,
+    offer: String,
+    layout: FrameLayout,
+) -> Result<(String, String), (StatusCode, String)> {
     if lock(&shared.sessions).len() >= shared.config.max_sessions {
         return Err((StatusCode::SERVICE_UNAVAILABLE, "the composer is full".into()));
     }
@@ -451,7 +475,11 @@ async fn list_sessions(State(shared): State<Arc<Shared>>) -> Response {
 }
 
 async fn delete_session(State(shared): State<Arc<Shared>>, Path(id): Path<SessionId>, headers: HeaderMap) -> Response {
-    let token = headers.get("authorization").and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer ")).map(str::trim);
+    let token = headers
+        .get("authorization")
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .map(str::trim);
     let known = lock(&shared.sessions).get(&id).map(|e| e.token.clone());
     match known {
         None => error(StatusCode::NOT_FOUND, format!("no session {id}")),
@@ -554,7 +582,8 @@ fn spawn_media_thread(
             if let Some(timing) = timing {
                 // Tells the viewer which of its poses this frame shows (the client's and
                 // `nephele loadgen`'s pose-to-frame latency).
-                let note = serde_json::json!({ "type": "frame", "t": timing.client_time_ms, "seq": timing.pose_sequence });
+                let note =
+                    serde_json::json!({ "type": "frame", "t": timing.client_time_ms, "seq": timing.pose_sequence });
                 let _ = runtime.block_on(viewer.send_text(note.to_string()));
             }
             let mut m = lock(&media);
@@ -698,7 +727,10 @@ async fn event_loop(shared: Arc<Shared>, mut events: mpsc::Receiver<ViewerEvent>
                 if lock(&shared.sessions).contains_key(&id) {
                     crate::master_link::to_master(
                         &shared,
-                        nephele_proto::Message::CloseStream(nephele_proto::CloseStream { session_id: id, reason: format!("viewer gone ({state})") }),
+                        nephele_proto::Message::CloseStream(nephele_proto::CloseStream {
+                            session_id: id,
+                            reason: format!("viewer gone ({state})"),
+                        }),
                     );
                 }
                 end_session(&shared, id).await;
@@ -746,7 +778,8 @@ async fn event_loop(shared: Arc<Shared>, mut events: mpsc::Receiver<ViewerEvent>
 /// Cameras of a session's views: from its latest pose, or a default view of the pattern.
 fn cameras_for(layout: FrameLayout, pose: Option<&Pose>) -> Vec<Camera> {
     let (w, h) = (layout.view_width(), layout.view_height());
-    let from_pose = pose.and_then(|p| p.views.iter().map(|v| Camera::from_view_projection(w, h, v.view, v.projection).ok()).collect());
+    let from_pose = pose
+        .and_then(|p| p.views.iter().map(|v| Camera::from_view_projection(w, h, v.view, v.projection).ok()).collect());
     from_pose.unwrap_or_else(|| {
         let eye = glam::Vec3::new(0.0, -3.0, 1.0);
         (0..layout.views())

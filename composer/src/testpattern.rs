@@ -4,8 +4,8 @@
 //! composer without workers still exercises fusion, encoding and streaming, and the picture
 //! follows the pose.
 
-use nephele_geometry::camera::Camera;
 use nephele_geometry::PixelResults;
+use nephele_geometry::camera::Camera;
 
 use crate::fusion::{BatchKey, BatchResult, FrameLayout, PlannedBatch, SessionId};
 use crate::wire::PlanBody;
@@ -91,7 +91,8 @@ mod tests {
             b.validate(&layout).unwrap();
         }
         assert_ne!(batches_a[1].pixels, batches_b[1].pixels, "the translucent disc moves with the camera");
-        let behind = Camera::look_at(64, 48, 0.8, Vec3::new(0.0, -4.0, 0.0), Vec3::new(0.0, -8.0, 0.0), Vec3::Z).unwrap();
+        let behind =
+            Camera::look_at(64, 48, 0.8, Vec3::new(0.0, -4.0, 0.0), Vec3::new(0.0, -8.0, 0.0), Vec3::Z).unwrap();
         assert!(frame(1, 0, layout, &[behind]).1.is_empty());
     }
 }

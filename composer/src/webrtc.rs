@@ -111,7 +111,11 @@ impl IceServer {
                 if host.is_empty() || user.is_empty() {
                     return Err(bad());
                 }
-                Ok(IceServer { urls: vec![format!("{scheme}:{host}")], username: user.into(), credential: password.into() })
+                Ok(IceServer {
+                    urls: vec![format!("{scheme}:{host}")],
+                    username: user.into(),
+                    credential: password.into(),
+                })
             }
             _ => Err(bad()),
         }
@@ -207,7 +211,11 @@ pub fn build_api(config: &RtcConfig) -> Result<API, RtcError> {
         let ports = EphemeralUDP::new(lo, hi).map_err(|e| RtcError::Config(format!("UDP ports {lo}-{hi}: {e}")))?;
         settings.set_udp_network(UDPNetwork::Ephemeral(ports));
     }
-    Ok(APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build())
+    Ok(APIBuilder::new()
+        .with_media_engine(media)
+        .with_interceptor_registry(registry)
+        .with_setting_engine(settings)
+        .build())
 }
 
 /// The peer-connection factory of a composer.
@@ -233,7 +241,11 @@ impl RtcStack {
                 .config
                 .ice_servers
                 .iter()
-                .map(|s| RTCIceServer { urls: s.urls.clone(), username: s.username.clone(), credential: s.credential.clone() })
+                .map(|s| RTCIceServer {
+                    urls: s.urls.clone(),
+                    username: s.username.clone(),
+                    credential: s.credential.clone(),
+                })
                 .collect(),
             ..Default::default()
         }
@@ -242,7 +254,12 @@ impl RtcStack {
     /// Answers a viewer's offer: a peer connection with our H.264 track, handlers that turn
     /// everything the viewer does into [`ViewerEvent`]s on `events`, and the complete answer
     /// SDP (candidates included).
-    pub async fn accept(&self, session: SessionId, offer_sdp: String, events: mpsc::Sender<ViewerEvent>) -> Result<(String, Viewer), RtcError> {
+    pub async fn accept(
+        &self,
+        session: SessionId,
+        offer_sdp: String,
+        events: mpsc::Sender<ViewerEvent>,
+    ) -> Result<(String, Viewer), RtcError> {
         check_offer(&offer_sdp)?;
         let offer = RTCSessionDescription::offer(offer_sdp).map_err(|e| RtcError::BadOffer(e.to_string()))?;
         let pc = Arc::new(self.api.new_peer_connection(self.rtc_configuration()).await?);
@@ -262,7 +279,11 @@ impl RtcStack {
         offer: RTCSessionDescription,
         events: mpsc::Sender<ViewerEvent>,
     ) -> Result<(String, Viewer), RtcError> {
-        let track = Arc::new(TrackLocalStaticSample::new(h264_codec().capability, "video".into(), format!("nephele-{session}")));
+        let track = Arc::new(TrackLocalStaticSample::new(
+            h264_codec().capability,
+            "video".into(),
+            format!("nephele-{session}"),
+        ));
         let sender = pc.add_track(Arc::clone(&track) as Arc<dyn TrackLocal + Send + Sync>).await?;
 
         // RTCP from the viewer: picture loss / full intra request → keyframe.
@@ -335,7 +356,10 @@ impl RtcStack {
         if tokio::time::timeout(timeout, gathered.recv()).await.is_err() {
             return Err(RtcError::GatheringTimeout(timeout));
         }
-        let local = pc.local_description().await.ok_or_else(|| RtcError::Config("no local description after answering".into()))?;
+        let local = pc
+            .local_description()
+            .await
+            .ok_or_else(|| RtcError::Config("no local description after answering".into()))?;
         if !answer_sends_h264(&local.sdp) {
             return Err(RtcError::NoH264);
         }
@@ -395,7 +419,10 @@ pub struct Viewer {
 
 impl std::fmt::Debug for Viewer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Viewer").field("session", &self.session).field("connected", &self.is_connected()).finish_non_exhaustive()
+        f.debug_struct("Viewer")
+            .field("session", &self.session)
+            .field("connected", &self.is_connected())
+            .finish_non_exhaustive()
     }
 }
 
@@ -446,7 +473,10 @@ mod tests {
     fn ice_servers_parse_or_fail_clearly() {
         assert_eq!(IceServer::parse("stun:stun.example.org:3478").unwrap().urls, vec!["stun:stun.example.org:3478"]);
         let t = IceServer::parse("turn:alice:s3cret@turn.example.org:3478?transport=udp").unwrap();
-        assert_eq!((t.urls[0].as_str(), t.username.as_str(), t.credential.as_str()), ("turn:turn.example.org:3478?transport=udp", "alice", "s3cret"));
+        assert_eq!(
+            (t.urls[0].as_str(), t.username.as_str(), t.credential.as_str()),
+            ("turn:turn.example.org:3478?transport=udp", "alice", "s3cret")
+        );
         for bad in ["stun:", "turn:host:3478", "http://x", "turn:@host", "nothing"] {
             assert!(IceServer::parse(bad).is_err(), "{bad}");
         }
@@ -462,10 +492,13 @@ mod tests {
 
     #[test]
     fn answers_are_checked_for_an_active_h264_section() {
-        let ok = "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 102\r\na=rtpmap:102 H264/90000\r\na=sendonly\r\nm=application 9 x\r\n";
+        let ok =
+            "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 102\r\na=rtpmap:102 H264/90000\r\na=sendonly\r\nm=application 9 x\r\n";
         assert!(answer_sends_h264(ok));
         assert!(!answer_sends_h264("v=0\r\nm=video 0 UDP/TLS/RTP/SAVPF 0\r\n"));
         assert!(!answer_sends_h264("v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 96\r\na=rtpmap:96 VP8/90000\r\n"));
-        assert!(!answer_sends_h264("v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 102\r\na=rtpmap:102 H264/90000\r\na=inactive\r\n"));
+        assert!(!answer_sends_h264(
+            "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 102\r\na=rtpmap:102 H264/90000\r\na=inactive\r\n"
+        ));
     }
 }

@@ -262,7 +262,11 @@ mod tests {
             frame: 9,
             layout: FrameLayout::stereo(4, 3).unwrap(),
             background: [0.1, 0.2, 0.3],
-            batches: vec![PlannedBatch { key: BatchKey { object: 2, batch: 5 }, view: 1, pixels: vec![0, 7, 11].into() }],
+            batches: vec![PlannedBatch {
+                key: BatchKey { object: 2, batch: 5 },
+                view: 1,
+                pixels: vec![0, 7, 11].into(),
+            }],
         };
         let bytes = encode_plan(&plan, Duration::from_millis(40));
         assert_eq!(decode(&bytes[4..]), Ok(Message::Plan { plan, deadline: Duration::from_millis(40) }));
@@ -284,7 +288,13 @@ mod tests {
         assert!(matches!(decode(&lying), Err(WireError::Truncated(_))));
         assert_eq!(decode(&[42]), Err(WireError::UnknownKind(42)));
         let mut plan = encode_plan(
-            &PlanBody { session: 1, frame: 1, layout: FrameLayout::mono(2, 2).unwrap(), background: [0.0; 3], batches: vec![] },
+            &PlanBody {
+                session: 1,
+                frame: 1,
+                layout: FrameLayout::mono(2, 2).unwrap(),
+                background: [0.0; 3],
+                batches: vec![],
+            },
             Duration::ZERO,
         );
         plan[4 + 17..4 + 21].copy_from_slice(&0u32.to_le_bytes()); // view width 0

@@ -16,12 +16,21 @@ use tokio::net::TcpStream;
 
 const WAIT: Duration = Duration::from_secs(15);
 
-async fn http(addr: std::net::SocketAddr, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> (u16, String) {
+async fn http(
+    addr: std::net::SocketAddr,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+) -> (u16, String) {
     http_request(addr, method, path, headers, body).await.unwrap()
 }
 
 async fn connect(composer: &Composer, extra: &str) -> Client {
-    let client = Client::connect(composer.http_addr(), ClientOptions { extra_json: extra.into(), ..Default::default() }).await.unwrap();
+    let client =
+        Client::connect(composer.http_addr(), ClientOptions { extra_json: extra.into(), ..Default::default() })
+            .await
+            .unwrap();
     let sdp = &client.answer_sdp;
     assert!(sdp.contains("H264/90000") && sdp.contains("packetization-mode=1"), "{sdp}");
     assert!(sdp.contains("profile-level-id=42e01f"), "{sdp}");
@@ -111,7 +120,10 @@ async fn malformed_offers_get_a_clear_error() {
     let addr = composer.http_addr();
     let cases = [
         (r#"{"type":"offer","sdp":"hello"}"#, "malformed SDP"),
-        (r#"{"type":"offer","sdp":"v=0\r\no=- 1 1 IN IP4 0.0.0.0\r\ns=-\r\nt=0 0\r\nm=audio 9 UDP/TLS/RTP/SAVPF 111\r\n"}"#, "H.264"),
+        (
+            r#"{"type":"offer","sdp":"v=0\r\no=- 1 1 IN IP4 0.0.0.0\r\ns=-\r\nt=0 0\r\nm=audio 9 UDP/TLS/RTP/SAVPF 111\r\n"}"#,
+            "H.264",
+        ),
         (r#"{"type":"offer","sdp":"v=0\r\nm=video 9 garbage\r\n"}"#, "malformed SDP"),
         (r#"{"type":"answer","sdp":"v=0"}"#, "expected an SDP offer"),
         (r#"not json"#, "expected JSON"),

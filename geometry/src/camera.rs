@@ -68,18 +68,9 @@ pub enum CameraError {
     #[error("field of view {0} rad is not in the open interval (0, pi)")]
     FieldOfView(f32),
     #[error("invalid intrinsics fx={fx}, fy={fy}, cx={cx}, cy={cy}: {reason}")]
-    InvalidIntrinsics {
-        fx: f32,
-        fy: f32,
-        cx: f32,
-        cy: f32,
-        reason: &'static str,
-    },
+    InvalidIntrinsics { fx: f32, fy: f32, cx: f32, cy: f32, reason: &'static str },
     #[error("the {matrix} matrix is not a rigid transform (rotation and translation): {reason}")]
-    NotRigid {
-        matrix: &'static str,
-        reason: &'static str,
-    },
+    NotRigid { matrix: &'static str, reason: &'static str },
     #[error("the projection matrix is not an OpenGL perspective projection: {0}")]
     NotPerspective(&'static str),
     #[error("degenerate look-at: {0}")]
@@ -161,13 +152,7 @@ impl Camera {
         world_to_camera: Mat4,
     ) -> Result<Camera, CameraError> {
         check_image_size(width, height)?;
-        let invalid = |reason| CameraError::InvalidIntrinsics {
-            fx,
-            fy,
-            cx,
-            cy,
-            reason,
-        };
+        let invalid = |reason| CameraError::InvalidIntrinsics { fx, fy, cx, cy, reason };
         if !(fx > 0.0 && fy > 0.0 && Vec4::new(fx, fy, cx, cy).is_finite()) {
             return Err(invalid("focal lengths must be positive, all values finite"));
         }
@@ -179,36 +164,17 @@ impl Camera {
         if !(camera_to_world.is_finite() && world_to_camera.is_finite()) {
             return Err(CameraError::NonFinite("camera pose"));
         }
-        Ok(Camera {
-            width,
-            height,
-            fx,
-            fy,
-            cx,
-            cy,
-            camera_to_world,
-            world_to_camera,
-        })
+        Ok(Camera { width, height, fx, fy, cx, cy, camera_to_world, world_to_camera })
     }
 
     /// Camera with horizontal field of view `fov_x` (radians, NeRF's `camera_angle_x`), square
     /// pixels and the principal point at the image centre.
-    pub fn from_fov_x(
-        width: u32,
-        height: u32,
-        fov_x: f32,
-        camera_to_world: Mat4,
-    ) -> Result<Camera, CameraError> {
+    pub fn from_fov_x(width: u32, height: u32, fov_x: f32, camera_to_world: Mat4) -> Result<Camera, CameraError> {
         Self::centred(width, height, fov_x, width, camera_to_world)
     }
 
     /// Camera with vertical field of view `fov_y` (radians), square pixels, centred.
-    pub fn from_fov_y(
-        width: u32,
-        height: u32,
-        fov_y: f32,
-        camera_to_world: Mat4,
-    ) -> Result<Camera, CameraError> {
+    pub fn from_fov_y(width: u32, height: u32, fov_y: f32, camera_to_world: Mat4) -> Result<Camera, CameraError> {
         Self::centred(width, height, fov_y, height, camera_to_world)
     }
 
@@ -234,23 +200,15 @@ impl Camera {
         if !(eye.is_finite() && target.is_finite() && up.is_finite()) {
             return Err(CameraError::NonFinite("look-at eye, target or up"));
         }
-        let forward = (target - eye)
-            .try_normalize()
-            .ok_or(CameraError::DegenerateLookAt("eye and target coincide"))?;
+        let forward = (target - eye).try_normalize().ok_or(CameraError::DegenerateLookAt("eye and target coincide"))?;
         let right = forward.cross(up.normalize_or_zero());
         if right.length() <= 1e-6 {
-            return Err(CameraError::DegenerateLookAt(
-                "up zero or parallel to the view",
-            ));
+            return Err(CameraError::DegenerateLookAt("up zero or parallel to the view"));
         }
         let right = right.normalize();
         let true_up = right.cross(forward);
-        let camera_to_world = Mat4::from_cols(
-            right.extend(0.0),
-            true_up.extend(0.0),
-            (-forward).extend(0.0),
-            eye.extend(1.0),
-        );
+        let camera_to_world =
+            Mat4::from_cols(right.extend(0.0), true_up.extend(0.0), (-forward).extend(0.0), eye.extend(1.0));
         Self::from_fov_y(width, height, fov_y, camera_to_world)
     }
 
@@ -275,12 +233,7 @@ impl Camera {
     /// (`XRView.transform.inverse.matrix`), `projection` the eye's `projectionMatrix` (OpenGL
     /// clip conventions, column-major as glam). Converts the projection into off-axis
     /// intrinsics for an image of `width x height`.
-    pub fn from_view_projection(
-        width: u32,
-        height: u32,
-        view: Mat4,
-        projection: Mat4,
-    ) -> Result<Camera, CameraError> {
+    pub fn from_view_projection(width: u32, height: u32, view: Mat4, projection: Mat4) -> Result<Camera, CameraError> {
         check_image_size(width, height)?;
         let world_to_camera = check_rigid(view, "view")?;
         if !projection.is_finite() {
@@ -307,12 +260,7 @@ impl Camera {
             return not_perspective("it translates x or y (P03, P13)");
         }
         let (w, h) = (width as f32, height as f32);
-        let intrinsics = (
-            0.5 * w * p00,
-            0.5 * h * p11,
-            0.5 * w * (1.0 - p.z_axis.x),
-            0.5 * h * (1.0 + p.z_axis.y),
-        );
+        let intrinsics = (0.5 * w * p00, 0.5 * h * p11, 0.5 * w * (1.0 - p.z_axis.x), 0.5 * h * (1.0 + p.z_axis.y));
         let camera_to_world = world_to_camera.inverse();
         Self::from_parts(width, height, intrinsics, camera_to_world, world_to_camera)
     }
@@ -379,10 +327,7 @@ impl Camera {
         let camera_dir = Vec3::new((x - self.cx) / self.fx, -(y - self.cy) / self.fy, -1.0);
         let direction = self.camera_to_world.transform_vector3(camera_dir);
         let origin = self.position();
-        Ray {
-            origin,
-            direction: direction.normalize(),
-        }
+        Ray { origin, direction: direction.normalize() }
     }
 
     /// Ray through the centre `(i + 0.5, j + 0.5)` of pixel `(i, j)`.
@@ -398,10 +343,7 @@ impl Camera {
             return None;
         }
         let inv_depth = 1.0 / -q.z;
-        let pixel = Vec2::new(
-            self.cx + self.fx * q.x * inv_depth,
-            self.cy - self.fy * q.y * inv_depth,
-        );
+        let pixel = Vec2::new(self.cx + self.fx * q.x * inv_depth, self.cy - self.fy * q.y * inv_depth);
         pixel.is_finite().then_some(pixel)
     }
 
@@ -477,11 +419,7 @@ pub fn quilt_rig(
     }
     // Offsets over the baseline, as a fraction of the focal distance: [-tan, +tan].
     let half_extent = (0.5 * view_cone).tan();
-    let step = if views > 1 {
-        2.0 * half_extent / (views - 1) as f32
-    } else {
-        0.0
-    };
+    let step = if views > 1 { 2.0 * half_extent / (views - 1) as f32 } else { 0.0 };
     (0..views)
         .map(|k| {
             let relative_offset = (k as f32 - 0.5 * (views - 1) as f32) * step;

@@ -43,9 +43,7 @@ pub enum ImageError {
         message: String,
     },
     /// A pixel buffer does not have `width * height * channels` entries.
-    #[error(
-        "a {width}x{height} image with {channels} channel(s) needs {expected} values, got {actual}"
-    )]
+    #[error("a {width}x{height} image with {channels} channel(s) needs {expected} values, got {actual}")]
     BufferSize {
         /// Width in pixels.
         width: u32,
@@ -90,18 +88,9 @@ impl ImageError {
     /// Wraps an error of the `image` crate, keeping I/O errors as [`ImageError::Io`].
     fn from_codec(path: &Path, err: ::image::ImageError, decoding: bool) -> Self {
         match err {
-            ::image::ImageError::IoError(source) => Self::Io {
-                path: path.to_path_buf(),
-                source,
-            },
-            other if decoding => Self::Decode {
-                path: path.to_path_buf(),
-                message: other.to_string(),
-            },
-            other => Self::Encode {
-                path: path.to_path_buf(),
-                message: other.to_string(),
-            },
+            ::image::ImageError::IoError(source) => Self::Io { path: path.to_path_buf(), source },
+            other if decoding => Self::Decode { path: path.to_path_buf(), message: other.to_string() },
+            other => Self::Encode { path: path.to_path_buf(), message: other.to_string() },
         }
     }
 }
@@ -109,21 +98,13 @@ impl ImageError {
 /// Converts a linear value to its sRGB encoding (IEC 61966-2-1, the exact piecewise curve).
 /// Values are not clamped: negative inputs stay on the linear segment, NaN stays NaN.
 pub fn linear_to_srgb(linear: f32) -> f32 {
-    if linear <= 0.003_130_8 {
-        linear * 12.92
-    } else {
-        1.055 * linear.powf(1.0 / 2.4) - 0.055
-    }
+    if linear <= 0.003_130_8 { linear * 12.92 } else { 1.055 * linear.powf(1.0 / 2.4) - 0.055 }
 }
 
 /// Converts an sRGB-encoded value to linear (IEC 61966-2-1, the exact piecewise curve); the
 /// inverse of [`linear_to_srgb`]. Values are not clamped.
 pub fn srgb_to_linear(encoded: f32) -> f32 {
-    if encoded <= 0.040_45 {
-        encoded / 12.92
-    } else {
-        ((encoded + 0.055) / 1.055).powf(2.4)
-    }
+    if encoded <= 0.040_45 { encoded / 12.92 } else { ((encoded + 0.055) / 1.055).powf(2.4) }
 }
 
 /// Number of pixels of a `width x height` image (cannot overflow on 64-bit targets).
@@ -132,14 +113,8 @@ fn pixel_count(width: u32, height: u32) -> usize {
 }
 
 /// Opens `path` for a decoder of the given format and decodes it.
-fn decode_file(
-    path: &Path,
-    format: ::image::ImageFormat,
-) -> Result<::image::DynamicImage, ImageError> {
-    let file = File::open(path).map_err(|source| ImageError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
+fn decode_file(path: &Path, format: ::image::ImageFormat) -> Result<::image::DynamicImage, ImageError> {
+    let file = File::open(path).map_err(|source| ImageError::Io { path: path.to_path_buf(), source })?;
     ::image::ImageReader::with_format(BufReader::new(file), format)
         .decode()
         .map_err(|e| ImageError::from_codec(path, e, true))
@@ -157,11 +132,7 @@ pub struct RgbaImage {
 impl RgbaImage {
     /// A `width x height` image of transparent black (all zeros).
     pub fn new(width: u32, height: u32) -> Self {
-        Self {
-            width,
-            height,
-            data: vec![[0.0; 4]; pixel_count(width, height)],
-        }
+        Self { width, height, data: vec![[0.0; 4]; pixel_count(width, height)] }
     }
 
     /// An image from row-major pixels, top row first; `pixels.len()` must be `width * height`.
@@ -176,11 +147,7 @@ impl RgbaImage {
                 actual: pixels.len() * 4,
             });
         }
-        Ok(Self {
-            width,
-            height,
-            data: pixels,
-        })
+        Ok(Self { width, height, data: pixels })
     }
 
     /// An image whose pixel `(x, y)` is `f(x, y)`.
@@ -191,11 +158,7 @@ impl RgbaImage {
                 data.push(f(x, y));
             }
         }
-        Self {
-            width,
-            height,
-            data,
-        }
+        Self { width, height, data }
     }
 
     /// Width in pixels.
@@ -222,12 +185,7 @@ impl RgbaImage {
     /// # Panics
     /// If `(x, y)` is outside the image; see [`RgbaImage::get`] for a checked version.
     pub fn pixel(&self, x: u32, y: u32) -> [f32; 4] {
-        assert!(
-            x < self.width && y < self.height,
-            "pixel ({x}, {y}) outside {}x{}",
-            self.width,
-            self.height
-        );
+        assert!(x < self.width && y < self.height, "pixel ({x}, {y}) outside {}x{}", self.width, self.height);
         self.data[self.index(x, y)]
     }
 
@@ -241,12 +199,7 @@ impl RgbaImage {
     /// # Panics
     /// If `(x, y)` is outside the image.
     pub fn set_pixel(&mut self, x: u32, y: u32, value: [f32; 4]) {
-        assert!(
-            x < self.width && y < self.height,
-            "pixel ({x}, {y}) outside {}x{}",
-            self.width,
-            self.height
-        );
+        assert!(x < self.width && y < self.height, "pixel ({x}, {y}) outside {}x{}", self.width, self.height);
         let i = self.index(x, y);
         self.data[i] = value;
     }
@@ -277,31 +230,13 @@ impl RgbaImage {
         let u8f = |v: u8| f32::from(v) / 255.0;
         let u16f = |v: u16| f32::from(v) / 65535.0;
         let data: Vec<[f32; 4]> = match &decoded {
-            D::ImageLuma8(img) => img
-                .pixels()
-                .map(|p| [u8f(p[0]), u8f(p[0]), u8f(p[0]), 1.0])
-                .collect(),
-            D::ImageLumaA8(img) => img
-                .pixels()
-                .map(|p| [u8f(p[0]), u8f(p[0]), u8f(p[0]), u8f(p[1])])
-                .collect(),
-            D::ImageRgb8(img) => img
-                .pixels()
-                .map(|p| [u8f(p[0]), u8f(p[1]), u8f(p[2]), 1.0])
-                .collect(),
+            D::ImageLuma8(img) => img.pixels().map(|p| [u8f(p[0]), u8f(p[0]), u8f(p[0]), 1.0]).collect(),
+            D::ImageLumaA8(img) => img.pixels().map(|p| [u8f(p[0]), u8f(p[0]), u8f(p[0]), u8f(p[1])]).collect(),
+            D::ImageRgb8(img) => img.pixels().map(|p| [u8f(p[0]), u8f(p[1]), u8f(p[2]), 1.0]).collect(),
             D::ImageRgba8(img) => img.pixels().map(|p| p.0.map(u8f)).collect(),
-            D::ImageLuma16(img) => img
-                .pixels()
-                .map(|p| [u16f(p[0]), u16f(p[0]), u16f(p[0]), 1.0])
-                .collect(),
-            D::ImageLumaA16(img) => img
-                .pixels()
-                .map(|p| [u16f(p[0]), u16f(p[0]), u16f(p[0]), u16f(p[1])])
-                .collect(),
-            D::ImageRgb16(img) => img
-                .pixels()
-                .map(|p| [u16f(p[0]), u16f(p[1]), u16f(p[2]), 1.0])
-                .collect(),
+            D::ImageLuma16(img) => img.pixels().map(|p| [u16f(p[0]), u16f(p[0]), u16f(p[0]), 1.0]).collect(),
+            D::ImageLumaA16(img) => img.pixels().map(|p| [u16f(p[0]), u16f(p[0]), u16f(p[0]), u16f(p[1])]).collect(),
+            D::ImageRgb16(img) => img.pixels().map(|p| [u16f(p[0]), u16f(p[1]), u16f(p[2]), 1.0]).collect(),
             D::ImageRgba16(img) => img.pixels().map(|p| p.0.map(u16f)).collect(),
             // PNG decodes to one of the above; anything else goes through the crate's conversion.
             other => other.to_rgba32f().pixels().map(|p| p.0).collect(),
@@ -335,11 +270,7 @@ impl RgbaImage {
     /// colour 0. Errors if `factor` is 0 or the result would be empty.
     pub fn downscale(&self, factor: u32) -> Result<Self, ImageError> {
         if factor == 0 || self.width / factor == 0 || self.height / factor == 0 {
-            return Err(ImageError::Downscale {
-                factor,
-                width: self.width,
-                height: self.height,
-            });
+            return Err(ImageError::Downscale { factor, width: self.width, height: self.height });
         }
         if factor == 1 {
             return Ok(self.clone());
@@ -362,20 +293,12 @@ impl RgbaImage {
                 }
                 let alpha = sum[3] / n;
                 let colour = |c: f64| {
-                    if sum[3] > 0.0 {
-                        (c / sum[3]) as f32
-                    } else {
-                        0.0
-                    }
+                    if sum[3] > 0.0 { (c / sum[3]) as f32 } else { 0.0 }
                 };
                 out.push([colour(sum[0]), colour(sum[1]), colour(sum[2]), alpha as f32]);
             }
         }
-        Ok(Self {
-            width: w,
-            height: h,
-            data: out,
-        })
+        Ok(Self { width: w, height: h, data: out })
     }
 
     /// Composites the image over a constant `background` colour (`rgb * a + bg * (1 - a)`,
@@ -387,19 +310,10 @@ impl RgbaImage {
             .iter()
             .map(|&[r, g, b, a]| {
                 let c = |v: f32, bg: f32| v * a + bg * (1.0 - a);
-                [
-                    c(r, background[0]),
-                    c(g, background[1]),
-                    c(b, background[2]),
-                    1.0,
-                ]
+                [c(r, background[0]), c(g, background[1]), c(b, background[2]), 1.0]
             })
             .collect();
-        Self {
-            width: self.width,
-            height: self.height,
-            data,
-        }
+        Self { width: self.width, height: self.height, data }
     }
 }
 
@@ -417,48 +331,21 @@ impl FloatImage {
     /// A `width x height` image of zeros; `channels` must be at least 1.
     pub fn new(width: u32, height: u32, channels: usize) -> Result<Self, ImageError> {
         if channels == 0 {
-            return Err(ImageError::Channels {
-                channels,
-                reason: "an image needs at least one channel",
-            });
+            return Err(ImageError::Channels { channels, reason: "an image needs at least one channel" });
         }
-        Ok(Self {
-            width,
-            height,
-            channels,
-            data: vec![0.0; pixel_count(width, height) * channels],
-        })
+        Ok(Self { width, height, channels, data: vec![0.0; pixel_count(width, height) * channels] })
     }
 
     /// An image from interleaved row-major data of length `width * height * channels`.
-    pub fn from_data(
-        width: u32,
-        height: u32,
-        channels: usize,
-        data: Vec<f32>,
-    ) -> Result<Self, ImageError> {
+    pub fn from_data(width: u32, height: u32, channels: usize, data: Vec<f32>) -> Result<Self, ImageError> {
         if channels == 0 {
-            return Err(ImageError::Channels {
-                channels,
-                reason: "an image needs at least one channel",
-            });
+            return Err(ImageError::Channels { channels, reason: "an image needs at least one channel" });
         }
         let expected = pixel_count(width, height) * channels;
         if data.len() != expected {
-            return Err(ImageError::BufferSize {
-                width,
-                height,
-                channels,
-                expected,
-                actual: data.len(),
-            });
+            return Err(ImageError::BufferSize { width, height, channels, expected, actual: data.len() });
         }
-        Ok(Self {
-            width,
-            height,
-            channels,
-            data,
-        })
+        Ok(Self { width, height, channels, data })
     }
 
     /// Width in pixels.
@@ -523,22 +410,10 @@ impl FloatImage {
     /// A one-channel image holding channel `c` of this one.
     pub fn channel(&self, c: usize) -> Result<Self, ImageError> {
         if c >= self.channels {
-            return Err(ImageError::Channels {
-                channels: self.channels,
-                reason: "channel index out of range",
-            });
+            return Err(ImageError::Channels { channels: self.channels, reason: "channel index out of range" });
         }
-        let data = self
-            .data
-            .chunks_exact(self.channels)
-            .map(|p| p[c])
-            .collect();
-        Ok(Self {
-            width: self.width,
-            height: self.height,
-            channels: 1,
-            data,
-        })
+        let data = self.data.chunks_exact(self.channels).map(|p| p[c]).collect();
+        Ok(Self { width: self.width, height: self.height, channels: 1, data })
     }
 
     /// Box-filter downscale by an integer `factor` (see [`RgbaImage::downscale`] for the size
@@ -556,11 +431,7 @@ impl FloatImage {
 
     fn downscale_impl(&self, factor: u32, skip_zeros: bool) -> Result<Self, ImageError> {
         if factor == 0 || self.width / factor == 0 || self.height / factor == 0 {
-            return Err(ImageError::Downscale {
-                factor,
-                width: self.width,
-                height: self.height,
-            });
+            return Err(ImageError::Downscale { factor, width: self.width, height: self.height });
         }
         let (w, h, ch) = (self.width / factor, self.height / factor, self.channels);
         let mut out = Vec::with_capacity(pixel_count(w, h) * ch);
@@ -582,19 +453,10 @@ impl FloatImage {
                         }
                     }
                 }
-                out.extend(
-                    sum.iter()
-                        .zip(&count)
-                        .map(|(&s, &n)| if n > 0 { (s / n as f64) as f32 } else { 0.0 }),
-                );
+                out.extend(sum.iter().zip(&count).map(|(&s, &n)| if n > 0 { (s / n as f64) as f32 } else { 0.0 }));
             }
         }
-        Ok(Self {
-            width: w,
-            height: h,
-            channels: ch,
-            data: out,
-        })
+        Ok(Self { width: w, height: h, channels: ch, data: out })
     }
 
     /// Writes a 32-bit float OpenEXR file. The `image` crate writes only RGB and RGBA, so a
@@ -604,42 +466,20 @@ impl FloatImage {
     pub fn save_exr(&self, path: impl AsRef<Path>) -> Result<(), ImageError> {
         let path = path.as_ref();
         let (colour, data): (_, std::borrow::Cow<'_, [f32]>) = match self.channels {
-            1 => (
-                ::image::ExtendedColorType::Rgb32F,
-                self.data.iter().flat_map(|&v| [v, v, v]).collect(),
-            ),
+            1 => (::image::ExtendedColorType::Rgb32F, self.data.iter().flat_map(|&v| [v, v, v]).collect()),
             2 => (
                 ::image::ExtendedColorType::Rgb32F,
-                self.data
-                    .chunks_exact(2)
-                    .flat_map(|p| [p[0], p[1], 0.0])
-                    .collect(),
+                self.data.chunks_exact(2).flat_map(|p| [p[0], p[1], 0.0]).collect(),
             ),
-            3 => (
-                ::image::ExtendedColorType::Rgb32F,
-                self.data.as_slice().into(),
-            ),
-            4 => (
-                ::image::ExtendedColorType::Rgba32F,
-                self.data.as_slice().into(),
-            ),
+            3 => (::image::ExtendedColorType::Rgb32F, self.data.as_slice().into()),
+            4 => (::image::ExtendedColorType::Rgba32F, self.data.as_slice().into()),
             channels => {
-                return Err(ImageError::Channels {
-                    channels,
-                    reason: "OpenEXR output supports 1 to 4",
-                });
+                return Err(ImageError::Channels { channels, reason: "OpenEXR output supports 1 to 4" });
             }
         };
         let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_ne_bytes()).collect();
-        ::image::save_buffer_with_format(
-            path,
-            &bytes,
-            self.width,
-            self.height,
-            colour,
-            ::image::ImageFormat::OpenExr,
-        )
-        .map_err(|e| ImageError::from_codec(path, e, false))
+        ::image::save_buffer_with_format(path, &bytes, self.width, self.height, colour, ::image::ImageFormat::OpenExr)
+            .map_err(|e| ImageError::from_codec(path, e, false))
     }
 
     /// Reads an RGB or RGBA OpenEXR file (the `image` crate's decoder reads only those) as a
@@ -649,21 +489,14 @@ impl FloatImage {
         let decoded = decode_file(path, ::image::ImageFormat::OpenExr)?;
         let (width, height) = (decoded.width(), decoded.height());
         match decoded {
-            ::image::DynamicImage::ImageRgb32F(img) => {
-                Self::from_data(width, height, 3, img.into_raw())
-            }
+            ::image::DynamicImage::ImageRgb32F(img) => Self::from_data(width, height, 3, img.into_raw()),
             other => Self::from_data(width, height, 4, other.into_rgba32f().into_raw()),
         }
     }
 
     /// Writes a one-channel image as a 16-bit grey PNG, mapping `[min, max]` linearly to
     /// `[0, 65535]` (values outside are clamped, NaN becomes 0). For viewing depth maps.
-    pub fn save_png_normalised(
-        &self,
-        path: impl AsRef<Path>,
-        min: f32,
-        max: f32,
-    ) -> Result<(), ImageError> {
+    pub fn save_png_normalised(&self, path: impl AsRef<Path>, min: f32, max: f32) -> Result<(), ImageError> {
         let path = path.as_ref();
         if self.channels != 1 {
             return Err(ImageError::Channels {
@@ -708,12 +541,7 @@ mod tests {
     fn levels_image(width: u32, height: u32) -> RgbaImage {
         RgbaImage::from_fn(width, height, |x, y| {
             let l = |k: u32| (k % 256) as f32 / 255.0;
-            [
-                l(x * 37 + y * 11),
-                l(x * 5 + y * 91 + 7),
-                l(x * y * 13 + 100),
-                l(x * 17 + y * 29 + 3),
-            ]
+            [l(x * 37 + y * 11), l(x * 5 + y * 91 + 7), l(x * y * 13 + 100), l(x * 17 + y * 29 + 3)]
         })
     }
 
@@ -731,12 +559,8 @@ mod tests {
     fn png_save_clamps_and_rounds() {
         let dir = tmp();
         let path = dir.path().join("c.png");
-        let img = RgbaImage::from_pixels(
-            2,
-            1,
-            vec![[-0.5, 1.5, 0.5, f32::NAN], [0.1, 0.2, 0.999, 1.0]],
-        )
-        .expect("pixels");
+        let img =
+            RgbaImage::from_pixels(2, 1, vec![[-0.5, 1.5, 0.5, f32::NAN], [0.1, 0.2, 0.999, 1.0]]).expect("pixels");
         img.save_png(&path).expect("save");
         let back = RgbaImage::load_png(&path).expect("load");
         assert_eq!(back.pixel(0, 0), [0.0, 1.0, 128.0 / 255.0, 0.0]);
@@ -747,9 +571,7 @@ mod tests {
     fn load_png_handles_16_bit_grey_and_rgb() {
         let dir = tmp();
         let grey = dir.path().join("g16.png");
-        let buf =
-            ::image::ImageBuffer::<::image::Luma<u16>, Vec<u16>>::from_raw(2, 1, vec![0, 65535])
-                .expect("buf");
+        let buf = ::image::ImageBuffer::<::image::Luma<u16>, Vec<u16>>::from_raw(2, 1, vec![0, 65535]).expect("buf");
         buf.save(&grey).expect("save");
         let img = RgbaImage::load_png(&grey).expect("load");
         assert_eq!(img.pixels(), &[[0.0, 0.0, 0.0, 1.0], [1.0, 1.0, 1.0, 1.0]]);
@@ -874,8 +696,7 @@ mod tests {
         img.save_exr(&path).expect("save");
         assert_eq!(FloatImage::load_exr(&path).expect("load"), img);
 
-        let depth =
-            FloatImage::from_data(3, 2, 1, vec![0.0, 1.5, 2.25, 1e6, 0.125, 7.0]).expect("data");
+        let depth = FloatImage::from_data(3, 2, 1, vec![0.0, 1.5, 2.25, 1e6, 0.125, 7.0]).expect("data");
         let path = dir.path().join("d.exr");
         depth.save_exr(&path).expect("save");
         let back = FloatImage::load_exr(&path).expect("load");
@@ -904,10 +725,7 @@ mod tests {
     #[test]
     fn depth_downscale_ignores_misses() {
         let depth = FloatImage::from_data(2, 2, 1, vec![0.0, 2.0, 4.0, 0.0]).expect("data");
-        assert_eq!(
-            depth.downscale_ignoring_zeros(2).expect("ds").data(),
-            &[3.0]
-        );
+        assert_eq!(depth.downscale_ignoring_zeros(2).expect("ds").data(), &[3.0]);
         assert_eq!(depth.downscale(2).expect("ds").data(), &[1.5]);
     }
 }

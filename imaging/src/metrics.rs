@@ -133,35 +133,18 @@ struct RgbPair {
 }
 
 impl RgbPair {
-    fn from_images(
-        a: &RgbaImage,
-        b: &RgbaImage,
-        background: [f32; 3],
-    ) -> Result<Self, MetricsError> {
+    fn from_images(a: &RgbaImage, b: &RgbaImage, background: [f32; 3]) -> Result<Self, MetricsError> {
         if (a.width(), a.height()) != (b.width(), b.height()) {
-            return Err(MetricsError::SizeMismatch {
-                a: (a.width(), a.height()),
-                b: (b.width(), b.height()),
-            });
+            return Err(MetricsError::SizeMismatch { a: (a.width(), a.height()), b: (b.width(), b.height()) });
         }
-        Self::new(
-            a.width(),
-            a.height(),
-            composite_rgb(a, background),
-            composite_rgb(b, background),
-        )
+        Self::new(a.width(), a.height(), composite_rgb(a, background), composite_rgb(b, background))
     }
 
     fn from_slices(width: u32, height: u32, a: &[f32], b: &[f32]) -> Result<Self, MetricsError> {
         let expected = width as usize * height as usize * 3;
         for s in [a, b] {
             if s.len() != expected {
-                return Err(MetricsError::BufferLength {
-                    width,
-                    height,
-                    expected,
-                    actual: s.len(),
-                });
+                return Err(MetricsError::BufferLength { width, height, expected, actual: s.len() });
             }
         }
         let widen = |s: &[f32]| s.iter().map(|&v| f64::from(v)).collect();
@@ -177,21 +160,11 @@ impl RgbPair {
                 return Err(MetricsError::NonFinite { which, index });
             }
         }
-        Ok(Self {
-            width: width as usize,
-            height: height as usize,
-            a,
-            b,
-        })
+        Ok(Self { width: width as usize, height: height as usize, a, b })
     }
 
     fn psnr(&self) -> f64 {
-        let sum: f64 = self
-            .a
-            .iter()
-            .zip(&self.b)
-            .map(|(x, y)| (x - y) * (x - y))
-            .sum();
+        let sum: f64 = self.a.iter().zip(&self.b).map(|(x, y)| (x - y) * (x - y)).sum();
         let mse = sum / self.a.len() as f64;
         // As scikit-image: 10 log10(range^2 / mse); mse = 0 gives +infinity.
         10.0 * (1.0 / mse).log10()
@@ -200,11 +173,7 @@ impl RgbPair {
     fn ssim(&self) -> Result<f64, MetricsError> {
         let (w, h) = (self.width, self.height);
         if w < SSIM_WINDOW || h < SSIM_WINDOW {
-            return Err(MetricsError::TooSmallForSsim {
-                width: w as u32,
-                height: h as u32,
-                min: SSIM_WINDOW,
-            });
+            return Err(MetricsError::TooSmallForSsim { width: w as u32, height: h as u32, min: SSIM_WINDOW });
         }
         let kernel = gaussian_kernel();
         let n = w * h;
@@ -258,11 +227,7 @@ fn filter_valid(plane: &[f64], w: usize, h: usize, kernel: &[f64; SSIM_WINDOW]) 
     for oy in 0..vh {
         let src = &vertical[oy * w..(oy + 1) * w];
         for ox in 0..vw {
-            out[oy * vw + ox] = kernel
-                .iter()
-                .zip(&src[ox..ox + SSIM_WINDOW])
-                .map(|(k, s)| k * s)
-                .sum();
+            out[oy * vw + ox] = kernel.iter().zip(&src[ox..ox + SSIM_WINDOW]).map(|(k, s)| k * s).sum();
         }
     }
     out
@@ -307,11 +272,7 @@ pub fn ssim(a: &RgbaImage, b: &RgbaImage, background: [f32; 3]) -> Result<f64, M
 }
 
 /// `(psnr, ssim)` of two RGBA images composited over `background`, compositing once.
-pub fn psnr_and_ssim(
-    a: &RgbaImage,
-    b: &RgbaImage,
-    background: [f32; 3],
-) -> Result<(f64, f64), MetricsError> {
+pub fn psnr_and_ssim(a: &RgbaImage, b: &RgbaImage, background: [f32; 3]) -> Result<(f64, f64), MetricsError> {
     let pair = RgbPair::from_images(a, b, background)?;
     Ok((pair.psnr(), pair.ssim()?))
 }
@@ -359,28 +320,15 @@ impl EvalReport {
     /// means are NaN for an empty list.
     pub fn from_scores(mut per_image: Vec<ImageScore>) -> Self {
         per_image.sort_by(|a, b| a.name.cmp(&b.name));
-        let finite: Vec<f64> = per_image
-            .iter()
-            .map(|s| s.psnr)
-            .filter(|p| p.is_finite())
-            .collect();
+        let finite: Vec<f64> = per_image.iter().map(|s| s.psnr).filter(|p| p.is_finite()).collect();
         let perfect_matches = per_image.len() - finite.len();
         let mean_psnr = if finite.is_empty() {
-            if per_image.is_empty() {
-                f64::NAN
-            } else {
-                f64::INFINITY
-            }
+            if per_image.is_empty() { f64::NAN } else { f64::INFINITY }
         } else {
             finite.iter().sum::<f64>() / finite.len() as f64
         };
         let mean_ssim = per_image.iter().map(|s| s.ssim).sum::<f64>() / per_image.len() as f64;
-        Self {
-            per_image,
-            mean_psnr,
-            mean_ssim,
-            perfect_matches,
-        }
+        Self { per_image, mean_psnr, mean_ssim, perfect_matches }
     }
 }
 
@@ -388,26 +336,14 @@ impl EvalReport {
 /// `gt`, both composited over `background`, in parallel. Every prediction needs a ground
 /// truth of the same size; the error for missing ones lists them all. Files of `gt` without a
 /// prediction are ignored.
-pub fn evaluate_dirs(
-    pred: &Path,
-    gt: &Path,
-    background: [f32; 3],
-) -> Result<EvalReport, MetricsError> {
-    let entries = std::fs::read_dir(pred).map_err(|source| MetricsError::ReadDir {
-        path: pred.to_path_buf(),
-        source,
-    })?;
+pub fn evaluate_dirs(pred: &Path, gt: &Path, background: [f32; 3]) -> Result<EvalReport, MetricsError> {
+    let entries =
+        std::fs::read_dir(pred).map_err(|source| MetricsError::ReadDir { path: pred.to_path_buf(), source })?;
     let mut names = Vec::new();
     for entry in entries {
-        let entry = entry.map_err(|source| MetricsError::ReadDir {
-            path: pred.to_path_buf(),
-            source,
-        })?;
+        let entry = entry.map_err(|source| MetricsError::ReadDir { path: pred.to_path_buf(), source })?;
         let path = entry.path();
-        let is_png = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+        let is_png = path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("png"));
         if !is_png || !path.is_file() {
             continue;
         }
@@ -419,21 +355,12 @@ pub fn evaluate_dirs(
         }
     }
     if names.is_empty() {
-        return Err(MetricsError::NoImages {
-            path: pred.to_path_buf(),
-        });
+        return Err(MetricsError::NoImages { path: pred.to_path_buf() });
     }
     names.sort();
-    let missing: Vec<String> = names
-        .iter()
-        .filter(|n| !gt.join(n).is_file())
-        .cloned()
-        .collect();
+    let missing: Vec<String> = names.iter().filter(|n| !gt.join(n).is_file()).cloned().collect();
     if !missing.is_empty() {
-        return Err(MetricsError::MissingGroundTruth {
-            gt: gt.to_path_buf(),
-            missing,
-        });
+        return Err(MetricsError::MissingGroundTruth { gt: gt.to_path_buf(), missing });
     }
     let scores = names
         .par_iter()
@@ -442,16 +369,9 @@ pub fn evaluate_dirs(
                 let p = RgbaImage::load_png(pred.join(name))?;
                 let g = RgbaImage::load_png(gt.join(name))?;
                 let (psnr, ssim) = psnr_and_ssim(&p, &g, background)?;
-                Ok(ImageScore {
-                    name: name.clone(),
-                    psnr,
-                    ssim,
-                })
+                Ok(ImageScore { name: name.clone(), psnr, ssim })
             };
-            score().map_err(|e| MetricsError::InImage {
-                name: name.clone(),
-                source: Box::new(e),
-            })
+            score().map_err(|e| MetricsError::InImage { name: name.clone(), source: Box::new(e) })
         })
         .collect::<Result<Vec<_>, _>>()?;
     Ok(EvalReport::from_scores(scores))
@@ -518,11 +438,7 @@ mod tests {
     }
 
     fn alpha_b(i: u32, j: u32, w: u32) -> i64 {
-        if i < w / 2 {
-            255
-        } else {
-            clamp255(alpha_a(i, j, w) + h(i, j, 3, 4) % 31 - 15)
-        }
+        if i < w / 2 { 255 } else { clamp255(alpha_a(i, j, w) + h(i, j, 3, 4) % 31 - 15) }
     }
 
     fn f(k: i64) -> f32 {
@@ -532,20 +448,11 @@ mod tests {
     /// The RGBA pair (A, B) of the Python script; `mild` uses `level_c` for B.
     fn reference_pair(w: u32, hgt: u32, mild: bool) -> (RgbaImage, RgbaImage) {
         let a = RgbaImage::from_fn(w, hgt, |i, j| {
-            [
-                f(level_a(i, j, 0)),
-                f(level_a(i, j, 1)),
-                f(level_a(i, j, 2)),
-                f(alpha_a(i, j, w)),
-            ]
+            [f(level_a(i, j, 0)), f(level_a(i, j, 1)), f(level_a(i, j, 2)), f(alpha_a(i, j, w))]
         });
         let b = RgbaImage::from_fn(w, hgt, |i, j| {
             let l = |c| {
-                if mild {
-                    level_c(i, j, c)
-                } else {
-                    level_b(i, j, c, w, hgt)
-                }
+                if mild { level_c(i, j, c) } else { level_b(i, j, c, w, hgt) }
             };
             [f(l(0)), f(l(1)), f(l(2)), f(alpha_b(i, j, w))]
         });
@@ -553,18 +460,12 @@ mod tests {
     }
 
     fn rgb_of(img: &RgbaImage) -> Vec<f32> {
-        img.pixels()
-            .iter()
-            .flat_map(|p| [p[0], p[1], p[2]])
-            .collect()
+        img.pixels().iter().flat_map(|p| [p[0], p[1], p[2]]).collect()
     }
 
     fn assert_rel(actual: f64, expected: f64, what: &str) {
         let rel = ((actual - expected) / expected).abs();
-        assert!(
-            rel < 1e-6,
-            "{what}: got {actual}, scikit-image {expected} (relative error {rel:e})"
-        );
+        assert!(rel < 1e-6, "{what}: got {actual}, scikit-image {expected} (relative error {rel:e})");
     }
 
     #[test]
@@ -577,49 +478,23 @@ mod tests {
             // The opaque cases ignore alpha: use the raw RGB API.
             let (a, b) = reference_pair(w, hgt, mild);
             let (a, b) = (rgb_of(&a), rgb_of(&b));
-            assert_rel(
-                psnr_rgb(w, hgt, &a, &b).expect("psnr"),
-                p,
-                &format!("PSNR {name}"),
-            );
-            assert_rel(
-                ssim_rgb(w, hgt, &a, &b).expect("ssim"),
-                s,
-                &format!("SSIM {name}"),
-            );
+            assert_rel(psnr_rgb(w, hgt, &a, &b).expect("psnr"), p, &format!("PSNR {name}"));
+            assert_rel(ssim_rgb(w, hgt, &a, &b).expect("ssim"), s, &format!("SSIM {name}"));
             // Symmetric in its arguments.
-            assert_rel(
-                ssim_rgb(w, hgt, &b, &a).expect("ssim"),
-                s,
-                &format!("SSIM {name} swapped"),
-            );
+            assert_rel(ssim_rgb(w, hgt, &b, &a).expect("ssim"), s, &format!("SSIM {name} swapped"));
         }
     }
 
     #[test]
     fn alpha_cases_match_scikit_image() {
         let (a, b) = reference_pair(17, 23, false);
-        for (bg, (p, s), name) in [
-            ([1.0; 3], ALPHA_17X23_WHITE, "white"),
-            ([0.0; 3], ALPHA_17X23_BLACK, "black"),
-        ] {
-            assert_rel(
-                psnr(&a, &b, bg).expect("psnr"),
-                p,
-                &format!("PSNR over {name}"),
-            );
-            assert_rel(
-                ssim(&a, &b, bg).expect("ssim"),
-                s,
-                &format!("SSIM over {name}"),
-            );
+        for (bg, (p, s), name) in [([1.0; 3], ALPHA_17X23_WHITE, "white"), ([0.0; 3], ALPHA_17X23_BLACK, "black")] {
+            assert_rel(psnr(&a, &b, bg).expect("psnr"), p, &format!("PSNR over {name}"));
+            assert_rel(ssim(&a, &b, bg).expect("ssim"), s, &format!("SSIM over {name}"));
             let (p2, s2) = psnr_and_ssim(&a, &b, bg).expect("both");
             assert_eq!(
                 (p2.to_bits(), s2.to_bits()),
-                (
-                    psnr(&a, &b, bg).expect("psnr").to_bits(),
-                    ssim(&a, &b, bg).expect("ssim").to_bits()
-                )
+                (psnr(&a, &b, bg).expect("psnr").to_bits(), ssim(&a, &b, bg).expect("ssim").to_bits())
             );
         }
     }
@@ -646,39 +521,18 @@ mod tests {
     fn errors_on_bad_input() {
         let a = RgbaImage::new(12, 12);
         let b = RgbaImage::new(12, 13);
-        assert!(matches!(
-            psnr(&a, &b, [1.0; 3]),
-            Err(MetricsError::SizeMismatch { .. })
-        ));
-        assert!(matches!(
-            ssim(&a, &b, [1.0; 3]),
-            Err(MetricsError::SizeMismatch { .. })
-        ));
+        assert!(matches!(psnr(&a, &b, [1.0; 3]), Err(MetricsError::SizeMismatch { .. })));
+        assert!(matches!(ssim(&a, &b, [1.0; 3]), Err(MetricsError::SizeMismatch { .. })));
         let e = RgbaImage::new(0, 0);
         assert!(matches!(psnr(&e, &e, [1.0; 3]), Err(MetricsError::Empty)));
         let small = RgbaImage::new(10, 12);
-        assert!(matches!(
-            ssim(&small, &small, [1.0; 3]),
-            Err(MetricsError::TooSmallForSsim { .. })
-        ));
+        assert!(matches!(ssim(&small, &small, [1.0; 3]), Err(MetricsError::TooSmallForSsim { .. })));
         assert!(psnr(&small, &small, [1.0; 3]).is_ok());
         let mut nan = RgbaImage::new(12, 12);
         nan.set_pixel(3, 4, [f32::NAN, 0.0, 0.0, 1.0]);
-        assert!(matches!(
-            psnr(&a, &nan, [1.0; 3]),
-            Err(MetricsError::NonFinite {
-                which: "second",
-                ..
-            })
-        ));
-        assert!(matches!(
-            ssim(&nan, &a, [1.0; 3]),
-            Err(MetricsError::NonFinite { which: "first", .. })
-        ));
-        assert!(matches!(
-            psnr_rgb(2, 2, &[0.0; 12], &[0.0; 11]),
-            Err(MetricsError::BufferLength { .. })
-        ));
+        assert!(matches!(psnr(&a, &nan, [1.0; 3]), Err(MetricsError::NonFinite { which: "second", .. })));
+        assert!(matches!(ssim(&nan, &a, [1.0; 3]), Err(MetricsError::NonFinite { which: "first", .. })));
+        assert!(matches!(psnr_rgb(2, 2, &[0.0; 12], &[0.0; 11]), Err(MetricsError::BufferLength { .. })));
     }
 
     #[test]
@@ -725,17 +579,12 @@ mod tests {
             other => panic!("expected MissingGroundTruth, got {other:?}"),
         }
         // Size mismatch names the image.
-        RgbaImage::new(13, 12)
-            .save_png(gt.path().join("a.png"))
-            .expect("save");
+        RgbaImage::new(13, 12).save_png(gt.path().join("a.png")).expect("save");
         img.save_png(gt.path().join("c.png")).expect("save");
         let err = evaluate_dirs(pred.path(), gt.path(), [1.0; 3]).expect_err("size mismatch");
         assert!(err.to_string().contains("a.png"), "{err}");
         // An empty prediction directory is an error.
         let empty = tempfile::tempdir().expect("tempdir");
-        assert!(matches!(
-            evaluate_dirs(empty.path(), gt.path(), [1.0; 3]),
-            Err(MetricsError::NoImages { .. })
-        ));
+        assert!(matches!(evaluate_dirs(empty.path(), gt.path(), [1.0; 3]), Err(MetricsError::NoImages { .. })));
     }
 }

@@ -79,7 +79,8 @@ fn load_gltf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, L
 pub fn path_traced(scene: nephele_pathtracer::Scene, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
     let invalid = |e: &dyn std::fmt::Display| LoadError::Invalid(e.to_string());
     let renderer = nephele_pathtracer::Renderer::new(scene).map_err(|e| invalid(&e))?;
-    let kernel = PathTracedKernel::new(renderer, options.pathtrace_spp, options.pathtrace_bounces).map_err(|e| invalid(&e))?;
+    let kernel =
+        PathTracedKernel::new(renderer, options.pathtrace_spp, options.pathtrace_bounces).map_err(|e| invalid(&e))?;
     Ok(Arc::new(kernel))
 }
 
@@ -95,7 +96,12 @@ pub fn load_by_magic(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKe
         None => Err(LoadError::UnknownFormat {
             path: path.display().to_string(),
             magic: String::from_utf8_lossy(&magic).into_owned(),
-            known: FORMATS.iter().filter(|f| f.magic.is_some()).map(|f| format!(".{}", f.extension)).collect::<Vec<_>>().join(", "),
+            known: FORMATS
+                .iter()
+                .filter(|f| f.magic.is_some())
+                .map(|f| format!(".{}", f.extension))
+                .collect::<Vec<_>>()
+                .join(", "),
         }),
     }
 }

@@ -16,7 +16,6 @@ use nephele_geometry::camera::Camera;
 pub use nephele_geometry::{Bounds, PixelOutOfImage, PixelResults, all_pixels, validate_pixels};
 use nephele_pathtracer::{Background, RenderOptions, Renderer};
 
-
 #[derive(Debug, Error, PartialEq)]
 pub enum KernelError {
     #[error("pixel index {index} is outside the {width}x{height} image")]
@@ -30,7 +29,6 @@ impl From<PixelOutOfImage> for KernelError {
         KernelError::PixelOutOfImage { index: e.index, width: e.width, height: e.height }
     }
 }
-
 
 /// Work a kernel did for one batch, for load reports and benchmarks.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -56,8 +54,6 @@ pub trait RayKernel: Send + Sync + Debug {
     /// call [`validate_pixels`] (or check the same) before touching memory.
     fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError>;
 }
-
-
 
 /// A full frame's results (pixels in [`all_pixels`] order) as an image the way datasets store
 /// them: sRGB-encoded colour with straight alpha (`linear_to_srgb(color / opacity)`). `None`
@@ -106,8 +102,10 @@ impl RayKernel for PathTracedKernel {
 
     fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
         validate_pixels(camera, pixels)?;
-        let (values, stats) =
-            self.renderer.render_pixel_list(camera, &self.options, pixels).map_err(|e| KernelError::Failed(e.to_string()))?;
+        let (values, stats) = self
+            .renderer
+            .render_pixel_list(camera, &self.options, pixels)
+            .map_err(|e| KernelError::Failed(e.to_string()))?;
         let mut out = PixelResults::with_len(pixels.len());
         let mut rays_hit = 0;
         for (i, (color, alpha, depth)) in values.into_iter().enumerate() {

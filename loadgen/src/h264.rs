@@ -85,7 +85,13 @@ impl FrameCounter {
             self.unfinished_frames += 1;
             self.current = None;
         }
-        let frame = self.current.get_or_insert(FrameInfo { rtp_timestamp: timestamp, idr: false, bytes: 0, packets: 0, damaged: false });
+        let frame = self.current.get_or_insert(FrameInfo {
+            rtp_timestamp: timestamp,
+            idr: false,
+            bytes: 0,
+            packets: 0,
+            damaged: false,
+        });
         // A gap before a frame's first packet may have taken its beginning too.
         frame.damaged |= gap;
         frame.idr |= nal_types(payload).contains(&nal::IDR_SLICE);

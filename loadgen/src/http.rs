@@ -27,11 +27,12 @@ impl BaseUrl {
         if authority.is_empty() {
             return Err(bad("no host"));
         }
-        let authority = if authority.rsplit_once(':').is_some_and(|(_, p)| p.parse::<u16>().is_ok()) && !authority.ends_with(']') {
-            authority.to_string()
-        } else {
-            format!("{authority}:80")
-        };
+        let authority =
+            if authority.rsplit_once(':').is_some_and(|(_, p)| p.parse::<u16>().is_ok()) && !authority.ends_with(']') {
+                authority.to_string()
+            } else {
+                format!("{authority}:80")
+            };
         let prefix = path.trim_end_matches('/');
         let prefix = if prefix.is_empty() { String::new() } else { format!("/{prefix}") };
         Ok(BaseUrl { authority, prefix })
@@ -53,7 +54,14 @@ impl Response {
 }
 
 /// One request on a fresh connection (`Connection: close`), with an overall timeout.
-pub async fn request(base: &BaseUrl, method: &str, path: &str, headers: &[(&str, &str)], body: &str, timeout: Duration) -> Result<Response, LoadError> {
+pub async fn request(
+    base: &BaseUrl,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+    timeout: Duration,
+) -> Result<Response, LoadError> {
     let work = async {
         let mut stream = TcpStream::connect(&base.authority).await?;
         let mut head = format!(
@@ -84,8 +92,10 @@ fn parse_response(raw: &[u8]) -> Option<Response> {
     let head = std::str::from_utf8(&raw[..split]).ok()?;
     let mut lines = head.split("\r\n");
     let status = lines.next()?.split_whitespace().nth(1)?.parse().ok()?;
-    let headers: Vec<(String, String)> =
-        lines.filter_map(|l| l.split_once(':')).map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string())).collect();
+    let headers: Vec<(String, String)> = lines
+        .filter_map(|l| l.split_once(':'))
+        .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
+        .collect();
     let mut body = raw[split + 4..].to_vec();
     if headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked")) {
         body = dechunk(&body)?;
@@ -124,9 +134,11 @@ mod tests {
 
     #[test]
     fn responses_parse_with_and_without_chunks() {
-        let r = parse_response(b"HTTP/1.1 503 Service Unavailable\r\nRetry-After: 2\r\ncontent-length: 2\r\n\r\n{}").expect("response");
+        let r = parse_response(b"HTTP/1.1 503 Service Unavailable\r\nRetry-After: 2\r\ncontent-length: 2\r\n\r\n{}")
+            .expect("response");
         assert_eq!((r.status, r.header("retry-after"), r.body.as_str()), (503, Some("2"), "{}"));
-        let r = parse_response(b"HTTP/1.1 201 Created\r\nTransfer-Encoding: chunked\r\n\r\n2\r\n{}\r\n0\r\n\r\n").expect("response");
+        let r = parse_response(b"HTTP/1.1 201 Created\r\nTransfer-Encoding: chunked\r\n\r\n2\r\n{}\r\n0\r\n\r\n")
+            .expect("response");
         assert_eq!((r.status, r.body.as_str()), (201, "{}"));
         assert!(parse_response(b"nonsense").is_none());
     }

@@ -253,7 +253,11 @@ pub fn rtc_api() -> Result<API, webrtc::Error> {
     settings.set_include_loopback_candidate(true);
     settings.set_network_types(vec![NetworkType::Udp4]);
     settings.set_ice_multicast_dns_mode(MulticastDnsMode::Disabled);
-    Ok(APIBuilder::new().with_media_engine(media).with_interceptor_registry(registry).with_setting_engine(settings).build())
+    Ok(APIBuilder::new()
+        .with_media_engine(media)
+        .with_interceptor_registry(registry)
+        .with_setting_engine(settings)
+        .build())
 }
 
 /// Runs every user to the end and returns their reports (failed users carry their error).
@@ -277,7 +281,11 @@ pub async fn run(config: &LoadConfig, live: Arc<Live>) -> Result<Vec<UserReport>
     }
     let mut reports = Vec::with_capacity(tasks.len());
     for (user, task) in tasks.into_iter().enumerate() {
-        reports.push(task.await.unwrap_or_else(|e| UserReport { user, error: Some(format!("task failed: {e}")), ..Default::default() }));
+        reports.push(task.await.unwrap_or_else(|e| UserReport {
+            user,
+            error: Some(format!("task failed: {e}")),
+            ..Default::default()
+        }));
     }
     Ok(reports)
 }
@@ -286,7 +294,14 @@ fn ms_since(clock: Instant) -> f64 {
     clock.elapsed().as_secs_f64() * 1e3
 }
 
-async fn run_user(config: &LoadConfig, base: &BaseUrl, api: &API, clock: Instant, live: &Live, report: &mut UserReport) -> Result<(), LoadError> {
+async fn run_user(
+    config: &LoadConfig,
+    base: &BaseUrl,
+    api: &API,
+    clock: Instant,
+    live: &Live,
+    report: &mut UserReport,
+) -> Result<(), LoadError> {
     let pc = Arc::new(api.new_peer_connection(RTCConfiguration::default()).await?);
     let result = stream_user(config, base, &pc, clock, live, report).await;
     let _ = pc.close().await;
@@ -337,7 +352,9 @@ async fn stream_user(
     let offer = pc.create_offer(None).await?;
     let mut gathered = pc.gathering_complete_promise().await;
     pc.set_local_description(offer).await?;
-    tokio::time::timeout(config.connect_timeout, gathered.recv()).await.map_err(|_| LoadError::Timeout("ICE gathering"))?;
+    tokio::time::timeout(config.connect_timeout, gathered.recv())
+        .await
+        .map_err(|_| LoadError::Timeout("ICE gathering"))?;
     let offer_sdp = pc.local_description().await.ok_or(LoadError::Timeout("the local description"))?.sdp;
     let body = json!({
         "sdp": offer_sdp, "scene": config.scene, "views": if config.stereo_ipd.is_some() { 2 } else { 1 },
@@ -359,8 +376,11 @@ async fn stream_user(
             status => return Err(LoadError::Refused { status, body: response.body.chars().take(500).collect() }),
         }
     };
-    let answer: serde_json::Value = serde_json::from_str(&answer.body).map_err(|e| LoadError::Protocol(format!("answer is not JSON: {e}")))?;
-    let field = |k: &str| answer[k].as_str().map(str::to_string).ok_or_else(|| LoadError::Protocol(format!("no {k:?} in the answer")));
+    let answer: serde_json::Value =
+        serde_json::from_str(&answer.body).map_err(|e| LoadError::Protocol(format!("answer is not JSON: {e}")))?;
+    let field = |k: &str| {
+        answer[k].as_str().map(str::to_string).ok_or_else(|| LoadError::Protocol(format!("no {k:?} in the answer")))
+    };
     let (session, token, sdp) = (field("session_id")?, field("token")?, field("sdp")?);
     report.session_id = Some(session.clone());
     let orbit = first_view(&answer["view"], config.orbit_speed);
@@ -411,7 +431,16 @@ async fn stream_user(
 
     // Close like the browser does on leaving, even after a failure.
     let auth = format!("Bearer {token}");
-    if let Err(e) = http::request(base, "DELETE", &format!("/v1/sessions/{session}"), &[("Authorization", &auth)], "", Duration::from_secs(5)).await {
+    if let Err(e) = http::request(
+        base,
+        "DELETE",
+        &format!("/v1/sessions/{session}"),
+        &[("Authorization", &auth)],
+        "",
+        Duration::from_secs(5),
+    )
+    .await
+    {
         tracing::debug!(session, "closing the session: {e}");
     }
     let v = video.lock().unwrap_or_else(|p| p.into_inner());
@@ -466,7 +495,8 @@ fn on_control(data: &[u8], clock: Instant, control: &Mutex<ControlStats>) {
 async fn receive_video(track: Arc<TrackRemote>, stats: Arc<Mutex<VideoStats>>, frames_live: Arc<AtomicU64>) {
     let mut counter = FrameCounter::new();
     while let Ok((packet, _)) = track.read_rtp().await {
-        let frame = counter.push(packet.header.sequence_number, packet.header.timestamp, packet.header.marker, &packet.payload);
+        let frame =
+            counter.push(packet.header.sequence_number, packet.header.timestamp, packet.header.marker, &packet.payload);
         let now = Instant::now();
         let mut s = stats.lock().unwrap_or_else(|p| p.into_inner());
         s.lost = counter.lost_packets;
@@ -486,7 +516,9 @@ async fn receive_video(track: Arc<TrackRemote>, stats: Arc<Mutex<VideoStats>>, f
 /// A fixed-width table of the reports, one line per user, then the totals.
 pub fn table(reports: &[UserReport]) -> String {
     let fmt = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{v:.1}"));
-    let mut out = String::from("user  session        fps  frames   idr  damaged  lost  kbit/s  connect_ms  rtt_p50  p2f_p50  p2f_p99  error\n");
+    let mut out = String::from(
+        "user  session        fps  frames   idr  damaged  lost  kbit/s  connect_ms  rtt_p50  p2f_p50  p2f_p99  error\n",
+    );
     for r in reports {
         out.push_str(&format!(
             "{:>4}  {:<12} {:>5.1}  {:>6}  {:>4}  {:>7}  {:>4}  {:>6.0}  {:>10}  {:>7}  {:>7}  {:>7}  {}\n",

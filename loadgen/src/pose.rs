@@ -12,7 +12,14 @@ pub const HEADER_BYTES: usize = 20;
 pub const VIEW_BYTES: usize = 128;
 
 /// Encodes one pose: `views` are (world-to-camera, projection) pairs, column-major.
-pub fn encode(sequence: u32, client_time_ms: f64, width: u16, height: u16, mode: u8, views: &[(Mat4, Mat4)]) -> Vec<u8> {
+pub fn encode(
+    sequence: u32,
+    client_time_ms: f64,
+    width: u16,
+    height: u16,
+    mode: u8,
+    views: &[(Mat4, Mat4)],
+) -> Vec<u8> {
     let mut out = Vec::with_capacity(HEADER_BYTES + VIEW_BYTES * views.len());
     out.extend_from_slice(&[MAGIC, VERSION, views.len().min(255) as u8, mode]);
     out.extend_from_slice(&sequence.to_le_bytes());
@@ -43,7 +50,10 @@ impl ScriptedOrbit {
     pub fn view_at(&self, t: f32, aspect: f32) -> (Mat4, Mat4) {
         let offset = self.eye - self.target;
         let turned = glam::Quat::from_rotation_z(self.speed * t) * offset;
-        (look_at(self.target + turned, self.target, Vec3::Z), perspective(self.fov_y_deg.to_radians(), aspect, 0.05, 1000.0))
+        (
+            look_at(self.target + turned, self.target, Vec3::Z),
+            perspective(self.fov_y_deg.to_radians(), aspect, 0.05, 1000.0),
+        )
     }
 
     /// The two eyes of a head at the orbit's camera `t` seconds in, `ipd` metres apart
@@ -71,7 +81,24 @@ pub fn look_at(eye: Vec3, target: Vec3, up: Vec3) -> Mat4 {
     let f = (target - eye).normalize();
     let r = f.cross(up).normalize();
     let u = r.cross(f);
-    Mat4::from_cols_array(&[r.x, u.x, -f.x, 0.0, r.y, u.y, -f.y, 0.0, r.z, u.z, -f.z, 0.0, -r.dot(eye), -u.dot(eye), f.dot(eye), 1.0])
+    Mat4::from_cols_array(&[
+        r.x,
+        u.x,
+        -f.x,
+        0.0,
+        r.y,
+        u.y,
+        -f.y,
+        0.0,
+        r.z,
+        u.z,
+        -f.z,
+        0.0,
+        -r.dot(eye),
+        -u.dot(eye),
+        f.dot(eye),
+        1.0,
+    ])
 }
 
 /// OpenGL perspective projection (clip z in [-1, 1]), as WebXR and the browser client give.

@@ -26,14 +26,14 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use glam::{Mat4, Vec3};
-use nephele_proto::{
-    BatchIds, Cancel, CancelTarget, ClientPose, CloseStream, ComposerRegister, ErrorCode, FramePlan, LoadReport, Message,
-    OpenStream, PlanPart, RayBatch, Register, ReleaseTask, StreamOpened, WireCamera,
-};
 use nephele_geometry::camera::Camera;
+use nephele_proto::{
+    BatchIds, Cancel, CancelTarget, ClientPose, CloseStream, ComposerRegister, ErrorCode, FramePlan, LoadReport,
+    Message, OpenStream, PlanPart, RayBatch, Register, ReleaseTask, StreamOpened, WireCamera,
+};
 use nephele_scheduler::{
-    Action, Admission as SchedAdmission, BatchId, BatchSpec, FrameId, FramePart, ObjectId, ObjectInfo, SchedError, Scheduler,
-    SchedulerConfig, SessionId, SessionSpec, Time, ViewMatrices, WorkerId,
+    Action, Admission as SchedAdmission, BatchId, BatchSpec, FrameId, FramePart, ObjectId, ObjectInfo, SchedError,
+    Scheduler, SchedulerConfig, SessionId, SessionSpec, Time, ViewMatrices, WorkerId,
 };
 use serde_json::{Value, json};
 use tokio::sync::{mpsc, oneshot};
@@ -118,18 +118,42 @@ pub type LinkSender = mpsc::UnboundedSender<LinkCommand>;
 /// Everything the actor hears.
 #[derive(Debug)]
 pub enum Event {
-    WorkerJoin { register: Register, peer: SocketAddr, link: LinkSender, reply: oneshot::Sender<Result<u32, String>> },
+    WorkerJoin {
+        register: Register,
+        peer: SocketAddr,
+        link: LinkSender,
+        reply: oneshot::Sender<Result<u32, String>>,
+    },
     WorkerMessage(u32, Message),
     WorkerLeft(u32, String),
-    ComposerJoin { register: ComposerRegister, peer: SocketAddr, link: LinkSender, reply: oneshot::Sender<Result<u64, String>> },
+    ComposerJoin {
+        register: ComposerRegister,
+        peer: SocketAddr,
+        link: LinkSender,
+        reply: oneshot::Sender<Result<u64, String>>,
+    },
     ComposerMessage(u64, Message),
     ComposerLeft(u64, String),
-    Open { name: String, request: SessionRequest, offer: String, reply: oneshot::Sender<Result<String, OpenError>> },
+    Open {
+        name: String,
+        request: SessionRequest,
+        offer: String,
+        reply: oneshot::Sender<Result<String, OpenError>>,
+    },
     /// The HTTP side gave up waiting for the answer: drop the session.
-    Abandon { name: String },
-    Close { name: String, reply: oneshot::Sender<()> },
-    State { reply: oneshot::Sender<Value> },
-    Shutdown { reply: oneshot::Sender<()> },
+    Abandon {
+        name: String,
+    },
+    Close {
+        name: String,
+        reply: oneshot::Sender<()>,
+    },
+    State {
+        reply: oneshot::Sender<Value>,
+    },
+    Shutdown {
+        reply: oneshot::Sender<()>,
+    },
 }
 
 /// The handle the HTTP layer and the connection tasks hold. Cheap to clone.
@@ -152,7 +176,10 @@ impl Farm {
     /// Starts the actor. Returns the handle, the actor's task, and a channel of the HTTP
     /// session ids the farm ended on its own (client vanished, composer gone) for the HTTP
     /// session table to forget.
-    pub fn start(config: FarmConfig, catalog: Catalog) -> Result<(Farm, tokio::task::JoinHandle<()>, mpsc::UnboundedReceiver<String>), SchedError> {
+    pub fn start(
+        config: FarmConfig,
+        catalog: Catalog,
+    ) -> Result<(Farm, tokio::task::JoinHandle<()>, mpsc::UnboundedReceiver<String>), SchedError> {
         let mut scheduler = Scheduler::new(config.scheduler.clone())?;
         for object in catalog.objects() {
             let info = ObjectInfo { bounds: object.bounds, occupancy: None, cost_per_ray: 1.0 };
@@ -228,7 +255,12 @@ impl FarmBackend for Farm {
         *self.inner.admission.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    fn open(&self, session_id: String, request: SessionRequest, offer_sdp: String) -> BoxFuture<Result<String, OpenError>> {
+    fn open(
+        &self,
+        session_id: String,
+        request: SessionRequest,
+        offer_sdp: String,
+    ) -> BoxFuture<Result<String, OpenError>> {
         let farm = self.clone();
         Box::pin(async move {
             let (reply, answer) = oneshot::channel();
@@ -454,7 +486,9 @@ impl Actor {
                 if self.workers.remove(&id).is_some() {
                     self.counters.workers_left += 1;
                     match self.scheduler.remove_worker(WorkerId(id), now) {
-                        Ok(()) => tracing::info!(worker = id, %reason, "worker disconnected; its batches are re-issued"),
+                        Ok(()) => {
+                            tracing::info!(worker = id, %reason, "worker disconnected; its batches are re-issued")
+                        }
                         Err(e) => tracing::warn!(worker = id, %reason, "worker disconnected: {e}"),
                     }
                 }
@@ -489,7 +523,14 @@ impl Actor {
         None
     }
 
-    fn worker_join(&mut self, register: Register, peer: SocketAddr, link: LinkSender, reply: oneshot::Sender<Result<u32, String>>, now: Time) {
+    fn worker_join(
+        &mut self,
+        register: Register,
+        peer: SocketAddr,
+        link: LinkSender,
+        reply: oneshot::Sender<Result<u32, String>>,
+        now: Time,
+    ) {
         let id = self.next_worker;
         self.next_worker += 1;
         // The scheduler works in rays of a cost-1 kernel; a worker measures primary rays
@@ -573,7 +614,12 @@ impl Actor {
                 }
             }
             Message::Goodbye(goodbye) => {
-                tracing::info!(worker = id, returned = goodbye.returned_batches.len(), "worker said goodbye: {}", goodbye.reason);
+                tracing::info!(
+                    worker = id,
+                    returned = goodbye.returned_batches.len(),
+                    "worker said goodbye: {}",
+                    goodbye.reason
+                );
                 if let Some(w) = self.workers.remove(&id) {
                     self.counters.workers_left += 1;
                     let _ = w.link.send(LinkCommand::Close(String::new()));
@@ -596,7 +642,10 @@ impl Actor {
         now: Time,
     ) {
         if let Some(existing) = &self.composer {
-            let reason = format!("composer {:?} ({}) is already registered; this master drives one composer", existing.name, existing.peer);
+            let reason = format!(
+                "composer {:?} ({}) is already registered; this master drives one composer",
+                existing.name, existing.peer
+            );
             tracing::warn!(name = %register.name, %peer, "composer refused: {reason}");
             let _ = reply.send(Err(reason));
             return;
@@ -663,7 +712,9 @@ impl Actor {
                 self.end_all_sessions("the composer left", now);
             }
             Message::Error(e) => tracing::warn!(composer = id, code = ?e.code, "composer reports: {}", e.message),
-            other => tracing::warn!(composer = id, kind = %other.kind(), "unexpected message from the composer; ignored"),
+            other => {
+                tracing::warn!(composer = id, kind = %other.kind(), "unexpected message from the composer; ignored")
+            }
         }
     }
 
@@ -675,7 +726,8 @@ impl Actor {
             return;
         };
         let r = &s.request;
-        if pose.views.len() != r.views as usize || pose.views.iter().any(|v| v.width != r.width || v.height != r.height) {
+        if pose.views.len() != r.views as usize || pose.views.iter().any(|v| v.width != r.width || v.height != r.height)
+        {
             s.poses_rejected += 1;
             tracing::debug!(session = %s.name, views = pose.views.len(), "pose of the wrong view count or size; dropped");
             return;
@@ -696,7 +748,12 @@ impl Actor {
                 if s.poses.len() == POSE_MEMORY {
                     s.poses.pop_front();
                 }
-                s.poses.push_back(PoseMark { at: now, received: Instant::now(), sequence: pose.sequence, client_time_ms: pose.client_time_ms });
+                s.poses.push_back(PoseMark {
+                    at: now,
+                    received: Instant::now(),
+                    sequence: pose.sequence,
+                    client_time_ms: pose.client_time_ms,
+                });
             }
             Err(e) => {
                 s.poses_rejected += 1;
@@ -705,7 +762,14 @@ impl Actor {
         }
     }
 
-    fn open(&mut self, name: String, request: SessionRequest, offer: String, reply: oneshot::Sender<Result<String, OpenError>>, now: Time) {
+    fn open(
+        &mut self,
+        name: String,
+        request: SessionRequest,
+        offer: String,
+        reply: oneshot::Sender<Result<String, OpenError>>,
+        now: Time,
+    ) {
         let Some(scene) = self.catalog.scene(&request.scene) else {
             let _ = reply.send(Err(OpenError::BadOffer(format!("unknown scene {:?}", request.scene))));
             return;
@@ -718,7 +782,10 @@ impl Actor {
             let _ = reply.send(Err(OpenError::Unavailable("no render worker is connected".into())));
             return;
         }
-        let spec = SessionSpec { target_fps: f64::from(request.target_fps), objects: scene.objects.iter().map(|&id| ObjectId(id)).collect() };
+        let spec = SessionSpec {
+            target_fps: f64::from(request.target_fps),
+            objects: scene.objects.iter().map(|&id| ObjectId(id)).collect(),
+        };
         let sid = match self.scheduler.open_session(spec, now) {
             Ok(sid) => sid,
             Err(SchedError::Refused { retry_after }) => {
@@ -798,10 +865,14 @@ impl Actor {
             Action::Cancel { worker, batch } => {
                 if let Some(w) = self.workers.get(&worker.0) {
                     self.counters.cancels_sent += 1;
-                    let _ = w.link.send(LinkCommand::Send(Message::Cancel(Cancel { target: CancelTarget::Batch(batch.0) })));
+                    let _ = w
+                        .link
+                        .send(LinkCommand::Send(Message::Cancel(Cancel { target: CancelTarget::Batch(batch.0) })));
                 }
             }
-            Action::FrameComplete { session, frame, released, parts, .. } => self.plan(session, frame, released, &parts, now),
+            Action::FrameComplete { session, frame, released, parts, .. } => {
+                self.plan(session, frame, released, &parts, now)
+            }
             Action::FrameDropped { session, frame, reason } => {
                 self.counters.frames_dropped += 1;
                 if let Some(s) = self.sessions.get_mut(&session) {
@@ -840,7 +911,13 @@ impl Actor {
         };
         let (session, frame) = batch.frames.first().copied().unwrap_or((SessionId(0), FrameId(0)));
         let message = RayBatch {
-            ids: BatchIds { batch_id: batch.id.0, task_id: batch.task.0, session_id: session.0, frame_id: frame.0, view_index: 0 },
+            ids: BatchIds {
+                batch_id: batch.id.0,
+                task_id: batch.task.0,
+                session_id: session.0,
+                frame_id: frame.0,
+                view_index: 0,
+            },
             asset_id: object.asset.clone(),
             camera: wire_camera(&batch.camera, object.translation),
             pixels: batch.pixels.indices(),
@@ -867,7 +944,10 @@ impl Actor {
             width: s.request.width,
             height: s.request.height,
             views: s.request.views,
-            parts: parts.iter().map(|p| PlanPart { view: p.view, task_id: p.task.0, object_id: u64::from(p.object.0) }).collect(),
+            parts: parts
+                .iter()
+                .map(|p| PlanPart { view: p.view, task_id: p.task.0, object_id: u64::from(p.object.0) })
+                .collect(),
             // Every batch is in (BatchDone follows delivery); one more frame interval covers
             // results still in flight on other connections.
             deadline_unix_us: Some(self.unix_origin_us + now.as_micros() + period_us),
@@ -882,7 +962,8 @@ impl Actor {
     }
 
     fn state(&self, now: Time) -> Value {
-        let snapshot = serde_json::to_value(self.scheduler.snapshot(now)).unwrap_or_else(|e| json!({ "error": e.to_string() }));
+        let snapshot =
+            serde_json::to_value(self.scheduler.snapshot(now)).unwrap_or_else(|e| json!({ "error": e.to_string() }));
         let workers: Vec<Value> = self
             .workers
             .iter()
@@ -960,7 +1041,11 @@ impl Actor {
     /// out.
     async fn shutdown(mut self, reply: oneshot::Sender<()>) {
         let now = self.now();
-        tracing::info!(workers = self.workers.len(), sessions = self.sessions.len(), "farm shutting down: saying goodbye");
+        tracing::info!(
+            workers = self.workers.len(),
+            sessions = self.sessions.len(),
+            "farm shutting down: saying goodbye"
+        );
         for (_, reply) in self.pending_opens.drain() {
             let _ = reply.send(Err(OpenError::Unavailable("the master is shutting down".into())));
         }
@@ -1004,12 +1089,17 @@ mod tests {
 
     #[test]
     fn the_wire_camera_sees_the_object_where_the_world_camera_sees_its_placement() {
-        let camera = Camera::look_at(64, 48, 0.8, Vec3::new(1.0, -6.0, 2.0), Vec3::new(0.5, 0.5, 0.0), Vec3::Z).expect("camera");
+        let camera =
+            Camera::look_at(64, 48, 0.8, Vec3::new(1.0, -6.0, 2.0), Vec3::new(0.5, 0.5, 0.0), Vec3::Z).expect("camera");
         let translation = Vec3::new(-1.4, 2.7, 0.3);
         let wire = wire_camera(&camera, translation);
-        let object_camera =
-            Camera::from_view_projection(wire.width, wire.height, Mat4::from_cols_array(&wire.view), Mat4::from_cols_array(&wire.projection))
-                .expect("a valid camera");
+        let object_camera = Camera::from_view_projection(
+            wire.width,
+            wire.height,
+            Mat4::from_cols_array(&wire.view),
+            Mat4::from_cols_array(&wire.projection),
+        )
+        .expect("a valid camera");
         for local in [Vec3::ZERO, Vec3::new(0.3, -0.2, 0.5), Vec3::new(-0.6, 0.4, -0.1)] {
             let world = local + translation;
             let (a, b) = (camera.project(world).expect("in view"), object_camera.project(local).expect("in view"));
@@ -1031,7 +1121,8 @@ mod tests {
 
         let (wtx, mut wrx) = mpsc::unbounded_channel();
         let (reply, answer) = oneshot::channel();
-        let register = Register { name: "w".into(), threads: 1, kernels: vec!["pathtrace".into()], rays_per_second: 1e6 };
+        let register =
+            Register { name: "w".into(), threads: 1, kernels: vec!["pathtrace".into()], rays_per_second: 1e6 };
         assert!(farm.send(Event::WorkerJoin { register, peer: peer(), link: wtx, reply }));
         let wid = answer.await.expect("reply").expect("worker accepted");
         let (ctx, mut crx) = mpsc::unbounded_channel();
@@ -1057,14 +1148,16 @@ mod tests {
         let scene = farm.catalog().scene("default").expect("scene").clone();
         let v = &scene.view;
         let camera =
-            Camera::look_at(64, 48, v.fov_y_deg.to_radians(), Vec3::from(v.eye), Vec3::from(v.target), Vec3::Z).expect("camera");
+            Camera::look_at(64, 48, v.fov_y_deg.to_radians(), Vec3::from(v.eye), Vec3::from(v.target), Vec3::Z)
+                .expect("camera");
         let pose = WireCamera {
             width: 64,
             height: 48,
             view: camera.world_to_camera().to_cols_array(),
             projection: camera.projection_matrix(0.05, 100.0).to_cols_array(),
         };
-        let client_pose = ClientPose { session_id: open.session_id, sequence: 7, client_time_ms: 140.0, views: vec![pose] };
+        let client_pose =
+            ClientPose { session_id: open.session_id, sequence: 7, client_time_ms: 140.0, views: vec![pose] };
         assert!(farm.send(Event::ComposerMessage(cid, Message::ClientPose(client_pose))));
 
         // Serve batches until the plan comes.

@@ -71,7 +71,12 @@ pub trait FarmBackend: Send + Sync + 'static {
     fn ice_servers(&self) -> serde_json::Value;
     fn admission(&self) -> Admission;
     /// Hands the offer to a composer and returns its SDP answer.
-    fn open(&self, session_id: String, request: SessionRequest, offer_sdp: String) -> BoxFuture<Result<String, OpenError>>;
+    fn open(
+        &self,
+        session_id: String,
+        request: SessionRequest,
+        offer_sdp: String,
+    ) -> BoxFuture<Result<String, OpenError>>;
     /// The session ended (closed by its client or dropped by the service).
     fn close(&self, session_id: String) -> BoxFuture<()>;
     /// The scheduler's state for `GET /v1/farm`.
@@ -197,7 +202,10 @@ async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Byte
     let scenes = state.backend.scenes();
     let Some((_, view)) = scenes.iter().find(|(name, _)| *name == request.scene) else {
         let names: Vec<&str> = scenes.iter().map(|(n, _)| n.as_str()).collect();
-        return error(StatusCode::BAD_REQUEST, format!("unknown scene {:?}; known: {}", request.scene, names.join(", ")));
+        return error(
+            StatusCode::BAD_REQUEST,
+            format!("unknown scene {:?}; known: {}", request.scene, names.join(", ")),
+        );
     };
     let view = view.clone();
     if let Admission::Refuse { retry_after } = state.backend.admission() {
@@ -338,7 +346,10 @@ mod tests {
     }
 
     fn post(body: &str) -> Request<Body> {
-        Request::post("/v1/sessions").header("content-type", "application/json").body(Body::from(body.to_owned())).expect("request")
+        Request::post("/v1/sessions")
+            .header("content-type", "application/json")
+            .body(Body::from(body.to_owned()))
+            .expect("request")
     }
 
     const OFFER: &str = r#"{"sdp": "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 96\r\n", "scene": "default"}"#;
@@ -357,7 +368,10 @@ mod tests {
         assert_eq!((status, farm_body["sessions_open"].as_u64()), (StatusCode::OK, Some(1)));
 
         let del = |token: &str| {
-            Request::delete(format!("/v1/sessions/{id}")).header("authorization", format!("Bearer {token}")).body(Body::empty()).expect("request")
+            Request::delete(format!("/v1/sessions/{id}"))
+                .header("authorization", format!("Bearer {token}"))
+                .body(Body::empty())
+                .expect("request")
         };
         assert_eq!(call(&app, del("wrong")).await.0, StatusCode::UNAUTHORIZED);
         assert_eq!(call(&app, del(&token)).await.0, StatusCode::NO_CONTENT);
@@ -415,12 +429,24 @@ mod tests {
     #[tokio::test]
     async fn serves_the_client() {
         let (app, _, _) = app();
-        let response = app.clone().oneshot(Request::get("/").body(Body::empty()).expect("request")).await.expect("infallible");
+        let response =
+            app.clone().oneshot(Request::get("/").body(Body::empty()).expect("request")).await.expect("infallible");
         assert_eq!(response.status(), StatusCode::OK);
-        assert_eq!(response.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()), Some("text/html; charset=utf-8"));
-        let js = app.clone().oneshot(Request::get("/client/nephele.js").body(Body::empty()).expect("request")).await.expect("infallible");
+        assert_eq!(
+            response.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()),
+            Some("text/html; charset=utf-8")
+        );
+        let js = app
+            .clone()
+            .oneshot(Request::get("/client/nephele.js").body(Body::empty()).expect("request"))
+            .await
+            .expect("infallible");
         assert_eq!(js.status(), StatusCode::OK);
-        let missing = app.clone().oneshot(Request::get("/client/..%2FCargo.toml").body(Body::empty()).expect("request")).await.expect("infallible");
+        let missing = app
+            .clone()
+            .oneshot(Request::get("/client/..%2FCargo.toml").body(Body::empty()).expect("request"))
+            .await
+            .expect("infallible");
         assert_eq!(missing.status(), StatusCode::NOT_FOUND);
         let (status, _, config) = call(&app, Request::get("/v1/config").body(Body::empty()).expect("request")).await;
         assert_eq!((status, config["scenes"][0].as_str()), (StatusCode::OK, Some("default")));

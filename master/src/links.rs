@@ -14,7 +14,9 @@ use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
 use nephele_proto::stream::{Connection, framed, handshake, recv};
-use nephele_proto::{ErrorCode, ErrorMessage, FrameConfig, Goodbye, Message, ProtoError, Registered, Role, clip_text, error_message};
+use nephele_proto::{
+    ErrorCode, ErrorMessage, FrameConfig, Goodbye, Message, ProtoError, Registered, Role, clip_text, error_message,
+};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{mpsc, oneshot};
 
@@ -73,7 +75,8 @@ async fn connection(stream: TcpStream, peer: SocketAddr, farm: Farm, frame: Fram
                 Ok(Err(reason)) => return refuse(conn, peer, ErrorCode::InvalidField, &reason).await,
                 Err(_) => return refuse(conn, peer, ErrorCode::ShuttingDown, "the master is shutting down").await,
             };
-            let registered = Registered { worker_id: u64::from(id), load_report_interval_ms: farm.load_report_interval_ms() };
+            let registered =
+                Registered { worker_id: u64::from(id), load_report_interval_ms: farm.load_report_interval_ms() };
             if let Err(e) = send(&mut conn, &Message::Registered(registered)).await {
                 tracing::warn!(%peer, worker = id, "could not confirm the registration: {e}");
                 farm.send(Event::WorkerLeft(id, e.to_string()));
@@ -133,7 +136,11 @@ async fn send(conn: &mut Conn, message: &Message) -> Result<(), ProtoError> {
 
 /// Serves a registered link until it ends; returns why. `forward` hands a message to the
 /// actor (`false` once the actor is gone).
-async fn run(mut conn: Conn, mut commands: mpsc::UnboundedReceiver<LinkCommand>, forward: impl Fn(Message) -> bool) -> String {
+async fn run(
+    mut conn: Conn,
+    mut commands: mpsc::UnboundedReceiver<LinkCommand>,
+    forward: impl Fn(Message) -> bool,
+) -> String {
     loop {
         tokio::select! {
             command = commands.recv() => match command {

@@ -79,20 +79,33 @@ impl Catalog {
         let mut catalog = Catalog::new();
         let mut framed = Vec::new();
         for name in BUILTIN_OBJECTS {
-            let scene = scenes::builtin(name).map_err(|e| CatalogError::Asset { asset: name.into(), reason: e.to_string() })?;
+            let scene =
+                scenes::builtin(name).map_err(|e| CatalogError::Asset { asset: name.into(), reason: e.to_string() })?;
             let bounds = mesh_bounds(name, &scene.scene)?;
             framed.push((name, bounds, scene.framing, scene.default_view()));
         }
         let bounds_of = |asset: &str| {
-            framed.iter().find(|f| f.0 == asset).map(|f| f.1).ok_or_else(|| CatalogError::Asset { asset: asset.into(), reason: "not built in".into() })
+            framed
+                .iter()
+                .find(|f| f.0 == asset)
+                .map(|f| f.1)
+                .ok_or_else(|| CatalogError::Asset { asset: asset.into(), reason: "not built in".into() })
         };
         let boxes = [bounds_of(DEFAULT_OBJECTS[0])?, bounds_of(DEFAULT_OBJECTS[1])?, bounds_of(DEFAULT_OBJECTS[2])?];
-        let placed = DEFAULT_OBJECTS.iter().zip(default_layout(&boxes, DEFAULT_GAP)).zip(boxes).map(|((a, t), b)| (a.to_string(), t, b)).collect();
+        let placed = DEFAULT_OBJECTS
+            .iter()
+            .zip(default_layout(&boxes, DEFAULT_GAP))
+            .zip(boxes)
+            .map(|((a, t), b)| (a.to_string(), t, b))
+            .collect();
         catalog.add_scene("default", placed, None)?;
         for (name, bounds, framing, (eye, target, fov_y)) in &framed {
             // Object scenes come with their own first view; keep it.
-            let view = matches!(framing, Framing::Object { .. })
-                .then(|| SceneView { eye: eye.to_array(), target: target.to_array(), fov_y_deg: fov_y.to_degrees() });
+            let view = matches!(framing, Framing::Object { .. }).then(|| SceneView {
+                eye: eye.to_array(),
+                target: target.to_array(),
+                fov_y_deg: fov_y.to_degrees(),
+            });
             catalog.add_scene(name, vec![(name.to_string(), Vec3::ZERO, *bounds)], view)?;
         }
         Ok(catalog)
@@ -101,7 +114,12 @@ impl Catalog {
     /// Adds a scene of `(asset, translation, bounds in the asset's own coordinates)`. Objects
     /// already placed identically by another scene are reused. Without `view`, a first view
     /// is framed around the scene's bounds.
-    pub fn add_scene(&mut self, name: &str, objects: Vec<(String, Vec3, Bounds)>, view: Option<SceneView>) -> Result<(), CatalogError> {
+    pub fn add_scene(
+        &mut self,
+        name: &str,
+        objects: Vec<(String, Vec3, Bounds)>,
+        view: Option<SceneView>,
+    ) -> Result<(), CatalogError> {
         if self.scenes.iter().any(|s| s.name == name) {
             return Err(CatalogError::Duplicate(name.into()));
         }
@@ -110,9 +128,11 @@ impl Catalog {
         }
         let mut ids = Vec::with_capacity(objects.len());
         for (asset, translation, local) in objects {
-            nephele_proto::validate::asset_id(&asset).map_err(|e| CatalogError::Asset { asset: asset.clone(), reason: e.to_string() })?;
+            nephele_proto::validate::asset_id(&asset)
+                .map_err(|e| CatalogError::Asset { asset: asset.clone(), reason: e.to_string() })?;
             let bounds = Bounds { min: local.min + translation, max: local.max + translation };
-            let existing = self.objects.iter().find(|o| o.asset == asset && o.translation == translation && o.bounds == bounds);
+            let existing =
+                self.objects.iter().find(|o| o.asset == asset && o.translation == translation && o.bounds == bounds);
             let id = match existing {
                 Some(o) => o.id,
                 None => {
@@ -164,7 +184,9 @@ pub fn default_layout(boxes: &[Bounds; 3], gap: f32) -> [Vec3; 3] {
 }
 
 fn mesh_bounds(name: &str, scene: &nephele_pathtracer::Scene) -> Result<Bounds, CatalogError> {
-    let (min, max) = scene.bounds().ok_or_else(|| CatalogError::Asset { asset: name.into(), reason: "the scene has no geometry".into() })?;
+    let (min, max) = scene
+        .bounds()
+        .ok_or_else(|| CatalogError::Asset { asset: name.into(), reason: "the scene has no geometry".into() })?;
     if !(min.is_finite() && max.is_finite()) {
         return Err(CatalogError::Asset { asset: name.into(), reason: "non-finite bounds".into() });
     }
@@ -175,8 +197,14 @@ fn mesh_bounds(name: &str, scene: &nephele_pathtracer::Scene) -> Result<Bounds, 
 /// up, as the built-in scenes' default views), far enough for their bounding sphere to fit
 /// the vertical field of view with a 10 % margin.
 pub fn frame_view(boxes: &[Bounds]) -> SceneView {
-    let (min, max) = boxes.iter().fold((Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)), |(lo, hi), b| (lo.min(b.min), hi.max(b.max)));
-    let (center, radius) = if min.is_finite() && max.is_finite() { (0.5 * (min + max), 0.5 * (max - min).length()) } else { (Vec3::ZERO, 1.0) };
+    let (min, max) = boxes.iter().fold((Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)), |(lo, hi), b| {
+        (lo.min(b.min), hi.max(b.max))
+    });
+    let (center, radius) = if min.is_finite() && max.is_finite() {
+        (0.5 * (min + max), 0.5 * (max - min).length())
+    } else {
+        (Vec3::ZERO, 1.0)
+    };
     let half = (0.5 * SCENE_FOV_Y_DEG).to_radians();
     let distance = 1.1 * radius.max(1e-3) / half.sin();
     let (azimuth, elevation) = ((-60f32).to_radians(), 25f32.to_radians());
@@ -195,7 +223,13 @@ mod tests {
     #[test]
     fn objects_are_shifted_and_shared_between_scenes() {
         let mut catalog = Catalog::new();
-        catalog.add_scene("a", vec![("x".into(), Vec3::new(2.0, 0.0, 0.0), unit()), ("y".into(), Vec3::ZERO, unit())], None).expect("a");
+        catalog
+            .add_scene(
+                "a",
+                vec![("x".into(), Vec3::new(2.0, 0.0, 0.0), unit()), ("y".into(), Vec3::ZERO, unit())],
+                None,
+            )
+            .expect("a");
         catalog.add_scene("b", vec![("x".into(), Vec3::new(2.0, 0.0, 0.0), unit())], None).expect("b");
         catalog.add_scene("c", vec![("x".into(), Vec3::ZERO, unit())], None).expect("c");
         assert_eq!(catalog.objects().len(), 3, "x at 2 is one instance, x at 0 another");
@@ -248,7 +282,10 @@ mod tests {
         let diffuse = catalog.object(catalog.scene("diffuse").expect("diffuse").objects[0]).expect("object");
         assert_eq!(diffuse_in_default.asset, "diffuse");
         assert_ne!(diffuse_in_default.id, diffuse.id, "placed elsewhere: another instance");
-        assert!(diffuse_in_default.bounds.max.x < 0.0 && diffuse_in_default.translation.x < -0.5, "{diffuse_in_default:?}");
+        assert!(
+            diffuse_in_default.bounds.max.x < 0.0 && diffuse_in_default.translation.x < -0.5,
+            "{diffuse_in_default:?}"
+        );
         // Side by side: the three boxes of the default scene do not overlap.
         let boxes: Vec<Bounds> = default.objects.iter().map(|id| catalog.object(*id).expect("o").bounds).collect();
         for i in 0..3 {

@@ -69,11 +69,14 @@ impl Master {
     /// [`Master::http_addr`]).
     pub async fn bind(config: MasterConfig) -> Result<Master, MasterError> {
         let started = Instant::now();
-        let catalog = tokio::task::spawn_blocking(Catalog::builtin).await.map_err(|e| CatalogError::Asset {
-            asset: "builtin".into(),
-            reason: e.to_string(),
-        })??;
-        tracing::debug!(ms = started.elapsed().as_millis() as u64, scenes = catalog.scenes().len(), "scene catalog built");
+        let catalog = tokio::task::spawn_blocking(Catalog::builtin)
+            .await
+            .map_err(|e| CatalogError::Asset { asset: "builtin".into(), reason: e.to_string() })??;
+        tracing::debug!(
+            ms = started.elapsed().as_millis() as u64,
+            scenes = catalog.scenes().len(),
+            "scene catalog built"
+        );
         Master::bind_with(config, catalog).await
     }
 

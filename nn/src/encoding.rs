@@ -18,7 +18,8 @@ pub fn sh_encode(dir: [f32; 3], degree: u32, out: &mut [f32]) {
     let degree = degree.clamp(1, SH_MAX_DEGREE);
     debug_assert!(out.len() >= sh_coefficient_count(degree));
     let len = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
-    let (x, y, z) = if len.is_finite() && len > 1e-20 { (dir[0] / len, dir[1] / len, dir[2] / len) } else { (0.0, 0.0, 1.0) };
+    let (x, y, z) =
+        if len.is_finite() && len > 1e-20 { (dir[0] / len, dir[1] / len, dir[2] / len) } else { (0.0, 0.0, 1.0) };
     let (x2, y2, z2) = (x * x, y * y, z * z);
     out[0] = 0.282_094_8;
     if degree <= 1 {

@@ -38,8 +38,9 @@ impl HashGridConfig {
     /// `b = exp((ln N_max - ln N_min) / (L - 1))`).
     pub fn with_finest_resolution(levels: u32, log2_table_size: u32, base_resolution: u32, finest: u32) -> Self {
         let per_level_scale = if levels > 1 {
-            ((f64::from(finest.max(base_resolution)).ln() - f64::from(base_resolution.max(1)).ln()) / f64::from(levels - 1))
-                .exp() as f32
+            ((f64::from(finest.max(base_resolution)).ln() - f64::from(base_resolution.max(1)).ln())
+                / f64::from(levels - 1))
+            .exp() as f32
         } else {
             1.0
         };
@@ -230,7 +231,8 @@ impl HashGrid {
     pub fn encode(&self, p: [f32; 3], out: &mut [f32]) {
         debug_assert_eq!(out.len(), self.output_dim());
         for (l, level) in self.levels.iter().enumerate() {
-            let table = &self.params[level.offset * FEATURES_PER_LEVEL..(level.offset + level.size) * FEATURES_PER_LEVEL];
+            let table =
+                &self.params[level.offset * FEATURES_PER_LEVEL..(level.offset + level.size) * FEATURES_PER_LEVEL];
             let cell = Self::cell(level, p);
             let (mut f0, mut f1) = (0.0, 0.0);
             for c in 0..8 {
@@ -249,7 +251,8 @@ impl HashGrid {
         let dim = self.output_dim();
         check_len("hash grid batch output", points.len() * dim, out.len())?;
         for (l, level) in self.levels.iter().enumerate() {
-            let table = &self.params[level.offset * FEATURES_PER_LEVEL..(level.offset + level.size) * FEATURES_PER_LEVEL];
+            let table =
+                &self.params[level.offset * FEATURES_PER_LEVEL..(level.offset + level.size) * FEATURES_PER_LEVEL];
             for (p, row) in points.iter().zip(out.chunks_exact_mut(dim)) {
                 let cell = Self::cell(level, *p);
                 let (mut f0, mut f1) = (0.0, 0.0);
@@ -390,10 +393,12 @@ mod tests {
     #[test]
     fn gradient_matches_finite_differences() {
         let mut grid = HashGrid::new(small(), 3).expect("grid");
-        let points: Vec<[f32; 3]> = (0..20).map(|i| {
-            let t = i as f32 / 19.0;
-            [t, (t * 7.3).fract(), (t * 3.1 + 0.2).fract()]
-        }).collect();
+        let points: Vec<[f32; 3]> = (0..20)
+            .map(|i| {
+                let t = i as f32 / 19.0;
+                [t, (t * 7.3).fract(), (t * 3.1 + 0.2).fract()]
+            })
+            .collect();
         let dim = grid.output_dim();
         // Loss = sum_i <r_i, enc(p_i)> with fixed random r.
         let mut rng = InitRng::new(9);
@@ -419,7 +424,11 @@ mod tests {
             let down = loss(&grid);
             grid.params[i] = old;
             let fd = (up - down) / (2.0 * f64::from(h));
-            assert!((fd - f64::from(grad[i])).abs() < 2e-3 * (1.0 + fd.abs()), "param {i}: fd {fd} analytic {}", grad[i]);
+            assert!(
+                (fd - f64::from(grad[i])).abs() < 2e-3 * (1.0 + fd.abs()),
+                "param {i}: fd {fd} analytic {}",
+                grad[i]
+            );
             checked += 1;
         }
         assert!(checked > 100, "{checked}");

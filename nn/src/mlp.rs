@@ -262,7 +262,11 @@ impl Mlp {
     /// `ws` for [`Mlp::backward`]; returns the outputs (`n x config.output`).
     pub fn forward<'w>(&self, input: &[f32], ws: &'w mut MlpWorkspace) -> Result<&'w [f32], NnError> {
         if !input.len().is_multiple_of(self.config.input) {
-            return Err(NnError::Size { what: "MLP input", expected: input.len().div_ceil(self.config.input) * self.config.input, actual: input.len() });
+            return Err(NnError::Size {
+                what: "MLP input",
+                expected: input.len().div_ceil(self.config.input) * self.config.input,
+                actual: input.len(),
+            });
         }
         let n = input.len() / self.config.input;
         ws.rows = n;
@@ -352,7 +356,9 @@ impl Mlp {
             let w = &self.params[layer.weights..layer.weights + layer.input * layer.output];
             delta_prev.clear();
             delta_prev.resize(n * layer.input, 0.0);
-            for (r, (dp, dr)) in delta_prev.chunks_exact_mut(layer.input).zip(delta.chunks_exact(layer.output)).enumerate() {
+            for (r, (dp, dr)) in
+                delta_prev.chunks_exact_mut(layer.input).zip(delta.chunks_exact(layer.output)).enumerate()
+            {
                 if i > 0 {
                     // ReLU hidden: zero where the activation was zero.
                     let xr = &x[r * layer.input..(r + 1) * layer.input];

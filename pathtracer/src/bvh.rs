@@ -162,7 +162,14 @@ impl Bvh {
         self.traverse(ray, t_min, t_max, true, stats).is_some()
     }
 
-    fn traverse(&self, ray: &Ray, t_min: f32, mut t_max: f32, any_hit: bool, stats: &mut TraversalStats) -> Option<Hit> {
+    fn traverse(
+        &self,
+        ray: &Ray,
+        t_min: f32,
+        mut t_max: f32,
+        any_hit: bool,
+        stats: &mut TraversalStats,
+    ) -> Option<Hit> {
         stats.rays += 1;
         if self.nodes.is_empty() || !ray.origin.is_finite() || !ray.direction.is_finite() {
             return None;
@@ -182,7 +189,9 @@ impl Bvh {
                     let first = node.offset as usize;
                     for k in first..first + node.count as usize {
                         stats.triangle_tests += 1;
-                        if let Some((t, u, v)) = intersect_triangle(&self.triangles[k], origin, ray.direction, t_min, t_max) {
+                        if let Some((t, u, v)) =
+                            intersect_triangle(&self.triangles[k], origin, ray.direction, t_min, t_max)
+                        {
                             t_max = t;
                             best = Some(Hit { t, triangle: self.triangle_ids[k], u, v });
                             if any_hit {
@@ -225,7 +234,15 @@ impl Bvh {
     }
 
     /// Brute-force subtree walk, used only if the explicit stack overflows.
-    fn traverse_from(&self, index: usize, ray: &Ray, t_min: f32, t_max: f32, any_hit: bool, stats: &mut TraversalStats) -> Option<Hit> {
+    fn traverse_from(
+        &self,
+        index: usize,
+        ray: &Ray,
+        t_min: f32,
+        t_max: f32,
+        any_hit: bool,
+        stats: &mut TraversalStats,
+    ) -> Option<Hit> {
         let node = &self.nodes[index];
         stats.node_visits += 1;
         node.bounds.hit(ray.origin, ray.direction.recip(), t_min, t_max)?;
@@ -235,7 +252,8 @@ impl Bvh {
             let first = node.offset as usize;
             for k in first..first + node.count as usize {
                 stats.triangle_tests += 1;
-                if let Some((t, u, v)) = intersect_triangle(&self.triangles[k], ray.origin, ray.direction, t_min, t_max) {
+                if let Some((t, u, v)) = intersect_triangle(&self.triangles[k], ray.origin, ray.direction, t_min, t_max)
+                {
                     t_max = t;
                     best = Some(Hit { t, triangle: self.triangle_ids[k], u, v });
                     if any_hit {
@@ -256,7 +274,13 @@ impl Bvh {
 
 /// Möller-Trumbore. Double-sided; returns `(t, u, v)`.
 #[inline]
-fn intersect_triangle(tri: &PackedTriangle, origin: Vec3, dir: Vec3, t_min: f32, t_max: f32) -> Option<(f32, f32, f32)> {
+fn intersect_triangle(
+    tri: &PackedTriangle,
+    origin: Vec3,
+    dir: Vec3,
+    t_min: f32,
+    t_max: f32,
+) -> Option<(f32, f32, f32)> {
     let p = dir.cross(tri.e2);
     let det = tri.e1.dot(p);
     if det.abs() < 1e-12 {

@@ -80,36 +80,16 @@ pub enum GltfImportError {
     #[error("the transform placing {} is not finite", path.display())]
     BadPlacement { path: PathBuf },
     #[error("{}: mesh {mesh}, primitive {primitive}: {reason}", path.display())]
-    BadPrimitive {
-        path: PathBuf,
-        mesh: usize,
-        primitive: usize,
-        reason: String,
-    },
+    BadPrimitive { path: PathBuf, mesh: usize, primitive: usize, reason: String },
     #[error("{}: mesh {mesh}, primitive {primitive} has a non-finite {what}", path.display())]
-    NonFinite {
-        path: PathBuf,
-        mesh: usize,
-        primitive: usize,
-        what: &'static str,
-    },
+    NonFinite { path: PathBuf, mesh: usize, primitive: usize, what: &'static str },
     #[error(
         "{}: mesh {mesh}, primitive {primitive} has vertex index {index} but only {vertices} vertices",
         path.display()
     )]
-    IndexOutOfRange {
-        path: PathBuf,
-        mesh: usize,
-        primitive: usize,
-        index: u32,
-        vertices: usize,
-    },
+    IndexOutOfRange { path: PathBuf, mesh: usize, primitive: usize, index: u32, vertices: usize },
     #[error("{}: material {material}: {reason}", path.display())]
-    BadMaterial {
-        path: PathBuf,
-        material: usize,
-        reason: String,
-    },
+    BadMaterial { path: PathBuf, material: usize, reason: String },
     #[error("{}: the glTF reader failed on malformed data: {message}", path.display())]
     Malformed { path: PathBuf, message: String },
     #[error("the imported scene is invalid")]
@@ -138,15 +118,9 @@ pub fn import_gltf(path: &Path) -> Result<Scene, GltfImportError> {
 /// Adds the meshes of `path` to `builder`, converted to +Z up and then moved by
 /// `transform` (world = `transform` x Y-up-to-Z-up x node transform). Nothing is added if
 /// the file cannot be imported.
-pub fn import_gltf_into(
-    builder: &mut SceneBuilder,
-    path: &Path,
-    transform: Affine3A,
-) -> Result<(), GltfImportError> {
+pub fn import_gltf_into(builder: &mut SceneBuilder, path: &Path, transform: Affine3A) -> Result<(), GltfImportError> {
     if !transform.is_finite() {
-        return Err(GltfImportError::BadPlacement {
-            path: path.to_owned(),
-        });
+        return Err(GltfImportError::BadPlacement { path: path.to_owned() });
     }
     let parts = match catch_unwind(AssertUnwindSafe(|| load(path))) {
         Ok(result) => result?,
@@ -156,10 +130,7 @@ pub fn import_gltf_into(
                 .map(|s| (*s).to_owned())
                 .or_else(|| payload.downcast_ref::<String>().cloned())
                 .unwrap_or_else(|| "panic with no message".to_owned());
-            return Err(GltfImportError::Malformed {
-                path: path.to_owned(),
-                message,
-            });
+            return Err(GltfImportError::Malformed { path: path.to_owned(), message });
         }
     };
     for part in parts {
@@ -171,15 +142,7 @@ pub fn import_gltf_into(
             continue;
         }
         let mesh = if det < 0.0 {
-            Mesh {
-                indices: part
-                    .mesh
-                    .indices
-                    .iter()
-                    .map(|&[a, b, c]| [a, c, b])
-                    .collect(),
-                ..part.mesh
-            }
+            Mesh { indices: part.mesh.indices.iter().map(|&[a, b, c]| [a, c, b]).collect(), ..part.mesh }
         } else {
             part.mesh
         };
@@ -199,17 +162,9 @@ struct Part {
 fn load(path: &Path) -> Result<Vec<Part>, GltfImportError> {
     let owned = || path.to_owned();
     let gltf = gltf::Gltf::open(path).map_err(|e| match e {
-        gltf::Error::Io(io) if io.kind() == std::io::ErrorKind::NotFound => {
-            GltfImportError::NotFound { path: owned() }
-        }
-        gltf::Error::Io(io) => GltfImportError::Io {
-            path: owned(),
-            source: io,
-        },
-        other => GltfImportError::Parse {
-            path: owned(),
-            source: other,
-        },
+        gltf::Error::Io(io) if io.kind() == std::io::ErrorKind::NotFound => GltfImportError::NotFound { path: owned() },
+        gltf::Error::Io(io) => GltfImportError::Io { path: owned(), source: io },
+        other => GltfImportError::Parse { path: owned(), source: other },
     })?;
     let gltf::Gltf { document, blob } = gltf;
     if document.meshes().len() == 0 {
@@ -218,30 +173,18 @@ fn load(path: &Path) -> Result<Vec<Part>, GltfImportError> {
     // The `gltf` crate unwraps the percent-decoding of relative URIs: check them first.
     for buffer in document.buffers() {
         match buffer.source() {
-            gltf::buffer::Source::Uri(uri)
-                if !uri.contains(':') && percent_decode(uri).is_none() =>
-            {
-                return Err(GltfImportError::BadUri {
-                    path: owned(),
-                    uri: uri.to_owned(),
-                });
+            gltf::buffer::Source::Uri(uri) if !uri.contains(':') && percent_decode(uri).is_none() => {
+                return Err(GltfImportError::BadUri { path: owned(), uri: uri.to_owned() });
             }
             _ => {}
         }
     }
-    let buffers = gltf::import_buffers(&document, path.parent(), blob).map_err(|source| {
-        GltfImportError::Buffers {
-            path: owned(),
-            source,
-        }
-    })?;
+    let buffers = gltf::import_buffers(&document, path.parent(), blob)
+        .map_err(|source| GltfImportError::Buffers { path: owned(), source })?;
     let buffer_data = |b: gltf::Buffer<'_>| buffers.get(b.index()).map(|d| d.0.as_slice());
 
     let node_count = document.nodes().len();
-    let roots: Vec<gltf::Node<'_>> = match document
-        .default_scene()
-        .or_else(|| document.scenes().next())
-    {
+    let roots: Vec<gltf::Node<'_>> = match document.default_scene().or_else(|| document.scenes().next()) {
         Some(scene) => scene.nodes().collect(),
         None => {
             let mut is_child = vec![false; node_count];
@@ -252,42 +195,25 @@ fn load(path: &Path) -> Result<Vec<Part>, GltfImportError> {
                     }
                 }
             }
-            document
-                .nodes()
-                .filter(|n| !is_child.get(n.index()).copied().unwrap_or(true))
-                .collect()
+            document.nodes().filter(|n| !is_child.get(n.index()).copied().unwrap_or(true)).collect()
         }
     };
 
     // Depth-first over the forest; a node met twice means a cycle or a shared child, both
     // invalid glTF, and would otherwise loop forever.
     let mut visited = vec![false; node_count];
-    let mut stack: Vec<(gltf::Node<'_>, Affine3A)> = roots
-        .into_iter()
-        .rev()
-        .map(|n| (n, Affine3A::IDENTITY))
-        .collect();
+    let mut stack: Vec<(gltf::Node<'_>, Affine3A)> = roots.into_iter().rev().map(|n| (n, Affine3A::IDENTITY)).collect();
     let mut parts = Vec::new();
     while let Some((node, parent)) = stack.pop() {
-        let seen = visited
-            .get_mut(node.index())
-            .ok_or(GltfImportError::BadHierarchy {
-                path: owned(),
-                node: node.index(),
-            })?;
+        let seen =
+            visited.get_mut(node.index()).ok_or(GltfImportError::BadHierarchy { path: owned(), node: node.index() })?;
         if std::mem::replace(seen, true) {
-            return Err(GltfImportError::BadHierarchy {
-                path: owned(),
-                node: node.index(),
-            });
+            return Err(GltfImportError::BadHierarchy { path: owned(), node: node.index() });
         }
         let local = Affine3A::from_mat4(Mat4::from_cols_array_2d(&node.transform().matrix()));
         let world = parent * local;
         if !world.is_finite() {
-            return Err(GltfImportError::BadTransform {
-                path: owned(),
-                node: node.index(),
-            });
+            return Err(GltfImportError::BadTransform { path: owned(), node: node.index() });
         }
         if let Some(mesh) = node.mesh() {
             for primitive in mesh.primitives() {
@@ -301,18 +227,10 @@ fn load(path: &Path) -> Result<Vec<Part>, GltfImportError> {
                     );
                     continue;
                 }
-                let ctx = Ctx {
-                    path,
-                    mesh: mesh.index(),
-                    primitive: primitive.index(),
-                };
+                let ctx = Ctx { path, mesh: mesh.index(), primitive: primitive.index() };
                 if let Some(triangles) = read_primitive(&ctx, &primitive, &buffer_data)? {
                     let material = material_of(path, &primitive.material())?;
-                    parts.push(Part {
-                        mesh: triangles,
-                        node_transform: world,
-                        material,
-                    });
+                    parts.push(Part { mesh: triangles, node_transform: world, material });
                 }
             }
         }
@@ -364,12 +282,7 @@ impl Ctx<'_> {
     }
 
     fn non_finite(&self, what: &'static str) -> GltfImportError {
-        GltfImportError::NonFinite {
-            path: self.path.to_owned(),
-            mesh: self.mesh,
-            primitive: self.primitive,
-            what,
-        }
+        GltfImportError::NonFinite { path: self.path.to_owned(), mesh: self.mesh, primitive: self.primitive, what }
     }
 }
 
@@ -395,9 +308,7 @@ fn read_primitive<'a, 's, F>(
 where
     F: Clone + Fn(gltf::Buffer<'a>) -> Option<&'s [u8]>,
 {
-    let position_accessor = primitive
-        .get(&Semantic::Positions)
-        .ok_or_else(|| ctx.bad("no POSITION attribute"))?;
+    let position_accessor = primitive.get(&Semantic::Positions).ok_or_else(|| ctx.bad("no POSITION attribute"))?;
     check_vec3(ctx, &position_accessor, "POSITION")?;
     if position_accessor.count() == 0 {
         return Ok(None);
@@ -420,11 +331,7 @@ where
         Some(accessor) => {
             check_vec3(ctx, &accessor, "NORMAL")?;
             if accessor.count() != positions.len() {
-                return Err(ctx.bad(format!(
-                    "{} normals for {} positions",
-                    accessor.count(),
-                    positions.len()
-                )));
+                return Err(ctx.bad(format!("{} normals for {} positions", accessor.count(), positions.len())));
             }
             let normals: Vec<Vec3> = reader
                 .read_normals()
@@ -453,10 +360,7 @@ where
     let flat: Vec<u32> = match primitive.indices() {
         None => (0..positions.len() as u32).collect(),
         Some(accessor) => {
-            let integer = matches!(
-                accessor.data_type(),
-                DataType::U8 | DataType::U16 | DataType::U32
-            );
+            let integer = matches!(accessor.data_type(), DataType::U8 | DataType::U16 | DataType::U32);
             if !integer || accessor.dimensions() != Dimensions::Scalar {
                 return Err(ctx.bad(format!(
                     "indices must be unsigned integer scalars, found {:?} {:?}",
@@ -479,10 +383,7 @@ where
         }
     };
     if !flat.chunks_exact(3).remainder().is_empty() {
-        return Err(ctx.bad(format!(
-            "{} indices do not make whole triangles",
-            flat.len()
-        )));
+        return Err(ctx.bad(format!("{} indices do not make whole triangles", flat.len())));
     }
     if let Some(&index) = flat.iter().find(|&&i| i as usize >= positions.len()) {
         return Err(GltfImportError::IndexOutOfRange {
@@ -497,11 +398,7 @@ where
     if indices.is_empty() {
         return Ok(None);
     }
-    Ok(Some(Mesh {
-        positions,
-        normals,
-        indices,
-    }))
+    Ok(Some(Mesh { positions, normals, indices }))
 }
 
 /// The material factors this importer looks at (all linear, as glTF stores them).
@@ -521,17 +418,9 @@ impl MaterialFactors {
     /// rules). Factors are clamped into range; a non-finite emission gives `None`.
     pub fn to_material(&self) -> Option<Material> {
         let base = self.base_color.clamp(Vec3::ZERO, Vec3::ONE);
-        let base = if base.is_finite() {
-            base
-        } else {
-            Vec3::splat(0.8)
-        };
+        let base = if base.is_finite() { base } else { Vec3::splat(0.8) };
         let unit = |x: f32| {
-            if x.is_finite() {
-                x.clamp(0.0, 1.0)
-            } else {
-                0.0
-            }
+            if x.is_finite() { x.clamp(0.0, 1.0) } else { 0.0 }
         };
         let (metallic, roughness) = (unit(self.metallic), unit(self.roughness));
         let emission = self.emission.max(Vec3::ZERO);
@@ -541,19 +430,12 @@ impl MaterialFactors {
         Some(if emission.max_element() > 0.0 {
             Material::emissive(emission)
         } else if unit(self.transmission) > 0.5 {
-            let ior = self
-                .ior
-                .filter(|i| i.is_finite() && *i >= 1.0)
-                .unwrap_or(1.5);
+            let ior = self.ior.filter(|i| i.is_finite() && *i >= 1.0).unwrap_or(1.5);
             Material::glass(ior, base)
         } else if metallic > 0.5 {
             Material::metal(base, roughness)
         } else if roughness < 0.6 {
-            Material::glossy(
-                base * (1.0 - metallic),
-                Vec3::splat(0.04).lerp(base, metallic),
-                roughness,
-            )
+            Material::glossy(base * (1.0 - metallic), Vec3::splat(0.04).lerp(base, metallic), roughness)
         } else {
             Material::lambertian(base)
         })
@@ -570,20 +452,15 @@ fn material_of(path: &Path, material: &gltf::Material<'_>) -> Result<Material, G
         base_color: Vec3::new(r, g, b),
         metallic: pbr.metallic_factor(),
         roughness: pbr.roughness_factor(),
-        emission: Vec3::from(material.emissive_factor())
-            * material.emissive_strength().unwrap_or(1.0),
-        transmission: material
-            .transmission()
-            .map_or(0.0, |t| t.transmission_factor()),
+        emission: Vec3::from(material.emissive_factor()) * material.emissive_strength().unwrap_or(1.0),
+        transmission: material.transmission().map_or(0.0, |t| t.transmission_factor()),
         ior: material.ior(),
     };
-    factors
-        .to_material()
-        .ok_or_else(|| GltfImportError::BadMaterial {
-            path: path.to_owned(),
-            material: index,
-            reason: "emission is not finite".to_owned(),
-        })
+    factors.to_material().ok_or_else(|| GltfImportError::BadMaterial {
+        path: path.to_owned(),
+        material: index,
+        reason: "emission is not finite".to_owned(),
+    })
 }
 
 #[cfg(test)]
@@ -591,15 +468,10 @@ mod tests {
     use super::*;
 
     fn base64(bytes: &[u8]) -> String {
-        const ALPHABET: &[u8; 64] =
-            b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+        const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
         let mut out = String::new();
         for chunk in bytes.chunks(3) {
-            let b = [
-                chunk[0],
-                *chunk.get(1).unwrap_or(&0),
-                *chunk.get(2).unwrap_or(&0),
-            ];
+            let b = [chunk[0], *chunk.get(1).unwrap_or(&0), *chunk.get(2).unwrap_or(&0)];
             let n = (u32::from(b[0]) << 16) | (u32::from(b[1]) << 8) | u32::from(b[2]);
             for k in 0..4 {
                 if k <= chunk.len() {
@@ -619,9 +491,7 @@ mod tests {
             p.iter().for_each(|x| bytes.extend(x.to_le_bytes()));
         }
         for _ in 0..3 {
-            [0.0f32, 0.0, 1.0]
-                .iter()
-                .for_each(|x| bytes.extend(x.to_le_bytes()));
+            [0.0f32, 0.0, 1.0].iter().for_each(|x| bytes.extend(x.to_le_bytes()));
         }
         indices.iter().for_each(|i| bytes.extend(i.to_le_bytes()));
         bytes.extend([0, 0]);
@@ -633,9 +503,7 @@ mod tests {
     fn sample(indices: [u16; 3]) -> String {
         let data = buffer(indices);
         let tri = |material: &str| {
-            format!(
-                r#"{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1}},"indices":2{material}}}]}}"#
-            )
+            format!(r#"{{"primitives":[{{"attributes":{{"POSITION":0,"NORMAL":1}},"indices":2{material}}}]}}"#)
         };
         let meshes = [
             tri(r#","material":0"#),
@@ -643,8 +511,7 @@ mod tests {
             tri(r#","material":2"#),
             tri(r#","material":3"#),
             tri(r#","material":4"#),
-            r#"{"primitives":[{"attributes":{"POSITION":0},"mode":0},{"attributes":{"POSITION":0}}]}"#
-                .to_owned(),
+            r#"{"primitives":[{"attributes":{"POSITION":0},"mode":0},{"attributes":{"POSITION":0}}]}"#.to_owned(),
         ]
         .join(",");
         format!(
@@ -747,29 +614,14 @@ mod tests {
         }
         // The mirrored node 7: glTF (1, 0, 0) -> (-1, 0, 0), unchanged by the axis swap.
         let mirrored = triangle(&scene, 6);
-        assert!(
-            mirrored
-                .iter()
-                .any(|&p| close(p, Vec3::new(-1.0, 0.0, 0.0))),
-            "{mirrored:?}"
-        );
+        assert!(mirrored.iter().any(|&p| close(p, Vec3::new(-1.0, 0.0, 0.0))), "{mirrored:?}");
         let material = |t: usize| scene.materials[scene.material_of_triangle[t] as usize];
         assert_eq!(material(0), Material::lambertian(Vec3::new(0.8, 0.2, 0.1)));
         assert_eq!(material(1), Material::metal(Vec3::new(0.9, 0.8, 0.5), 0.3));
-        assert_eq!(
-            material(2),
-            Material::glossy(Vec3::new(0.1, 0.2, 0.7), Vec3::splat(0.04), 0.2)
-        );
-        assert_eq!(
-            material(3),
-            Material::glass(1.45, Vec3::new(0.9, 1.0, 0.95))
-        );
+        assert_eq!(material(2), Material::glossy(Vec3::new(0.1, 0.2, 0.7), Vec3::splat(0.04), 0.2));
+        assert_eq!(material(3), Material::glass(1.45, Vec3::new(0.9, 1.0, 0.95)));
         assert_eq!(material(4), Material::emissive(Vec3::new(4.0, 2.0, 1.0)));
-        assert_eq!(
-            material(5),
-            Material::lambertian(Vec3::splat(0.8)),
-            "no material"
-        );
+        assert_eq!(material(5), Material::lambertian(Vec3::splat(0.8)), "no material");
         assert_eq!(material(6), material(0));
         assert!(scene.sun.is_some(), "default daylight");
     }
@@ -791,16 +643,10 @@ mod tests {
     fn malformed_files_are_errors_not_panics() {
         let dir = tempfile::tempdir().expect("tempdir");
         let missing = dir.path().join("missing.gltf");
-        assert!(matches!(
-            import_gltf(&missing),
-            Err(GltfImportError::NotFound { .. })
-        ));
+        assert!(matches!(import_gltf(&missing), Err(GltfImportError::NotFound { .. })));
 
         let junk = write(&dir, "junk.gltf", "this is not glTF");
-        assert!(matches!(
-            import_gltf(&junk),
-            Err(GltfImportError::Parse { .. })
-        ));
+        assert!(matches!(import_gltf(&junk), Err(GltfImportError::Parse { .. })));
 
         let empty = write(&dir, "empty.gltf", r#"{"asset": {"version": "2.0"}}"#);
         let err = import_gltf(&empty).expect_err("no meshes");
@@ -808,23 +654,11 @@ mod tests {
 
         let out_of_range = write(&dir, "range.gltf", &sample([0, 1, 7]));
         let err = import_gltf(&out_of_range).expect_err("bad index");
-        assert!(
-            matches!(
-                err,
-                GltfImportError::IndexOutOfRange {
-                    index: 7,
-                    vertices: 3,
-                    ..
-                }
-            ),
-            "{err}"
-        );
+        assert!(matches!(err, GltfImportError::IndexOutOfRange { index: 7, vertices: 3, .. }), "{err}");
 
         // An accessor claiming more data than its buffer view holds.
-        let long = sample([0, 1, 2]).replace(
-            r#""count": 3, "type": "VEC3", "min""#,
-            r#""count": 300, "type": "VEC3", "min""#,
-        );
+        let long =
+            sample([0, 1, 2]).replace(r#""count": 3, "type": "VEC3", "min""#, r#""count": 300, "type": "VEC3", "min""#);
         assert!(import_gltf(&write(&dir, "long.gltf", &long)).is_err());
 
         // Indices stored as floats.
@@ -836,10 +670,8 @@ mod tests {
         assert!(matches!(err, GltfImportError::BadPrimitive { .. }), "{err}");
 
         // A node hierarchy with a cycle.
-        let cycle = sample([0, 1, 2]).replace(
-            r#"{"mesh": 0, "translation": [100, 0, 0]}"#,
-            r#"{"mesh": 0, "children": [8]}"#,
-        );
+        let cycle =
+            sample([0, 1, 2]).replace(r#"{"mesh": 0, "translation": [100, 0, 0]}"#, r#"{"mesh": 0, "children": [8]}"#);
         let cycle = cycle.replace(r#""nodes": [0, 1, 3, 4, 5, 6, 7]"#, r#""nodes": [8]"#);
         assert!(import_gltf(&write(&dir, "cycle.gltf", &cycle)).is_err());
 
@@ -856,8 +688,7 @@ mod tests {
         assert!(matches!(err, GltfImportError::Buffers { .. }), "{err}");
 
         // A scene with only a points primitive.
-        let points =
-            sample([0, 1, 2]).replace(r#""nodes": [0, 1, 3, 4, 5, 6, 7]"#, r#""nodes": []"#);
+        let points = sample([0, 1, 2]).replace(r#""nodes": [0, 1, 3, 4, 5, 6, 7]"#, r#""nodes": []"#);
         let err = import_gltf(&write(&dir, "points.gltf", &points)).expect_err("no triangles");
         assert!(matches!(err, GltfImportError::NoTriangles { .. }), "{err}");
 
@@ -889,57 +720,22 @@ mod tests {
             transmission: 0.0,
             ior: None,
         };
-        assert_eq!(
-            plain.to_material(),
-            Some(Material::lambertian(plain.base_color))
-        );
-        let emissive = MaterialFactors {
-            emission: Vec3::splat(3.0),
-            metallic: 1.0,
-            ..plain
-        };
-        assert_eq!(
-            emissive.to_material(),
-            Some(Material::emissive(Vec3::splat(3.0)))
-        );
-        let glass = MaterialFactors {
-            transmission: 0.9,
-            ..plain
-        };
-        assert_eq!(
-            glass.to_material(),
-            Some(Material::glass(1.5, plain.base_color))
-        );
-        let half_metal = MaterialFactors {
-            metallic: 0.5,
-            roughness: 0.4,
-            ..plain
-        };
-        let Some(Material::Glossy {
-            albedo,
-            specular,
-            roughness,
-        }) = half_metal.to_material()
-        else {
+        assert_eq!(plain.to_material(), Some(Material::lambertian(plain.base_color)));
+        let emissive = MaterialFactors { emission: Vec3::splat(3.0), metallic: 1.0, ..plain };
+        assert_eq!(emissive.to_material(), Some(Material::emissive(Vec3::splat(3.0))));
+        let glass = MaterialFactors { transmission: 0.9, ..plain };
+        assert_eq!(glass.to_material(), Some(Material::glass(1.5, plain.base_color)));
+        let half_metal = MaterialFactors { metallic: 0.5, roughness: 0.4, ..plain };
+        let Some(Material::Glossy { albedo, specular, roughness }) = half_metal.to_material() else {
             panic!("glossy expected");
         };
         assert!(close(albedo, plain.base_color * 0.5));
-        assert!(close(
-            specular,
-            (Vec3::splat(0.04) + plain.base_color) * 0.5
-        ));
+        assert!(close(specular, (Vec3::splat(0.04) + plain.base_color) * 0.5));
         assert_eq!(roughness, 0.4);
-        let wild = MaterialFactors {
-            base_color: Vec3::splat(7.0),
-            roughness: -3.0,
-            ..plain
-        };
+        let wild = MaterialFactors { base_color: Vec3::splat(7.0), roughness: -3.0, ..plain };
         let material = wild.to_material().expect("clamped");
         assert!(material.validate().is_ok(), "{material:?}");
-        let bad = MaterialFactors {
-            emission: Vec3::INFINITY,
-            ..plain
-        };
+        let bad = MaterialFactors { emission: Vec3::INFINITY, ..plain };
         assert_eq!(bad.to_material(), None);
     }
 }

@@ -166,7 +166,12 @@ impl Renderer {
 
     /// Renders every pixel of `camera`. `progress` is called with the number of rows just
     /// finished (from worker threads).
-    pub fn render(&self, camera: &Camera, options: &RenderOptions, progress: &(dyn Fn(u32) + Sync)) -> Result<RenderOutput, RenderError> {
+    pub fn render(
+        &self,
+        camera: &Camera,
+        options: &RenderOptions,
+        progress: &(dyn Fn(u32) + Sync),
+    ) -> Result<RenderOutput, RenderError> {
         options.validate()?;
         let (width, height) = (camera.width(), camera.height());
         let pixels = width as usize * height as usize;
@@ -225,7 +230,12 @@ impl Renderer {
     /// # Panics
     /// Never on pixel indices: out-of-range indices are the caller's contract to check
     /// ([`nephele_geometry::validate_pixels`]); they are clamped to the last pixel here.
-    pub fn render_pixel_list(&self, camera: &Camera, options: &RenderOptions, pixels: &[u32]) -> Result<(Vec<(Vec3, f32, f32)>, RenderStats), RenderError> {
+    pub fn render_pixel_list(
+        &self,
+        camera: &Camera,
+        options: &RenderOptions,
+        pixels: &[u32],
+    ) -> Result<(Vec<(Vec3, f32, f32)>, RenderStats), RenderError> {
         options.validate()?;
         let width = camera.width();
         let last = u64::from(width) * u64::from(camera.height()) - 1;
@@ -253,7 +263,15 @@ impl Renderer {
         Ok((values, total))
     }
 
-    fn render_pixel(&self, camera: &Camera, options: &RenderOptions, x: u32, y: u32, pixel_index: u64, stats: &mut RenderStats) -> PixelValue {
+    fn render_pixel(
+        &self,
+        camera: &Camera,
+        options: &RenderOptions,
+        x: u32,
+        y: u32,
+        pixel_index: u64,
+        stats: &mut RenderStats,
+    ) -> PixelValue {
         let mut rng = Rng::new(options.seed, pixel_index);
         let mut acc = PixelValue::default();
         let mut hits = 0u32;
@@ -398,7 +416,15 @@ impl Renderer {
 
     /// Direct light at a non-delta surface from every light kind, MIS-weighted against BSDF
     /// sampling where that could also find the light.
-    fn next_event(&self, surface: &SurfacePoint, material: &Material, frame: &Frame, wo: Vec3, rng: &mut Rng, stats: &mut RenderStats) -> Vec3 {
+    fn next_event(
+        &self,
+        surface: &SurfacePoint,
+        material: &Material,
+        frame: &Frame,
+        wo: Vec3,
+        rng: &mut Rng,
+        stats: &mut RenderStats,
+    ) -> Vec3 {
         let mut total = Vec3::ZERO;
         let origin_for = |dir: Vec3| offset_origin(surface.position, surface.geometric, dir);
         // Area lights.
@@ -572,7 +598,8 @@ pub enum Aov {
 }
 
 impl Aov {
-    pub const ALL: [Aov; 7] = [Aov::Color, Aov::Direct, Aov::Alpha, Aov::Depth, Aov::Position, Aov::Normal, Aov::Albedo];
+    pub const ALL: [Aov; 7] =
+        [Aov::Color, Aov::Direct, Aov::Alpha, Aov::Depth, Aov::Position, Aov::Normal, Aov::Albedo];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -645,8 +672,14 @@ mod tests {
     fn cube(h: f32) -> Mesh {
         let p = |x: f32, y: f32, z: f32| Vec3::new(x, y, z) * h;
         let positions = vec![
-            p(-1., -1., -1.), p(1., -1., -1.), p(1., 1., -1.), p(-1., 1., -1.),
-            p(-1., -1., 1.), p(1., -1., 1.), p(1., 1., 1.), p(-1., 1., 1.),
+            p(-1., -1., -1.),
+            p(1., -1., -1.),
+            p(1., 1., -1.),
+            p(-1., 1., -1.),
+            p(-1., -1., 1.),
+            p(1., -1., 1.),
+            p(1., 1., 1.),
+            p(-1., 1., 1.),
         ];
         let quads = [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [2, 3, 7, 6], [1, 2, 6, 5], [0, 4, 7, 3]];
         let indices = quads.iter().flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]).collect();
@@ -666,7 +699,8 @@ mod tests {
     }
 
     fn mean_over_covered(out: &RenderOutput) -> Vec3 {
-        let covered: Vec<Vec3> = out.color.iter().zip(&out.alpha).filter(|(_, a)| **a == 1.0).map(|(c, _)| *c).collect();
+        let covered: Vec<Vec3> =
+            out.color.iter().zip(&out.alpha).filter(|(_, a)| **a == 1.0).map(|(c, _)| *c).collect();
         assert!(!covered.is_empty());
         covered.iter().sum::<Vec3>() / covered.len() as f32
     }
@@ -695,10 +729,15 @@ mod tests {
         b.environment(Environment::Uniform(Vec3::ONE));
         let renderer = Renderer::new(b.build().expect("scene")).expect("renderer");
         let cam = camera(32, Vec3::new(0.0, -4.0, 0.0));
-        let out = renderer.render(&cam, &RenderOptions { samples_per_pixel: 4, ..Default::default() }, &|_| {}).expect("render");
+        let out = renderer
+            .render(&cam, &RenderOptions { samples_per_pixel: 4, ..Default::default() }, &|_| {})
+            .expect("render");
         // The cube's silhouette seen face-on spans a known pixel range; every pixel whose
         // square lies outside it must be exactly empty, every one inside exactly covered.
-        let (lo, hi) = (cam.project(Vec3::new(-0.3, -0.3, 0.3)).expect("in front"), cam.project(Vec3::new(0.3, -0.3, -0.3)).expect("in front"));
+        let (lo, hi) = (
+            cam.project(Vec3::new(-0.3, -0.3, 0.3)).expect("in front"),
+            cam.project(Vec3::new(0.3, -0.3, -0.3)).expect("in front"),
+        );
         let mut seen_empty = 0;
         for y in 0..32u32 {
             for x in 0..32u32 {
@@ -741,7 +780,11 @@ mod tests {
         // A 1 x 1 emitter of radiance 3 facing down, 1 above the floor's centre.
         let mut b = SceneBuilder::new();
         b.add(&square(5.0), Affine3A::IDENTITY, floor());
-        b.add(&square(0.5), Affine3A::from_rotation_translation(glam::Quat::from_rotation_x(std::f32::consts::PI), Vec3::Z), Material::emissive(Vec3::splat(3.0)));
+        b.add(
+            &square(0.5),
+            Affine3A::from_rotation_translation(glam::Quat::from_rotation_x(std::f32::consts::PI), Vec3::Z),
+            Material::emissive(Vec3::splat(3.0)),
+        );
         let out = view(&Renderer::new(b.build().expect("scene")).expect("renderer"));
         let irradiance = 3.0 * 4.0 * corner_rectangle_irradiance(0.5, 0.5, 1.0);
         let expected = albedo * irradiance / std::f32::consts::PI;
@@ -768,12 +811,20 @@ mod tests {
         let mut b = SceneBuilder::new();
         b.add(&cube(0.4), Affine3A::IDENTITY, Material::glossy(Vec3::new(0.7, 0.3, 0.2), Vec3::splat(0.04), 0.3));
         b.add(&cube(0.2), Affine3A::from_translation(Vec3::new(0.5, 0.0, 0.5)), Material::glass(1.5, Vec3::ONE));
-        b.environment(Environment::Sky { zenith: Vec3::new(0.3, 0.5, 1.0), horizon: Vec3::ONE, ground: Vec3::splat(0.2) });
+        b.environment(Environment::Sky {
+            zenith: Vec3::new(0.3, 0.5, 1.0),
+            horizon: Vec3::ONE,
+            ground: Vec3::splat(0.2),
+        });
         let renderer = Renderer::new(b.build().expect("scene")).expect("renderer");
         let options = RenderOptions { samples_per_pixel: 3, seed: 42, ..Default::default() };
         let cam = camera(20, Vec3::new(2.0, -3.0, 1.0));
         let run = |threads| {
-            rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool").install(|| renderer.render(&cam, &options, &|_| {}).expect("render"))
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool")
+                .install(|| renderer.render(&cam, &options, &|_| {}).expect("render"))
         };
         let (a, b) = (run(1), run(2));
         assert_eq!(a.color, b.color);

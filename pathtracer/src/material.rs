@@ -37,9 +37,7 @@ impl Material {
     pub fn validate(&self) -> Result<(), String> {
         let unit = |v: Vec3| v.is_finite() && v.min_element() >= 0.0 && v.max_element() <= 1.0;
         match *self {
-            Material::Lambertian { albedo } if !unit(albedo) => {
-                Err(format!("albedo {albedo} must lie in [0, 1]"))
-            }
+            Material::Lambertian { albedo } if !unit(albedo) => Err(format!("albedo {albedo} must lie in [0, 1]")),
             Material::Glossy { albedo, specular, roughness } => {
                 if !unit(albedo) || !unit(specular) {
                     Err(format!("albedo {albedo} and specular {specular} must lie in [0, 1]"))
@@ -58,9 +56,7 @@ impl Material {
                     Ok(())
                 }
             }
-            Material::Emissive { radiance }
-                if !(radiance.is_finite() && radiance.min_element() >= 0.0) =>
-            {
+            Material::Emissive { radiance } if !(radiance.is_finite() && radiance.min_element() >= 0.0) => {
                 Err(format!("emitted radiance {radiance} must be finite and >= 0"))
             }
             _ => Ok(()),
@@ -116,8 +112,7 @@ impl Material {
                 let lobe = GlossyLobes::new(albedo, specular, roughness, wo);
                 let h = (wo + wi).normalize();
                 let d = ggx_d(h, lobe.alpha);
-                let f_spec = schlick(specular, wi.dot(h)) * d * ggx_g2(wo, wi, lobe.alpha)
-                    / (4.0 * wo.z * wi.z);
+                let f_spec = schlick(specular, wi.dot(h)) * d * ggx_g2(wo, wi, lobe.alpha) / (4.0 * wo.z * wi.z);
                 let f = lobe.diffuse * FRAC_1_PI + f_spec;
                 let pdf_spec = ggx_g1(wo, lobe.alpha) * d / (4.0 * wo.z);
                 let pdf = lobe.p_specular * pdf_spec + (1.0 - lobe.p_specular) * wi.z * FRAC_1_PI;
@@ -173,11 +168,8 @@ impl GlossyLobes {
         let diffuse = albedo * (1.0 - fresnel_out.max_element());
         let spec_weight = luminance(fresnel_out);
         let diff_weight = luminance(diffuse);
-        let p_specular = if diff_weight <= 0.0 {
-            1.0
-        } else {
-            (spec_weight / (spec_weight + diff_weight)).clamp(0.1, 0.9)
-        };
+        let p_specular =
+            if diff_weight <= 0.0 { 1.0 } else { (spec_weight / (spec_weight + diff_weight)).clamp(0.1, 0.9) };
         GlossyLobes { alpha, diffuse, p_specular }
     }
 }
@@ -290,10 +282,9 @@ mod tests {
                 // Integral of the pdf over the sphere (uniform sampling): 1 up to the part of
                 // specular mass that would fall below the horizon.
                 let n = 200_000;
-                let integral: f32 = (0..n)
-                    .map(|_| m.eval(wo, uniform_sphere(rng.next_vec2())).1 / UNIFORM_SPHERE_PDF)
-                    .sum::<f32>()
-                    / n as f32;
+                let integral: f32 =
+                    (0..n).map(|_| m.eval(wo, uniform_sphere(rng.next_vec2())).1 / UNIFORM_SPHERE_PDF).sum::<f32>()
+                        / n as f32;
                 // Uniform sampling cannot resolve a very sharp lobe; check the broad ones.
                 let broad = !matches!(m, Material::Glossy { roughness, .. } if roughness < 0.15);
                 if broad {
@@ -305,7 +296,10 @@ mod tests {
                     .map(|s| {
                         let (f, pdf) = m.eval(wo, s.wi);
                         assert!((pdf - s.pdf).abs() <= 1e-3 * pdf.max(1.0), "{pdf} {}", s.pdf);
-                        assert!(((f * s.wi.z / pdf) - s.weight).abs().max_element() < 1e-3 * s.weight.max_element().max(1.0));
+                        assert!(
+                            ((f * s.wi.z / pdf) - s.weight).abs().max_element()
+                                < 1e-3 * s.weight.max_element().max(1.0)
+                        );
                         s.weight
                     })
                     .sum::<Vec3>()
@@ -321,7 +315,8 @@ mod tests {
         let mut rng = Rng::new(1, 2);
         let wo = Vec3::new(0.3, 0.4, 0.866).normalize();
         let n = 10_000;
-        let albedo: Vec3 = (0..n).filter_map(|_| m.sample(wo, 0.5, rng.next_vec2())).map(|s| s.weight).sum::<Vec3>() / n as f32;
+        let albedo: Vec3 =
+            (0..n).filter_map(|_| m.sample(wo, 0.5, rng.next_vec2())).map(|s| s.weight).sum::<Vec3>() / n as f32;
         assert!((albedo - Vec3::ONE).abs().max_element() < 1e-4, "{albedo}");
     }
 

@@ -70,9 +70,10 @@ impl Mesh {
         let normal_matrix = transform.matrix3.inverse().transpose();
         Mesh {
             positions: self.positions.iter().map(|&p| transform.transform_point3(p)).collect(),
-            normals: self.normals.as_ref().map(|ns| {
-                ns.iter().map(|&n| Vec3::from(normal_matrix * n).normalize_or_zero()).collect()
-            }),
+            normals: self
+                .normals
+                .as_ref()
+                .map(|ns| ns.iter().map(|&n| Vec3::from(normal_matrix * n).normalize_or_zero()).collect()),
             indices: self.indices.clone(),
         }
     }
@@ -90,8 +91,7 @@ impl Mesh {
             _ => None,
         };
         self.positions.extend_from_slice(&other.positions);
-        self.indices
-            .extend(other.indices.iter().map(|t| [t[0] + base, t[1] + base, t[2] + base]));
+        self.indices.extend(other.indices.iter().map(|t| [t[0] + base, t[1] + base, t[2] + base]));
     }
 
     /// Axis-aligned bounds `(min, max)`; `None` for a mesh with no vertices.
@@ -231,10 +231,7 @@ impl SceneBuilder {
         // to geometric normals for meshes without, by giving them their face normals.
         let placed = if placed.normals.is_none() && self.mesh.normals.is_some() {
             flat_normals_per_vertex(&placed)
-        } else if placed.normals.is_some()
-            && self.mesh.normals.is_none()
-            && !self.mesh.positions.is_empty()
-        {
+        } else if placed.normals.is_some() && self.mesh.normals.is_none() && !self.mesh.positions.is_empty() {
             let fixed = flat_normals_per_vertex(&self.mesh);
             self.mesh = fixed;
             placed

@@ -109,7 +109,12 @@ mod tests {
     fn a_square_covers_one_layer() {
         // The square z = 0.5 spanning the unit box: one full layer of voxels.
         let mesh = Mesh::new(
-            vec![Vec3::new(0.0, 0.0, 0.5), Vec3::new(1.0, 0.0, 0.5), Vec3::new(1.0, 1.0, 0.5), Vec3::new(0.0, 1.0, 0.5)],
+            vec![
+                Vec3::new(0.0, 0.0, 0.5),
+                Vec3::new(1.0, 0.0, 0.5),
+                Vec3::new(1.0, 1.0, 0.5),
+                Vec3::new(0.0, 1.0, 0.5),
+            ],
             vec![[0, 1, 2], [0, 2, 3]],
         );
         let grid = VoxelGrid { min: Vec3::ZERO, voxel: 0.125, res: 8 };

@@ -56,7 +56,11 @@ impl FrameBuf for bytes::BytesMut {
     }
 }
 
-pub(crate) fn encode_frame_into<B: FrameBuf>(message: &Message, out: &mut B, config: &FrameConfig) -> Result<(), ProtoError> {
+pub(crate) fn encode_frame_into<B: FrameBuf>(
+    message: &Message,
+    out: &mut B,
+    config: &FrameConfig,
+) -> Result<(), ProtoError> {
     encode_frame_with(message, out, config, codec::encode_payload)
 }
 

@@ -25,7 +25,9 @@ pub mod validate;
 
 pub use codec::{Incoming, decode_payload, encode_payload};
 pub use error::{ProtoError, Rejected, ValidationError};
-pub use frame::{DEFAULT_MAX_FRAME, FrameConfig, FrameReader, FrameWriter, decode_frame, encode_frame, encode_frame_unchecked};
+pub use frame::{
+    DEFAULT_MAX_FRAME, FrameConfig, FrameReader, FrameWriter, decode_frame, encode_frame, encode_frame_unchecked,
+};
 pub use messages::*;
 
 /// Magic of the [`Hello`] frame.

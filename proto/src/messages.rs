@@ -28,8 +28,8 @@ use std::fmt;
 
 use serde::{Deserialize, Serialize};
 
-use crate::packed;
 use crate::PROTOCOL_VERSION;
+use crate::packed;
 
 /// What a peer is. Sent in [`Hello`] so that each side can refuse the wrong kind of peer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

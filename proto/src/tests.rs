@@ -14,7 +14,13 @@ use crate::*;
 
 fn ids() -> impl Strategy<Value = BatchIds> {
     (any::<u64>(), any::<u64>(), any::<u64>(), any::<u64>(), 0u32..64).prop_map(
-        |(batch_id, task_id, session_id, frame_id, view_index)| BatchIds { batch_id, task_id, session_id, frame_id, view_index },
+        |(batch_id, task_id, session_id, frame_id, view_index)| BatchIds {
+            batch_id,
+            task_id,
+            session_id,
+            frame_id,
+            view_index,
+        },
     )
 }
 
@@ -48,7 +54,11 @@ fn address() -> impl Strategy<Value = String> {
 }
 
 fn stats() -> impl Strategy<Value = KernelStats> {
-    (any::<u64>(), any::<u64>(), any::<u64>()).prop_map(|(rays, rays_hit, queries)| KernelStats { rays, rays_hit, queries })
+    (any::<u64>(), any::<u64>(), any::<u64>()).prop_map(|(rays, rays_hit, queries)| KernelStats {
+        rays,
+        rays_hit,
+        queries,
+    })
 }
 
 fn error_code() -> impl Strategy<Value = ErrorCode> {
@@ -104,36 +114,57 @@ fn batch_result() -> impl Strategy<Value = BatchResult> {
 fn composer_message() -> impl Strategy<Value = Message> {
     let sdp = || proptest::string::string_regex("v=0\r\n.{0,60}").expect("regex");
     prop_oneof![
-        (token(64), address()).prop_map(|(name, results_address)| Message::ComposerRegister(ComposerRegister { name, results_address })),
+        (token(64), address())
+            .prop_map(|(name, results_address)| Message::ComposerRegister(ComposerRegister { name, results_address })),
         (any::<u64>(), token(64), sdp(), 1u32..=64, 1u32..=256, 1u32..=256, 1.0f32..240.0).prop_map(
             |(session_id, session_name, offer_sdp, views, width, height, target_fps)| {
-                Message::OpenStream(OpenStream { session_id, session_name, offer_sdp, views, width, height, target_fps })
+                Message::OpenStream(OpenStream {
+                    session_id,
+                    session_name,
+                    offer_sdp,
+                    views,
+                    width,
+                    height,
+                    target_fps,
+                })
             }
         ),
         (any::<u64>(), prop_oneof![sdp().prop_map(Ok), text().prop_map(Err)])
             .prop_map(|(session_id, answer)| Message::StreamOpened(StreamOpened { session_id, answer })),
         (any::<u64>(), any::<u32>(), -1e9f64..1e9, prop::collection::vec(camera(), 1..4)).prop_map(
-            |(session_id, sequence, client_time_ms, views)| Message::ClientPose(ClientPose { session_id, sequence, client_time_ms, views })
+            |(session_id, sequence, client_time_ms, views)| Message::ClientPose(ClientPose {
+                session_id,
+                sequence,
+                client_time_ms,
+                views
+            })
         ),
         (any::<u64>(), any::<u64>(), any::<u32>(), 0.0f64..1e9, 1u32..300, 1u32..300, 1u32..=64, any::<Option<u64>>())
-            .prop_flat_map(|(session_id, frame_id, pose_sequence, client_time_ms, width, height, views, deadline_unix_us)| {
-                let part = (0..views, any::<u64>(), any::<u64>()).prop_map(|(view, task_id, object_id)| PlanPart { view, task_id, object_id });
-                prop::collection::vec(part, 0..8).prop_map(move |parts| {
-                    Message::FramePlan(FramePlan {
-                        session_id,
-                        frame_id,
-                        pose_sequence,
-                        client_time_ms,
-                        width,
-                        height,
-                        views,
-                        parts,
-                        deadline_unix_us,
+            .prop_flat_map(
+                |(session_id, frame_id, pose_sequence, client_time_ms, width, height, views, deadline_unix_us)| {
+                    let part = (0..views, any::<u64>(), any::<u64>()).prop_map(|(view, task_id, object_id)| PlanPart {
+                        view,
+                        task_id,
+                        object_id,
+                    });
+                    prop::collection::vec(part, 0..8).prop_map(move |parts| {
+                        Message::FramePlan(FramePlan {
+                            session_id,
+                            frame_id,
+                            pose_sequence,
+                            client_time_ms,
+                            width,
+                            height,
+                            views,
+                            parts,
+                            deadline_unix_us,
+                        })
                     })
-                })
-            }),
+                }
+            ),
         any::<u64>().prop_map(|task_id| Message::ReleaseTask(ReleaseTask { task_id })),
-        (any::<u64>(), text()).prop_map(|(session_id, reason)| Message::CloseStream(CloseStream { session_id, reason })),
+        (any::<u64>(), text())
+            .prop_map(|(session_id, reason)| Message::CloseStream(CloseStream { session_id, reason })),
     ]
 }
 
@@ -147,28 +178,42 @@ fn worker_message() -> impl Strategy<Value = Message> {
     prop_oneof![
         role.prop_map(|r| Message::Hello(Hello::new(r))),
         (token(64), 1u32..512, prop::collection::vec(token(32), 1..4), 0.0f64..1e12).prop_map(
-            |(name, threads, kernels, rays_per_second)| Message::Register(Register { name, threads, kernels, rays_per_second })
-        ),
-        (any::<u64>(), 10u32..=60_000)
-            .prop_map(|(worker_id, load_report_interval_ms)| Message::Registered(Registered { worker_id, load_report_interval_ms })),
-        (any::<u32>(), any::<u32>(), any::<u64>(), 0.0f64..1e12, any::<u64>(), any::<u64>()).prop_map(|(a, b, c, d, e, f)| {
-            Message::LoadReport(LoadReport {
-                in_flight_batches: a,
-                queued_batches: b,
-                queued_rays: c,
-                recent_rays_per_second: d,
-                batches_done: e,
-                rays_done: f,
+            |(name, threads, kernels, rays_per_second)| Message::Register(Register {
+                name,
+                threads,
+                kernels,
+                rays_per_second
             })
-        }),
+        ),
+        (any::<u64>(), 10u32..=60_000).prop_map(|(worker_id, load_report_interval_ms)| Message::Registered(
+            Registered { worker_id, load_report_interval_ms }
+        )),
+        (any::<u32>(), any::<u32>(), any::<u64>(), 0.0f64..1e12, any::<u64>(), any::<u64>()).prop_map(
+            |(a, b, c, d, e, f)| {
+                Message::LoadReport(LoadReport {
+                    in_flight_batches: a,
+                    queued_batches: b,
+                    queued_rays: c,
+                    recent_rays_per_second: d,
+                    batches_done: e,
+                    rays_done: f,
+                })
+            }
+        ),
         ray_batch().prop_map(Message::RayBatch),
         batch_result().prop_map(Message::BatchResult),
-        (ids(), 0u32..1000, any::<u64>(), stats())
-            .prop_map(|(ids, pixels, render_time_us, stats)| Message::BatchDone(BatchDone { ids, pixels, render_time_us, stats })),
-        (ids(), error_code(), text()).prop_map(|(ids, code, message)| Message::BatchFailed(BatchFailed { ids, code, message })),
+        (ids(), 0u32..1000, any::<u64>(), stats()).prop_map(|(ids, pixels, render_time_us, stats)| Message::BatchDone(
+            BatchDone { ids, pixels, render_time_us, stats }
+        )),
+        (ids(), error_code(), text()).prop_map(|(ids, code, message)| Message::BatchFailed(BatchFailed {
+            ids,
+            code,
+            message
+        })),
         prop_oneof![
             any::<u64>().prop_map(CancelTarget::Batch),
-            (any::<u64>(), any::<u64>()).prop_map(|(session_id, frame_id)| CancelTarget::Frame { session_id, frame_id }),
+            (any::<u64>(), any::<u64>())
+                .prop_map(|(session_id, frame_id)| CancelTarget::Frame { session_id, frame_id }),
             any::<u64>().prop_map(CancelTarget::Session),
         ]
         .prop_map(|target| Message::Cancel(Cancel { target })),
@@ -425,7 +470,10 @@ fn the_frame_limit_is_configurable_both_ways() {
     assert_eq!(out, [1, 2, 3], "a refused frame leaves the buffer as it was");
     let frame = frame_of(&big);
     assert!(matches!(decode_frame(&frame, &small), Err(ProtoError::FrameTooLarge { .. })));
-    assert!(matches!(FrameReader::new(Cursor::new(&frame), small).read_message(), Err(ProtoError::FrameTooLarge { .. })));
+    assert!(matches!(
+        FrameReader::new(Cursor::new(&frame), small).read_message(),
+        Err(ProtoError::FrameTooLarge { .. })
+    ));
 }
 
 #[test]
@@ -447,9 +495,14 @@ fn wrong_versions_magic_and_roles_are_refused() {
         body.push(role);
         raw_frame(MessageKind::Hello.tag(), &body)
     };
-    assert_eq!(decode_one(&hello(&MAGIC, PROTOCOL_VERSION, 2)).expect("ok"), Ok(Message::Hello(Hello::new(Role::Worker))));
+    assert_eq!(
+        decode_one(&hello(&MAGIC, PROTOCOL_VERSION, 2)).expect("ok"),
+        Ok(Message::Hello(Hello::new(Role::Worker)))
+    );
     let err = decode_one(&hello(&MAGIC, PROTOCOL_VERSION + 1, 2)).expect_err("version");
-    assert!(matches!(err, ProtoError::VersionMismatch { ours: PROTOCOL_VERSION, theirs } if theirs == PROTOCOL_VERSION + 1));
+    assert!(
+        matches!(err, ProtoError::VersionMismatch { ours: PROTOCOL_VERSION, theirs } if theirs == PROTOCOL_VERSION + 1)
+    );
     assert_eq!(err.code(), ErrorCode::VersionMismatch);
     assert!(matches!(decode_one(&hello(&MAGIC, 0, 2)), Err(ProtoError::VersionMismatch { theirs: 0, .. })));
     assert!(matches!(decode_one(&hello(b"HTTP", 1, 2)), Err(ProtoError::BadMagic(m)) if &m == b"HTTP"));
@@ -510,9 +563,15 @@ fn pixel_sets_out_of_the_image_and_bad_sizes_are_rejected() {
         ValidationError::PixelOutOfImage { index: 64 * 48, width: 64, height: 48 }
     );
     batch.pixels = vec![u32::MAX];
-    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &batch)).error, ValidationError::PixelOutOfImage { .. }));
+    assert!(matches!(
+        rejected(&unchecked(MessageKind::RayBatch, &batch)).error,
+        ValidationError::PixelOutOfImage { .. }
+    ));
     batch.pixels = vec![];
-    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &batch)).error, ValidationError::Count { field: "pixels", .. }));
+    assert!(matches!(
+        rejected(&unchecked(MessageKind::RayBatch, &batch)).error,
+        ValidationError::Count { field: "pixels", .. }
+    ));
     for (w, h) in [(0, 48), (64, 0), (16385, 1)] {
         let mut batch = good_batch();
         batch.camera.width = w;
@@ -540,16 +599,28 @@ fn mismatched_and_out_of_range_result_arrays_are_rejected() {
     );
     let mut r = good_result(10);
     r.color.push([0.0; 3]);
-    assert!(matches!(rejected(&unchecked(MessageKind::BatchResult, &r)).error, ValidationError::LengthMismatch { field: "color", .. }));
+    assert!(matches!(
+        rejected(&unchecked(MessageKind::BatchResult, &r)).error,
+        ValidationError::LengthMismatch { field: "color", .. }
+    ));
     let mut r = good_result(10);
     r.opacity[3] = 1.5;
-    assert!(matches!(rejected(&unchecked(MessageKind::BatchResult, &r)).error, ValidationError::OutOfRange { field: "opacity", .. }));
+    assert!(matches!(
+        rejected(&unchecked(MessageKind::BatchResult, &r)).error,
+        ValidationError::OutOfRange { field: "opacity", .. }
+    ));
     let mut r = good_result(10);
     r.color[2][1] = f32::NAN;
-    assert!(matches!(rejected(&unchecked(MessageKind::BatchResult, &r)).error, ValidationError::NonFinite { field: "color" }));
+    assert!(matches!(
+        rejected(&unchecked(MessageKind::BatchResult, &r)).error,
+        ValidationError::NonFinite { field: "color" }
+    ));
     let mut r = good_result(10);
     r.depth[0] = -1.0;
-    assert!(matches!(rejected(&unchecked(MessageKind::BatchResult, &r)).error, ValidationError::OutOfRange { field: "depth", .. }));
+    assert!(matches!(
+        rejected(&unchecked(MessageKind::BatchResult, &r)).error,
+        ValidationError::OutOfRange { field: "depth", .. }
+    ));
 }
 
 #[test]
@@ -558,7 +629,8 @@ fn names_asset_ids_and_addresses_are_checked() {
         assert!(validate::asset_id(good).is_ok(), "{good}");
     }
     let too_long = "a".repeat(129);
-    for bad in ["", "..", "../etc/passwd", "a/b", "a\\b", ".hidden", "a..b", "lego/../x", "é", "a b", "a\0b", &too_long] {
+    for bad in ["", "..", "../etc/passwd", "a/b", "a\\b", ".hidden", "a..b", "lego/../x", "é", "a b", "a\0b", &too_long]
+    {
         assert!(validate::asset_id(bad).is_err(), "{bad:?}");
         let mut batch = good_batch();
         batch.asset_id = bad.to_string();
@@ -616,9 +688,13 @@ fn good_plan() -> FramePlan {
 
 #[test]
 fn composer_messages_round_trip_and_bad_fields_are_rejected() {
-    let pose = ClientPose { session_id: 4, sequence: 7, client_time_ms: 16.5, views: vec![good_camera(), good_camera()] };
+    let pose =
+        ClientPose { session_id: 4, sequence: 7, client_time_ms: 16.5, views: vec![good_camera(), good_camera()] };
     let good = [
-        Message::ComposerRegister(ComposerRegister { name: "composer-0".into(), results_address: "127.0.0.1:7100".into() }),
+        Message::ComposerRegister(ComposerRegister {
+            name: "composer-0".into(),
+            results_address: "127.0.0.1:7100".into(),
+        }),
         Message::OpenStream(good_open()),
         Message::StreamOpened(StreamOpened { session_id: 4, answer: Ok("v=0\r\n".into()) }),
         Message::StreamOpened(StreamOpened { session_id: 4, answer: Err("no H.264 in the offer".into()) }),
@@ -634,8 +710,14 @@ fn composer_messages_round_trip_and_bad_fields_are_rejected() {
 
     let huge_sdp = format!("v=0{}", "a".repeat(validate::MAX_SDP_LEN));
     let bad: Vec<(Message, &str)> = vec![
-        (Message::ComposerRegister(ComposerRegister { name: "a/b".into(), results_address: "127.0.0.1:1".into() }), "composer name"),
-        (Message::ComposerRegister(ComposerRegister { name: "c".into(), results_address: "nowhere".into() }), "address"),
+        (
+            Message::ComposerRegister(ComposerRegister { name: "a/b".into(), results_address: "127.0.0.1:1".into() }),
+            "composer name",
+        ),
+        (
+            Message::ComposerRegister(ComposerRegister { name: "c".into(), results_address: "nowhere".into() }),
+            "address",
+        ),
         (Message::OpenStream(OpenStream { offer_sdp: huge_sdp.clone(), ..good_open() }), "offer_sdp"),
         (Message::OpenStream(OpenStream { offer_sdp: String::new(), ..good_open() }), "offer_sdp"),
         (Message::OpenStream(OpenStream { session_name: "../x".into(), ..good_open() }), "session name"),
@@ -657,9 +739,15 @@ fn composer_messages_round_trip_and_bad_fields_are_rejected() {
             }),
             "camera view matrix",
         ),
-        (Message::ClientPose(ClientPose { views: vec![WireCamera { width: 0, ..good_camera() }], ..pose }), "image size"),
         (
-            Message::FramePlan(FramePlan { parts: vec![PlanPart { view: 2, task_id: 1, object_id: 1 }], ..good_plan() }),
+            Message::ClientPose(ClientPose { views: vec![WireCamera { width: 0, ..good_camera() }], ..pose }),
+            "image size",
+        ),
+        (
+            Message::FramePlan(FramePlan {
+                parts: vec![PlanPart { view: 2, task_id: 1, object_id: 1 }],
+                ..good_plan()
+            }),
             "part view",
         ),
         (Message::FramePlan(FramePlan { views: 0, parts: vec![], ..good_plan() }), "views"),
@@ -684,12 +772,14 @@ fn composer_messages_round_trip_and_bad_fields_are_rejected() {
 #[test]
 fn batch_ids_carry_the_task() {
     let batch = good_batch();
-    let Ok(Message::RayBatch(decoded)) = decode_one(&frame_of(&Message::RayBatch(batch.clone()))).expect("decodes") else {
+    let Ok(Message::RayBatch(decoded)) = decode_one(&frame_of(&Message::RayBatch(batch.clone()))).expect("decodes")
+    else {
         panic!("a ray batch")
     };
     assert_eq!(decoded.ids.task_id, 5);
     let result = good_result(3);
-    let Ok(Message::BatchResult(decoded)) = decode_one(&frame_of(&Message::BatchResult(result))).expect("decodes") else {
+    let Ok(Message::BatchResult(decoded)) = decode_one(&frame_of(&Message::BatchResult(result))).expect("decodes")
+    else {
         panic!("a batch result")
     };
     assert_eq!(decoded.ids.task_id, 8);
@@ -768,7 +858,8 @@ async fn async_handshake_refuses_wrong_roles_and_versions() {
         assert!(matches!(err, ProtoError::VersionMismatch { theirs: 9, .. }));
     });
     let mut conn = stream::framed(tokio::net::TcpStream::connect(addr).await.expect("connect"), cfg());
-    let hello = stream::handshake(&mut conn, Role::Worker, &[Role::Master], timeout).await.expect("we accept the master");
+    let hello =
+        stream::handshake(&mut conn, Role::Worker, &[Role::Master], timeout).await.expect("we accept the master");
     assert_eq!(hello.role, Role::Master);
     match conn.next().await {
         Some(Ok(Ok(Message::Error(e)))) => assert_eq!(e.code, ErrorCode::InvalidField),

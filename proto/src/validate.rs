@@ -77,7 +77,11 @@ fn open_stream(m: &OpenStream) -> Result<(), ValidationError> {
     // The views travel side by side in one video frame.
     image_size(m.views.saturating_mul(m.width), m.height)?;
     if !(m.target_fps.is_finite() && m.target_fps > 0.0 && m.target_fps <= MAX_TARGET_FPS) {
-        return Err(ValidationError::OutOfRange { field: "target_fps", value: f64::from(m.target_fps), range: "(0, 240]" });
+        return Err(ValidationError::OutOfRange {
+            field: "target_fps",
+            value: f64::from(m.target_fps),
+            range: "(0, 240]",
+        });
     }
     Ok(())
 }

@@ -11,8 +11,8 @@
 //! [`PixelSet::indices`].
 
 use glam::{DVec3, Vec3};
-use nephele_geometry::camera::Camera;
 use nephele_geometry::Bounds;
+use nephele_geometry::camera::Camera;
 use serde::{Deserialize, Serialize};
 
 use crate::config::ShareTolerance;
@@ -124,7 +124,8 @@ impl OccupancyGrid {
     /// count does not match.
     pub fn new(dims: [u32; 3], occupied: Vec<bool>) -> Option<OccupancyGrid> {
         let cells = dims.iter().try_fold(1usize, |acc, &d| acc.checked_mul(usize::try_from(d).ok()?))?;
-        (dims.iter().all(|&d| d > 0) && cells <= MAX_OCCUPANCY_CELLS && occupied.len() == cells).then_some(OccupancyGrid { dims, occupied })
+        (dims.iter().all(|&d| d > 0) && cells <= MAX_OCCUPANCY_CELLS && occupied.len() == cells)
+            .then_some(OccupancyGrid { dims, occupied })
     }
 
     pub fn dims(&self) -> [u32; 3] {
@@ -164,7 +165,12 @@ pub struct Coverage {
 
 /// Estimates which pixels of `camera`'s view the object may cover, by projecting its proxy;
 /// `None` if it covers none (behind the camera or outside the frustum).
-pub fn estimate_coverage(camera: &Camera, bounds: &Bounds, occupancy: Option<&OccupancyGrid>, band_rows: u32) -> Option<Coverage> {
+pub fn estimate_coverage(
+    camera: &Camera,
+    bounds: &Bounds,
+    occupancy: Option<&OccupancyGrid>,
+    band_rows: u32,
+) -> Option<Coverage> {
     let (w, h) = (camera.width(), camera.height());
     let band_rows = band_rows.max(1);
     let boxes = match occupancy {
@@ -191,7 +197,9 @@ pub fn estimate_coverage(camera: &Camera, bounds: &Bounds, occupancy: Option<&Oc
     let mut current: Option<(u32, u32, u32, u32, u32)> = None;
     for &(band, x0, x1, r0, r1) in &spans {
         current = match current {
-            Some((cb, cx0, cx1, cr0, cr1)) if cb == band && x0 <= cx1 => Some((cb, cx0, cx1.max(x1), cr0.min(r0), cr1.max(r1))),
+            Some((cb, cx0, cx1, cr0, cr1)) if cb == band && x0 <= cx1 => {
+                Some((cb, cx0, cx1.max(x1), cr0.min(r0), cr1.max(r1)))
+            }
             Some((_, cx0, cx1, cr0, cr1)) => {
                 rects.push(PixelRect { x0: cx0, y0: cr0, x1: cx1, y1: cr1 });
                 Some((band, x0, x1, r0, r1))
@@ -260,7 +268,8 @@ fn convex_hull(mut points: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
     let mut hull: Vec<[f64; 2]> = Vec::with_capacity(points.len() * 2);
     for pass in 0..2 {
         let start = hull.len();
-        let iter: Box<dyn Iterator<Item = &[f64; 2]>> = if pass == 0 { Box::new(points.iter()) } else { Box::new(points.iter().rev()) };
+        let iter: Box<dyn Iterator<Item = &[f64; 2]>> =
+            if pass == 0 { Box::new(points.iter()) } else { Box::new(points.iter().rev()) };
         for &p in iter {
             while hull.len() >= start + 2 && cross(hull[hull.len() - 2], hull[hull.len() - 1], p) <= 0.0 {
                 hull.pop();
@@ -353,7 +362,12 @@ pub fn split_batches(set: &PixelSet, max_rays: u32) -> Vec<PixelSet> {
             let step = max_rays.max(1);
             (r.y0..r.y1)
                 .flat_map(|y| {
-                    (r.x0..r.x1).step_by(step as usize).map(move |x| PixelRect { x0: x, y0: y, x1: (x + step).min(r.x1), y1: y + 1 })
+                    (r.x0..r.x1).step_by(step as usize).map(move |x| PixelRect {
+                        x0: x,
+                        y0: y,
+                        x1: (x + step).min(r.x1),
+                        y1: y + 1,
+                    })
                 })
                 .collect()
         } else {
@@ -565,7 +579,15 @@ mod tests {
     fn camera_keys_share_identical_views_not_eyes_or_quilt_neighbours() {
         let tol = ShareTolerance::default();
         let centre = camera(Vec3::new(0.0, -4.0, 1.0), Vec3::ZERO, 320, 240);
-        let same = Camera::from_intrinsics(320, 240, centre.intrinsics().0, centre.intrinsics().1, 160.0, 120.0, centre.camera_to_world());
+        let same = Camera::from_intrinsics(
+            320,
+            240,
+            centre.intrinsics().0,
+            centre.intrinsics().1,
+            160.0,
+            120.0,
+            centre.camera_to_world(),
+        );
         assert_eq!(CameraKey::new(&centre, &tol), CameraKey::new(&same.expect("valid"), &tol));
         let [left, right] = stereo_pair(&centre, 0.064).expect("stereo");
         assert_ne!(CameraKey::new(&left, &tol), CameraKey::new(&right, &tol));
@@ -575,8 +597,12 @@ mod tests {
         let again = quilt_rig(&centre, 45, 0.7, 4.0).expect("quilt");
         assert!(quilt.iter().zip(&again).all(|(a, b)| CameraKey::new(a, &tol) == CameraKey::new(b, &tol)));
         // Moved by 0.1 mm, or a different image size.
-        let nudged =
-            Camera::from_fov_y(320, 240, centre.fov_y(), Mat4::from_translation(Vec3::new(1e-4, 0.0, 0.0)) * centre.camera_to_world());
+        let nudged = Camera::from_fov_y(
+            320,
+            240,
+            centre.fov_y(),
+            Mat4::from_translation(Vec3::new(1e-4, 0.0, 0.0)) * centre.camera_to_world(),
+        );
         let nudged = nudged.expect("valid");
         let err = reprojection_error_px(&centre, &nudged, &unit_box());
         assert!(err > 0.0 && err < 0.1, "{err}");

@@ -222,7 +222,10 @@ mod tests {
         assert!(baseline.sharing.is_none() && !baseline.admission_control && baseline.history_capacity == 0);
         let bad = SchedulerConfig { smoothing: 0.0, ..Default::default() };
         assert!(bad.validate().is_err());
-        let bad = SchedulerConfig { sharing: Some(ShareTolerance { position_m: f32::NAN, ..Default::default() }), ..Default::default() };
+        let bad = SchedulerConfig {
+            sharing: Some(ShareTolerance { position_m: f32::NAN, ..Default::default() }),
+            ..Default::default()
+        };
         assert!(bad.validate().is_err());
     }
 }

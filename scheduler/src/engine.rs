@@ -49,8 +49,8 @@ use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::time::Duration;
 
 use glam::Mat4;
-use nephele_geometry::camera::Camera;
 use nephele_geometry::Bounds;
+use nephele_geometry::camera::Camera;
 use serde::{Deserialize, Serialize};
 
 use crate::assign::{self, CameraKey, OccupancyGrid, PixelSet, TaskClass};
@@ -549,12 +549,19 @@ impl Scheduler {
             return Err(SchedError::UnknownSession(id));
         }
         if views.is_empty() || views.len() > self.config.max_views {
-            return Err(SchedError::InvalidPose(format!("{} views (expected 1..={})", views.len(), self.config.max_views)));
+            return Err(SchedError::InvalidPose(format!(
+                "{} views (expected 1..={})",
+                views.len(),
+                self.config.max_views
+            )));
         }
         for (i, v) in views.iter().enumerate() {
             let pixels = u64::from(v.width()) * u64::from(v.height());
             if pixels > self.config.max_view_pixels {
-                return Err(SchedError::InvalidPose(format!("view {i} has {pixels} pixels (at most {})", self.config.max_view_pixels)));
+                return Err(SchedError::InvalidPose(format!(
+                    "view {i} has {pixels} pixels (at most {})",
+                    self.config.max_view_pixels
+                )));
             }
         }
         let s = self.sessions.get_mut(&id).ok_or(SchedError::UnknownSession(id))?;
@@ -691,15 +698,17 @@ impl Scheduler {
             }
         }
         if let Some(timeout) = self.config.heartbeat_timeout
-            && let Some(t) = self.workers.values().map(|w| w.last_seen + timeout).min() {
-                consider(t + Duration::from_micros(1));
-            }
+            && let Some(t) = self.workers.values().map(|w| w.last_seen + timeout).min()
+        {
+            consider(t + Duration::from_micros(1));
+        }
         next
     }
 
     fn check_heartbeats(&mut self, now: Time) {
         let Some(timeout) = self.config.heartbeat_timeout else { return };
-        let lost: Vec<WorkerId> = self.workers.iter().filter(|(_, w)| now.since(w.last_seen) > timeout).map(|(&id, _)| id).collect();
+        let lost: Vec<WorkerId> =
+            self.workers.iter().filter(|(_, w)| now.since(w.last_seen) > timeout).map(|(&id, _)| id).collect();
         for id in lost {
             let reissued = self.drop_worker(id);
             self.stats.workers_lost += 1;
@@ -778,9 +787,10 @@ impl Scheduler {
     /// Removes an in-flight batch from its worker's books (not from the task's).
     fn detach(&mut self, batch: BatchId, worker: WorkerId, est_s: f64) {
         if let Some(b) = self.batches.get(&batch)
-            && let BatchState::InFlight { deadline, .. } = b.state {
-                self.deadlines.remove(&(deadline, batch));
-            }
+            && let BatchState::InFlight { deadline, .. } = b.state
+        {
+            self.deadlines.remove(&(deadline, batch));
+        }
         if let Some(w) = self.workers.get_mut(&worker) {
             w.in_flight.retain(|&x| x != batch);
             w.backlog_s -= est_s;
@@ -951,9 +961,10 @@ impl Scheduler {
             return;
         }
         if let Some(k) = t.key
-            && self.live.get(&(t.object, k)) == Some(&tid) {
-                self.live.remove(&(t.object, k));
-            }
+            && self.live.get(&(t.object, k)) == Some(&tid)
+        {
+            self.live.remove(&(t.object, k));
+        }
         for batch in t.batches {
             let Some(b) = self.batches.get(&batch) else { continue };
             match b.state {
@@ -1025,7 +1036,9 @@ impl Scheduler {
                 let key = self.config.sharing.map(|tol| (oid, CameraKey::new(camera, &tol)));
                 let reuse = key.and_then(|k| match self.live.get(&k) {
                     Some(&tid) => Some((tid, PartSource::Shared)),
-                    None => self.history.get(&k, now, self.config.history_max_age).map(|tid| (tid, PartSource::History)),
+                    None => {
+                        self.history.get(&k, now, self.config.history_max_age).map(|tid| (tid, PartSource::History))
+                    }
                 });
                 let (tid, source) = match reuse.filter(|(tid, _)| self.tasks.contains_key(tid)) {
                     Some(found) => found,
@@ -1048,10 +1061,18 @@ impl Scheduler {
                     }
                 }
                 self.stats.rays_requested += task.rays;
-                parts.push(FramePart { view: vi as u32, object: oid, task: tid, rays: task.rays, mean_depth: task.mean_depth, source });
+                parts.push(FramePart {
+                    view: vi as u32,
+                    object: oid,
+                    task: tid,
+                    rays: task.rays,
+                    mean_depth: task.mean_depth,
+                    source,
+                });
             }
         }
-        let mut frame = Frame { id: fid, released: now, first_dispatch: None, parts, remaining: 0, pending: 0, cursor: 0 };
+        let mut frame =
+            Frame { id: fid, released: now, first_dispatch: None, parts, remaining: 0, pending: 0, cursor: 0 };
         let mut loaded = 0;
         for part in &frame.parts {
             if let Some(t) = self.tasks.get_mut(&part.task) {
@@ -1105,7 +1126,15 @@ impl Scheduler {
             let rays = pixels.len();
             self.batches.insert(
                 id,
-                Batch { task: tid, pixels, rays, state: BatchState::Pending, failures: 0, dispatches: 0, previous: Vec::new() },
+                Batch {
+                    task: tid,
+                    pixels,
+                    rays,
+                    state: BatchState::Pending,
+                    failures: 0,
+                    dispatches: 0,
+                    previous: Vec::new(),
+                },
             );
             self.pending_all.insert(id);
             self.pending_work += rays as f64 * cost;
@@ -1193,7 +1222,12 @@ impl Scheduler {
                 break;
             }
             let tids: Vec<TaskId> = match self.sessions.get(&sid) {
-                Some(s) => s.frames.iter().filter(|f| f.pending > 0).flat_map(|f| f.parts[f.cursor..].iter().map(|p| p.task)).collect(),
+                Some(s) => s
+                    .frames
+                    .iter()
+                    .filter(|f| f.pending > 0)
+                    .flat_map(|f| f.parts[f.cursor..].iter().map(|p| p.task))
+                    .collect(),
                 None => continue,
             };
             for shared_pass in [true, false] {
@@ -1202,11 +1236,15 @@ impl Scheduler {
                         break;
                     }
                     let Some(t) = self.tasks.get(&tid) else { continue };
-                    if t.done || t.pending.is_empty() || (t.subscribers.len() > 1) != shared_pass || (spread && t.class == TaskClass::Light)
+                    if t.done
+                        || t.pending.is_empty()
+                        || (t.subscribers.len() > 1) != shared_pass
+                        || (spread && t.class == TaskClass::Light)
                     {
                         continue;
                     }
-                    let (class, object, wanted) = (t.class, t.object, if spread { usize::MAX } else { t.workers_wanted });
+                    let (class, object, wanted) =
+                        (t.class, t.object, if spread { usize::MAX } else { t.workers_wanted });
                     while room > 0 {
                         let Some(&batch) = self.tasks.get(&tid).and_then(|t| t.pending.first()) else { break };
                         let exclude = self.batches.get(&batch).map(|b| b.previous.clone()).unwrap_or_default();
@@ -1245,7 +1283,9 @@ impl Scheduler {
         let pick = |allow_excluded: bool| {
             self.workers
                 .iter()
-                .filter(|(id, w)| !matches!(w.mode, Mode::Heavy(..)) && self.has_room(w) && (allow_excluded || !exclude.contains(id)))
+                .filter(|(id, w)| {
+                    !matches!(w.mode, Mode::Heavy(..)) && self.has_room(w) && (allow_excluded || !exclude.contains(id))
+                })
                 .map(|(&id, w)| (w.backlog_s + if w.last_object == Some(object) { 0.0 } else { switch }, id))
                 .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
                 .map(|(_, id)| (id, Mode::Light))
@@ -1261,7 +1301,14 @@ impl Scheduler {
     /// `exclude` (the workers a re-issued batch already failed or timed out on) is a
     /// preference, as in [`Self::place_light`]: when every candidate is excluded the batch
     /// goes back to one of them rather than waiting for a worker that may never come.
-    fn place_heavy(&self, task: TaskId, object: ObjectId, wanted: usize, convert: bool, exclude: &[WorkerId]) -> Option<(WorkerId, Mode)> {
+    fn place_heavy(
+        &self,
+        task: TaskId,
+        object: ObjectId,
+        wanted: usize,
+        convert: bool,
+        exclude: &[WorkerId],
+    ) -> Option<(WorkerId, Mode)> {
         let mode = Mode::Heavy(task, object);
         let switch = secs(self.config.object_switch_cost);
         let under_cap = self.workers.values().filter(|w| w.mode == mode).count() < wanted.max(1);

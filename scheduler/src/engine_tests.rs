@@ -13,7 +13,11 @@ fn config(policy: Policy) -> SchedulerConfig {
 }
 
 fn unit_object(center: Vec3, half: f32, cost: f64) -> ObjectInfo {
-    ObjectInfo { bounds: Bounds { min: center - Vec3::splat(half), max: center + Vec3::splat(half) }, occupancy: None, cost_per_ray: cost }
+    ObjectInfo {
+        bounds: Bounds { min: center - Vec3::splat(half), max: center + Vec3::splat(half) },
+        occupancy: None,
+        cost_per_ray: cost,
+    }
 }
 
 fn scheduler(config: SchedulerConfig) -> Scheduler {
@@ -320,7 +324,11 @@ fn repeated_failures_drop_the_frame_and_cancel_its_work() {
     assert_ne!(w2, w, "not to the worker that failed");
     s.batch_failed(w2, b, ms(2)).expect("failure reported");
     let actions = s.tick(ms(2));
-    assert!(actions.contains(&Action::FrameDropped { session: id, frame: FrameId(0), reason: DropReason::BatchFailed(b) }));
+    assert!(actions.contains(&Action::FrameDropped {
+        session: id,
+        frame: FrameId(0),
+        reason: DropReason::BatchFailed(b)
+    }));
     assert!(actions.iter().any(|a| matches!(a, Action::Cancel { .. })), "the frame's other batches are cancelled");
     assert_eq!(s.pending_batches(), 0);
     assert_eq!(s.live_tasks(), 0);
@@ -368,7 +376,8 @@ fn heavy_tasks_get_workers_of_their_own() {
     // A close object filling the view (heavy) and small far ones (light).
     s.register_object(ObjectId(1), unit_object(Vec3::new(0.0, -2.0, 0.0), 0.8, 1.0)).expect("object");
     for i in 0..6 {
-        s.register_object(ObjectId(10 + i), unit_object(Vec3::new(-1.5 + 0.6 * i as f32, 3.0, 0.0), 0.05, 1.0)).expect("object");
+        s.register_object(ObjectId(10 + i), unit_object(Vec3::new(-1.5 + 0.6 * i as f32, 3.0, 0.0), 0.05, 1.0))
+            .expect("object");
     }
     for w in 1..=6 {
         s.add_worker(WorkerId(w), 2e5, ms(0)).expect("worker");
@@ -438,7 +447,8 @@ fn bad_input_is_rejected_with_clear_errors() {
     // Objects: NaN bounds, inverted box, zero cost, a different object under a used id.
     let nan = ObjectInfo { bounds: Bounds { min: Vec3::NAN, max: Vec3::ONE }, occupancy: None, cost_per_ray: 1.0 };
     assert!(matches!(s.register_object(ObjectId(5), nan), Err(SchedError::InvalidObject { .. })));
-    let inverted = ObjectInfo { bounds: Bounds { min: Vec3::ONE, max: Vec3::ZERO }, occupancy: None, cost_per_ray: 1.0 };
+    let inverted =
+        ObjectInfo { bounds: Bounds { min: Vec3::ONE, max: Vec3::ZERO }, occupancy: None, cost_per_ray: 1.0 };
     assert!(s.register_object(ObjectId(5), inverted).is_err());
     assert!(s.register_object(ObjectId(5), unit_object(Vec3::ZERO, 1.0, 0.0)).is_err());
     assert!(s.register_object(OBJ, unit_object(Vec3::ZERO, 0.5, 1.0)).is_ok(), "same description again");
@@ -446,7 +456,11 @@ fn bad_input_is_rejected_with_clear_errors() {
     let cfg = SchedulerConfig { max_frames_in_flight: 0, ..Default::default() };
     assert!(matches!(Scheduler::new(cfg), Err(SchedError::InvalidConfig(_))));
     // The state is still consistent: the session renders.
-    let all = run_to_quiet(&mut s, sent.into_iter().map(|(w, b)| Action::Dispatch { worker: w, batch: Box::new(b) }).collect(), ms(3));
+    let all = run_to_quiet(
+        &mut s,
+        sent.into_iter().map(|(w, b)| Action::Dispatch { worker: w, batch: Box::new(b) }).collect(),
+        ms(3),
+    );
     assert!(!dispatches(&all).is_empty());
 }
 
@@ -465,7 +479,11 @@ fn closing_a_session_cancels_only_what_nobody_else_needs() {
     let snapshot = s.snapshot(ms(1));
     assert_eq!(snapshot.sessions.len(), 1);
     assert_eq!(s.live_tasks(), 1, "the shared view lives on for B, A's own view is cancelled");
-    let all = run_to_quiet(&mut s, sent.into_iter().map(|(w, b)| Action::Dispatch { worker: w, batch: Box::new(b) }).collect(), ms(2));
+    let all = run_to_quiet(
+        &mut s,
+        sent.into_iter().map(|(w, b)| Action::Dispatch { worker: w, batch: Box::new(b) }).collect(),
+        ms(2),
+    );
     let done = completions(&all);
     assert!(done.iter().all(|c| c.0 == b) && !done.is_empty());
 }
@@ -478,7 +496,8 @@ fn every_policy_completes_frames_and_is_deterministic() {
             for w in 1..=3 {
                 s.add_worker(WorkerId(w), 1e6 * f64::from(w), ms(0)).expect("worker");
             }
-            let ids: Vec<SessionId> = (0..4).map(|i| open(&mut s, 30.0, &[camera_at(10.0 * i as f32)], ms(0))).collect();
+            let ids: Vec<SessionId> =
+                (0..4).map(|i| open(&mut s, 30.0, &[camera_at(10.0 * i as f32)], ms(0))).collect();
             let mut log = Vec::new();
             for step in 0..40u64 {
                 let now = ms(step * 10);

@@ -72,7 +72,9 @@ pub mod snapshot;
 
 pub use assign::{CameraKey, Coverage, OccupancyGrid, PixelRect, PixelSet, TaskClass};
 pub use config::{Policy, SchedulerConfig, ShareTolerance};
-pub use engine::{Action, Admission, BatchSpec, DropReason, FramePart, ObjectInfo, PartSource, Scheduler, SessionSpec, ViewMatrices};
+pub use engine::{
+    Action, Admission, BatchSpec, DropReason, FramePart, ObjectInfo, PartSource, Scheduler, SessionSpec, ViewMatrices,
+};
 pub use snapshot::{FarmSnapshot, Stats};
 
 use serde::{Deserialize, Serialize};
@@ -134,7 +136,11 @@ impl Time {
 
     /// Seconds to a time, rounded to the microsecond; negative or non-finite input gives zero.
     pub fn from_secs_f64(seconds: f64) -> Time {
-        if seconds.is_finite() && seconds > 0.0 { Time((seconds * 1e6).round().min(u64::MAX as f64) as u64) } else { Time::ZERO }
+        if seconds.is_finite() && seconds > 0.0 {
+            Time((seconds * 1e6).round().min(u64::MAX as f64) as u64)
+        } else {
+            Time::ZERO
+        }
     }
 
     pub const fn as_micros(self) -> u64 {

@@ -106,8 +106,11 @@ fn parse_object(text: &str) -> Result<SimObject, String> {
     if !(5..=6).contains(&parts.len()) || parts[0].is_empty() {
         return Err(format!("object '{text}' must be name:x:y:z:half_size[:cost_per_ray]"));
     }
-    let center =
-        Vec3::new(number(parts[1], "object x")? as f32, number(parts[2], "object y")? as f32, number(parts[3], "object z")? as f32);
+    let center = Vec3::new(
+        number(parts[1], "object x")? as f32,
+        number(parts[2], "object y")? as f32,
+        number(parts[3], "object z")? as f32,
+    );
     let half_size = positive(parts[4], "object half_size")? as f32;
     let cost_per_ray = match parts.get(5) {
         Some(c) => positive(c, "object cost_per_ray")?,
@@ -243,9 +246,12 @@ pub fn parse_workers(text: &str, file: &str) -> Result<Vec<SimWorker>, CsvError>
             match slow.as_slice() {
                 [None, None, None] => {}
                 [Some(from), Some(to), Some(factor)] => {
-                    let (from, to, factor) = (number(from, "slow_from_s")?, number(to, "slow_to_s")?, number(factor, "slow_factor")?);
+                    let (from, to, factor) =
+                        (number(from, "slow_from_s")?, number(to, "slow_to_s")?, number(factor, "slow_factor")?);
                     if from < 0.0 || to <= from || factor < 1.0 {
-                        return Err(format!("need 0 <= slow_from_s < slow_to_s and slow_factor >= 1, got {from}, {to}, {factor}"));
+                        return Err(format!(
+                            "need 0 <= slow_from_s < slow_to_s and slow_factor >= 1, got {from}, {to}, {factor}"
+                        ));
                     }
                     w.slow = Some((from, to, factor));
                 }
@@ -257,7 +263,11 @@ pub fn parse_workers(text: &str, file: &str) -> Result<Vec<SimWorker>, CsvError>
         workers.push(worker);
     }
     if workers.is_empty() {
-        return Err(CsvError { file: file.to_string(), line: 0, message: "no workers in the farm description".to_string() });
+        return Err(CsvError {
+            file: file.to_string(),
+            line: 0,
+            message: "no workers in the farm description".to_string(),
+        });
     }
     Ok(workers)
 }
@@ -268,8 +278,15 @@ mod tests {
 
     #[test]
     fn the_documented_examples_parse() {
-        let example =
-            |format: &str| format.lines().skip_while(|l| !l.starts_with("example")).skip(1).map(str::trim).collect::<Vec<_>>().join("\n");
+        let example = |format: &str| {
+            format
+                .lines()
+                .skip_while(|l| !l.starts_with("example"))
+                .skip(1)
+                .map(str::trim)
+                .collect::<Vec<_>>()
+                .join("\n")
+        };
         let (objects, users) = parse_trace(&example(TRACE_FORMAT), "trace.csv").expect("example trace");
         assert_eq!(users.len(), 2);
         assert_eq!(objects.len(), 2, "lego shared by both users");

@@ -1,8 +1,8 @@
 //! What a simulation is made of: objects, users with camera paths, workers, parameters.
 
 use glam::Vec3;
-use nephele_geometry::camera::{Camera, CameraError, quilt_rig, stereo_pair};
 use nephele_geometry::Bounds;
+use nephele_geometry::camera::{Camera, CameraError, quilt_rig, stereo_pair};
 
 /// Interpupillary distance of simulated headsets, metres.
 pub const IPD_M: f32 = 0.064;
@@ -43,7 +43,11 @@ impl ViewMode {
             "mono" => Some(ViewMode::Mono),
             "stereo" => Some(ViewMode::Stereo),
             "quilt" => Some(ViewMode::Quilt(45)),
-            _ => text.strip_prefix("quilt").and_then(|n| n.parse().ok()).filter(|n| (1..=64).contains(n)).map(ViewMode::Quilt),
+            _ => text
+                .strip_prefix("quilt")
+                .and_then(|n| n.parse().ok())
+                .filter(|n| (1..=64).contains(n))
+                .map(ViewMode::Quilt),
         }
     }
 
@@ -94,7 +98,8 @@ impl SimUser {
             sum / self.objects.len().max(1) as f32
         });
         let angle = (self.path.start_deg + self.path.speed_deg_s * seconds as f32).to_radians();
-        let eye = target + Vec3::new(self.path.radius_m * angle.cos(), self.path.radius_m * angle.sin(), self.path.height_m);
+        let eye =
+            target + Vec3::new(self.path.radius_m * angle.cos(), self.path.radius_m * angle.sin(), self.path.height_m);
         let centre = Camera::look_at(self.width, self.height, self.fov_deg.to_radians(), eye, target, Vec3::Z)?;
         Ok(match self.views {
             ViewMode::Mono => vec![centre],
@@ -130,7 +135,15 @@ pub struct SimWorker {
 
 impl SimWorker {
     pub fn new(name: &str, rays_per_s: f64) -> SimWorker {
-        SimWorker { name: name.to_string(), rays_per_s, jitter: 0.1, join_s: 0.0, fail_s: None, detect: Detect::Drop, slow: None }
+        SimWorker {
+            name: name.to_string(),
+            rays_per_s,
+            jitter: 0.1,
+            join_s: 0.0,
+            fail_s: None,
+            detect: Detect::Drop,
+            slow: None,
+        }
     }
 }
 
@@ -214,7 +227,8 @@ mod tests {
 
     #[test]
     fn views_follow_the_path_and_modes() {
-        let objects = vec![SimObject { name: "a".into(), center: Vec3::new(1.0, 0.0, 0.0), half_size: 0.5, cost_per_ray: 1.0 }];
+        let objects =
+            vec![SimObject { name: "a".into(), center: Vec3::new(1.0, 0.0, 0.0), half_size: 0.5, cost_per_ray: 1.0 }];
         let path = CameraPath { target: None, radius_m: 3.0, height_m: 0.0, speed_deg_s: 90.0, start_deg: 0.0 };
         let mut user = SimUser {
             name: "u".into(),

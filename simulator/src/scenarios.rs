@@ -11,10 +11,16 @@ use crate::model::{CameraPath, Detect, Scenario, SimObject, SimParams, SimUser, 
 
 /// Names and one-line descriptions of the built-in scenarios.
 pub const SCENARIOS: [(&str, &str); 6] = [
-    ("many-objects", "one user, 12 objects: 2 close heavy ones (one with an i-NGP-like cost 5) and 10 small light ones, 60 FPS"),
+    (
+        "many-objects",
+        "one user, 12 objects: 2 close heavy ones (one with an i-NGP-like cost 5) and 10 small light ones, 60 FPS",
+    ),
     ("many-users", "24 users on one object from 6 adjacent angles (4 users at each spot), 60 FPS, 4 workers"),
     ("quilt", "four 45-view quilt displays (420x560 per view), two pairs showing the same rig, 20 FPS, 8 workers"),
-    ("overload", "20 users arriving every 0.5 s at 60 FPS on a farm that holds about 9: starvation and admission control"),
+    (
+        "overload",
+        "20 users arriving every 0.5 s at 60 FPS on a farm that holds about 9: starvation and admission control",
+    ),
     (
         "worker-death",
         "6 stereo users at 60 FPS, 5 workers; one dies mid-frame at 3 s (its connection drops), another hangs silently at 6 s",
@@ -60,7 +66,8 @@ pub fn builtin(name: &str, seed: u64) -> Option<Scenario> {
     let d = params.duration_s;
     let (objects, users, workers, params) = match name {
         "many-objects" => {
-            let mut objects = vec![object("statue", Vec3::ZERO, 0.5, 1.0), object("plant", Vec3::new(0.8, 0.4, 0.0), 0.3, 5.0)];
+            let mut objects =
+                vec![object("statue", Vec3::ZERO, 0.5, 1.0), object("plant", Vec3::new(0.8, 0.4, 0.0), 0.3, 5.0)];
             for i in 0..10 {
                 let a = (36.0 * i as f32).to_radians();
                 objects.push(object(&format!("prop{i}"), Vec3::new(3.5 * a.cos(), 3.5 * a.sin(), -0.3), 0.08, 1.0));
@@ -87,7 +94,17 @@ pub fn builtin(name: &str, seed: u64) -> Option<Scenario> {
                     // they stand at the same spot.
                     let (spot, arrive) = (i / 4, 0.1 * i as f64);
                     let path = orbit(3.0, 0.8, 6.0, 5.0 * spot as f32 + 6.0 * arrive as f32);
-                    user(format!("u{i:02}-spot{spot}"), arrive, d, 60.0, (1280, 720), 50.0, ViewMode::Mono, vec![0], path)
+                    user(
+                        format!("u{i:02}-spot{spot}"),
+                        arrive,
+                        d,
+                        60.0,
+                        (1280, 720),
+                        50.0,
+                        ViewMode::Mono,
+                        vec![0],
+                        path,
+                    )
                 })
                 .collect();
             (objects, users, farm(4, 5e7), params)
@@ -97,9 +114,29 @@ pub fn builtin(name: &str, seed: u64) -> Option<Scenario> {
             let quilt = ViewMode::Quilt(45);
             let users = vec![
                 user("display-a".into(), 0.0, d, 20.0, (420, 560), 40.0, quilt, vec![0], orbit(2.5, 0.5, 10.0, 0.0)),
-                user("display-a-mirror".into(), 0.0, d, 20.0, (420, 560), 40.0, quilt, vec![0], orbit(2.5, 0.5, 10.0, 0.0)),
+                user(
+                    "display-a-mirror".into(),
+                    0.0,
+                    d,
+                    20.0,
+                    (420, 560),
+                    40.0,
+                    quilt,
+                    vec![0],
+                    orbit(2.5, 0.5, 10.0, 0.0),
+                ),
                 user("display-b".into(), 0.2, d, 20.0, (420, 560), 40.0, quilt, vec![0], orbit(2.5, 0.5, -10.0, 120.0)),
-                user("display-b-mirror".into(), 0.2, d, 20.0, (420, 560), 40.0, quilt, vec![0], orbit(2.5, 0.5, -10.0, 120.0)),
+                user(
+                    "display-b-mirror".into(),
+                    0.2,
+                    d,
+                    20.0,
+                    (420, 560),
+                    40.0,
+                    quilt,
+                    vec![0],
+                    orbit(2.5, 0.5, -10.0, 120.0),
+                ),
             ];
             (objects, users, farm(8, 1e8), params)
         }
@@ -109,16 +146,28 @@ pub fn builtin(name: &str, seed: u64) -> Option<Scenario> {
             let users = (0..20)
                 .map(|i| {
                     let path = orbit(3.0, 0.8, 10.0, 18.0 * i as f32);
-                    user(format!("u{i:02}"), 0.5 * i as f64, params.duration_s, 60.0, (1280, 720), 50.0, ViewMode::Mono, vec![0], path)
+                    user(
+                        format!("u{i:02}"),
+                        0.5 * i as f64,
+                        params.duration_s,
+                        60.0,
+                        (1280, 720),
+                        50.0,
+                        ViewMode::Mono,
+                        vec![0],
+                        path,
+                    )
                 })
                 .collect();
             (objects, users, farm(4, 2.5e7), params)
         }
         "worker-death" => {
-            let objects = vec![object("lego", Vec3::ZERO, 0.6, 1.0), object("chair", Vec3::new(1.2, 0.0, 0.0), 0.4, 1.0)];
+            let objects =
+                vec![object("lego", Vec3::ZERO, 0.6, 1.0), object("chair", Vec3::new(1.2, 0.0, 0.0), 0.4, 1.0)];
             let users = (0..6)
                 .map(|i| {
-                    let path = CameraPath { target: Some(Vec3::new(0.6, 0.0, 0.0)), ..orbit(3.0, 0.3, 8.0, 60.0 * i as f32) };
+                    let path =
+                        CameraPath { target: Some(Vec3::new(0.6, 0.0, 0.0)), ..orbit(3.0, 0.3, 8.0, 60.0 * i as f32) };
                     user(format!("vr{i}"), 0.0, d, 60.0, (1000, 1000), 90.0, ViewMode::Stereo, vec![0, 1], path)
                 })
                 .collect();
@@ -133,7 +182,17 @@ pub fn builtin(name: &str, seed: u64) -> Option<Scenario> {
             let objects = vec![object("lego", Vec3::ZERO, 0.6, 1.0)];
             let users = (0..6)
                 .map(|i| {
-                    user(format!("u{i}"), 0.0, d, 30.0, (1280, 720), 50.0, ViewMode::Mono, vec![0], orbit(3.0, 0.8, 10.0, 60.0 * i as f32))
+                    user(
+                        format!("u{i}"),
+                        0.0,
+                        d,
+                        30.0,
+                        (1280, 720),
+                        50.0,
+                        ViewMode::Mono,
+                        vec![0],
+                        orbit(3.0, 0.8, 10.0, 60.0 * i as f32),
+                    )
                 })
                 .collect();
             let mut workers = farm(4, 3e7);

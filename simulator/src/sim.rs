@@ -13,7 +13,8 @@ use std::time::Duration;
 
 use nephele_geometry::camera::CameraError;
 use nephele_scheduler::{
-    Action, BatchId, ObjectId, ObjectInfo, Policy, SchedError, Scheduler, SchedulerConfig, SessionId, SessionSpec, Time, WorkerId,
+    Action, BatchId, ObjectId, ObjectInfo, Policy, SchedError, Scheduler, SchedulerConfig, SessionId, SessionSpec,
+    Time, WorkerId,
 };
 
 use crate::model::{Detect, Rng, Scenario, SimUser, SimWorker};
@@ -150,13 +151,21 @@ pub fn run(scenario: &Scenario, variant: &Variant) -> Result<Report, SimError> {
         return Err(invalid("needs at least one worker and one user".to_string()));
     }
     let p = &scenario.params;
-    if !(p.duration_s.is_finite() && p.duration_s > 0.0 && p.pose_interval_s > 0.0 && p.heartbeat_s > 0.0 && p.link_bytes_per_s > 0.0) {
+    if !(p.duration_s.is_finite()
+        && p.duration_s > 0.0
+        && p.pose_interval_s > 0.0
+        && p.heartbeat_s > 0.0
+        && p.link_bytes_per_s > 0.0)
+    {
         return Err(invalid("duration, pose interval, heartbeat and link bandwidth must be positive".to_string()));
     }
-    let mut scheduler = Scheduler::new(variant.config.clone()).map_err(|error| SimError::Scheduler { at: Time::ZERO, error })?;
+    let mut scheduler =
+        Scheduler::new(variant.config.clone()).map_err(|error| SimError::Scheduler { at: Time::ZERO, error })?;
     for (i, object) in scenario.objects.iter().enumerate() {
         let info = ObjectInfo { bounds: object.bounds(), occupancy: None, cost_per_ray: object.cost_per_ray };
-        scheduler.register_object(ObjectId(i as u32 + 1), info).map_err(|e| invalid(format!("object '{}': {e}", object.name)))?;
+        scheduler
+            .register_object(ObjectId(i as u32 + 1), info)
+            .map_err(|e| invalid(format!("object '{}': {e}", object.name)))?;
     }
     for user in &scenario.users {
         if let Some(&bad) = user.objects.iter().find(|&&i| i >= scenario.objects.len()) {
@@ -334,7 +343,10 @@ impl Engine<'_> {
 
     fn arrive(&mut self, u: usize, now: Time) -> Result<(), SimError> {
         let user = &self.users[u].spec;
-        let spec = SessionSpec { target_fps: user.fps, objects: user.objects.iter().map(|&i| ObjectId(i as u32 + 1)).collect() };
+        let spec = SessionSpec {
+            target_fps: user.fps,
+            objects: user.objects.iter().map(|&i| ObjectId(i as u32 + 1)).collect(),
+        };
         let depart = user.depart_s;
         match self.scheduler.open_session(spec, now) {
             Ok(session) => {
@@ -380,7 +392,11 @@ impl Engine<'_> {
                 Action::Dispatch { worker, batch } => {
                     let i = worker.0 as usize - 1;
                     if self.workers.get(i).is_some_and(|w| w.connected) {
-                        self.workers[i].queue.push_back(Job { batch: batch.id, object: batch.object, rays: batch.rays });
+                        self.workers[i].queue.push_back(Job {
+                            batch: batch.id,
+                            object: batch.object,
+                            rays: batch.rays,
+                        });
                         if self.workers[i].running.is_none() {
                             self.start_next(i, now);
                         }
@@ -393,7 +409,8 @@ impl Engine<'_> {
                         if let Some(r) = w.running.take() {
                             let spent = now.since(r.start).as_secs_f64();
                             w.busy_s += spent;
-                            w.rays_rendered += r.job.rays as f64 * spent / r.end.since(r.start).as_secs_f64().max(1e-12);
+                            w.rays_rendered +=
+                                r.job.rays as f64 * spent / r.end.since(r.start).as_secs_f64().max(1e-12);
                         }
                         w.generation += 1;
                         self.start_next(i, now);
@@ -493,7 +510,8 @@ impl Engine<'_> {
         let stats = self.scheduler.stats();
         let mut latencies: Vec<f64> = self.users.iter().flat_map(|u| u.latencies_ms.iter().copied()).collect();
         latencies.sort_by(f64::total_cmp);
-        let admitted: Vec<&UserMetrics> = users.iter().filter(|u| u.admitted && u.active_s * u.target_fps >= 1.0).collect();
+        let admitted: Vec<&UserMetrics> =
+            users.iter().filter(|u| u.admitted && u.active_s * u.target_fps >= 1.0).collect();
         let attainment: Vec<f64> = admitted.iter().map(|u| u.attainment).collect();
         let normalised: Vec<f64> = admitted.iter().map(|u| u.achieved_fps / u.target_fps).collect();
         let busy: f64 = self.workers.iter().map(|w| w.busy_s).sum();

@@ -23,9 +23,15 @@ fn nephele_beats_round_robin_in_the_many_users_scenario() {
     let nephele = simulate(&s, Variant::of(Policy::Nephele)).summary;
     let round_robin = simulate(&s, Variant::of(Policy::RoundRobin)).summary;
     assert!(nephele.attainment_mean >= 0.9, "{nephele:?}");
-    assert!(nephele.attainment_mean > round_robin.attainment_mean + 0.3, "nephele {nephele:?}\nround robin {round_robin:?}");
+    assert!(
+        nephele.attainment_mean > round_robin.attainment_mean + 0.3,
+        "nephele {nephele:?}\nround robin {round_robin:?}"
+    );
     // Users at the same spot share their rays: rendered once, fanned out to the four.
-    assert!(nephele.shared_joins > 0 && (nephele.rays_rendered as f64) < 0.5 * nephele.rays_requested as f64, "{nephele:?}");
+    assert!(
+        nephele.shared_joins > 0 && (nephele.rays_rendered as f64) < 0.5 * nephele.rays_requested as f64,
+        "{nephele:?}"
+    );
     assert_eq!(round_robin.shared_joins + round_robin.history_hits, 0);
     assert!(round_robin.rays_rendered as f64 > 0.95 * round_robin.rays_requested as f64);
 }

@@ -104,7 +104,12 @@ pub struct BrowserOptions {
 
 impl Default for BrowserOptions {
     fn default() -> Self {
-        BrowserOptions { chromium: None, chromedriver: None, extra_args: Vec::new(), command_timeout: Duration::from_secs(60) }
+        BrowserOptions {
+            chromium: None,
+            chromedriver: None,
+            extra_args: Vec::new(),
+            command_timeout: Duration::from_secs(60),
+        }
     }
 }
 
@@ -129,12 +134,22 @@ impl Browser {
     pub fn start_with(options: BrowserOptions) -> Result<Browser> {
         let chromedriver = match options.chromedriver {
             Some(path) if path.is_file() => path,
-            Some(path) => return Err(BrowserError::Missing { what: "chromedriver", detail: format!("{} is not a file", path.display()) }),
+            Some(path) => {
+                return Err(BrowserError::Missing {
+                    what: "chromedriver",
+                    detail: format!("{} is not a file", path.display()),
+                });
+            }
             None => find_program("NEPHELE_CHROMEDRIVER", "chromedriver")?,
         };
         let chromium = match options.chromium {
             Some(path) if path.is_file() => path,
-            Some(path) => return Err(BrowserError::Missing { what: "chromium", detail: format!("{} is not a file", path.display()) }),
+            Some(path) => {
+                return Err(BrowserError::Missing {
+                    what: "chromium",
+                    detail: format!("{} is not a file", path.display()),
+                });
+            }
             None => find_program("NEPHELE_CHROMIUM", "chromium")?,
         };
         let artifacts = tempfile::Builder::new().prefix("nephele-browser-").tempdir()?;
@@ -150,7 +165,10 @@ impl Browser {
             .stdout(driver_log.try_clone()?)
             .stderr(driver_log)
             .spawn()
-            .map_err(|e| BrowserError::Missing { what: "chromedriver", detail: format!("{}: {e}", chromedriver.display()) })?;
+            .map_err(|e| BrowserError::Missing {
+                what: "chromedriver",
+                detail: format!("{}: {e}", chromedriver.display()),
+            })?;
         let mut browser = Browser {
             driver,
             addr: SocketAddr::from(([127, 0, 0, 1], port)),
@@ -185,7 +203,10 @@ impl Browser {
         let start = Instant::now();
         loop {
             if let Some(status) = self.driver.try_wait()? {
-                return Err(BrowserError::DriverStart(format!("chromedriver exited with {status}: {}", self.driver_log())));
+                return Err(BrowserError::DriverStart(format!(
+                    "chromedriver exited with {status}: {}",
+                    self.driver_log()
+                )));
             }
             if let Ok(value) = self.request("GET", "/status", None)
                 && value["ready"].as_bool() == Some(true)
@@ -227,8 +248,9 @@ impl Browser {
         stream.write_all(body.as_bytes())?;
         let raw = read_http_response(&mut stream)?;
         let (status, response) = parse_http_response(&raw)?;
-        let value: Value = serde_json::from_slice(&response)
-            .map_err(|e| BrowserError::Protocol(format!("{method} {path}: {e}: {}", String::from_utf8_lossy(&response))))?;
+        let value: Value = serde_json::from_slice(&response).map_err(|e| {
+            BrowserError::Protocol(format!("{method} {path}: {e}: {}", String::from_utf8_lossy(&response)))
+        })?;
         let value = value.get("value").cloned().unwrap_or(Value::Null);
         if status != 200 {
             return Err(BrowserError::Command {
@@ -266,7 +288,11 @@ impl Browser {
         );
         let value = self.execute_async(&script, Vec::new())?;
         if let Some(err) = value.get("err") {
-            return Err(BrowserError::Command { command: "script".into(), error: "javascript error".into(), message: err.to_string() });
+            return Err(BrowserError::Command {
+                command: "script".into(),
+                error: "javascript error".into(),
+                message: err.to_string(),
+            });
         }
         Ok(value.get("ok").cloned().unwrap_or(Value::Null))
     }
@@ -307,7 +333,8 @@ impl Browser {
     /// Opens a new tab, switches to it and returns its handle.
     pub fn new_tab(&self) -> Result<String> {
         let value = self.request("POST", &self.session_path("/window/new"), Some(&json!({ "type": "tab" })))?;
-        let handle = value["handle"].as_str().ok_or_else(|| BrowserError::Protocol(format!("new window {value}")))?.to_string();
+        let handle =
+            value["handle"].as_str().ok_or_else(|| BrowserError::Protocol(format!("new window {value}")))?.to_string();
         self.switch_to(&handle)?;
         Ok(handle)
     }
@@ -419,7 +446,10 @@ fn read_http_response(stream: &mut impl Read) -> Result<Vec<u8>> {
 
 /// Splits an HTTP/1.1 response into status and body (identity or chunked).
 fn parse_http_response(raw: &[u8]) -> Result<(u16, Vec<u8>)> {
-    let split = raw.windows(4).position(|w| w == b"\r\n\r\n").ok_or_else(|| BrowserError::Protocol("no HTTP header end".into()))?;
+    let split = raw
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .ok_or_else(|| BrowserError::Protocol("no HTTP header end".into()))?;
     let head = String::from_utf8_lossy(&raw[..split]);
     let body = &raw[split + 4..];
     let mut lines = head.split("\r\n");
@@ -438,7 +468,8 @@ fn parse_http_response(raw: &[u8]) -> Result<(u16, Vec<u8>)> {
     let mut out = Vec::new();
     let mut rest = body;
     loop {
-        let line_end = rest.windows(2).position(|w| w == b"\r\n").ok_or_else(|| BrowserError::Protocol("bad chunk".into()))?;
+        let line_end =
+            rest.windows(2).position(|w| w == b"\r\n").ok_or_else(|| BrowserError::Protocol("bad chunk".into()))?;
         let size_text = String::from_utf8_lossy(&rest[..line_end]);
         let size = usize::from_str_radix(size_text.split(';').next().unwrap_or("").trim(), 16)
             .map_err(|_| BrowserError::Protocol(format!("bad chunk size {size_text:?}")))?;
@@ -506,7 +537,8 @@ mod tests {
     fn http_responses_parse_identity_and_chunked() {
         let identity = b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n{}";
         assert_eq!(parse_http_response(identity).ok(), Some((200, b"{}".to_vec())));
-        let chunked = b"HTTP/1.1 404 Not Found\r\nTransfer-Encoding: chunked\r\n\r\n3\r\n{\"a\r\n4\r\n\":1}\r\n0\r\n\r\n";
+        let chunked =
+            b"HTTP/1.1 404 Not Found\r\nTransfer-Encoding: chunked\r\n\r\n3\r\n{\"a\r\n4\r\n\":1}\r\n0\r\n\r\n";
         assert_eq!(parse_http_response(chunked).ok(), Some((404, br#"{"a":1}"#.to_vec())));
         assert!(parse_http_response(b"garbage").is_err());
         assert!(parse_http_response(b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\nzz\r\n").is_err());
@@ -514,7 +546,8 @@ mod tests {
 
     #[test]
     fn a_missing_driver_is_a_clear_error_that_names_the_fix() {
-        let options = BrowserOptions { chromedriver: Some(PathBuf::from("/nonexistent/chromedriver")), ..Default::default() };
+        let options =
+            BrowserOptions { chromedriver: Some(PathBuf::from("/nonexistent/chromedriver")), ..Default::default() };
         let err = Browser::start_with(options).expect_err("no driver there");
         let text = err.to_string();
         assert!(matches!(err, BrowserError::Missing { what: "chromedriver", .. }), "{text}");

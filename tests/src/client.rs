@@ -11,7 +11,11 @@ use crate::browser::{Browser, LogEntry, Result};
 /// The client's connection state (`window.nephele.state`): `idle`, `connecting`,
 /// `streaming`, `farm busy, retrying in N s`, `reconnecting in ...`, `error: ...`.
 pub fn state(browser: &Browser) -> Result<String> {
-    Ok(browser.execute("return window.nephele ? window.nephele.state : null;", Vec::new())?.as_str().unwrap_or("").to_string())
+    Ok(browser
+        .execute("return window.nephele ? window.nephele.state : null;", Vec::new())?
+        .as_str()
+        .unwrap_or("")
+        .to_string())
 }
 
 /// Waits until the data channel is open (`state == "streaming"`).
@@ -22,12 +26,18 @@ pub fn wait_streaming(browser: &Browser, limit: Duration) -> Result<()> {
 
 /// The session id the master gave this tab.
 pub fn session_id(browser: &Browser) -> Result<Option<String>> {
-    Ok(browser.execute("return window.nephele ? window.nephele.sessionId : null;", Vec::new())?.as_str().map(str::to_string))
+    Ok(browser
+        .execute("return window.nephele ? window.nephele.sessionId : null;", Vec::new())?
+        .as_str()
+        .map(str::to_string))
 }
 
 /// Sets the orbit camera (radians, metres), as a user's drag would.
 pub fn set_orbit(browser: &Browser, azimuth: f64, elevation: f64, radius: f64) -> Result<()> {
-    browser.execute("window.nephele.setOrbit(arguments[0], arguments[1], arguments[2]);", vec![azimuth.into(), elevation.into(), radius.into()])?;
+    browser.execute(
+        "window.nephele.setOrbit(arguments[0], arguments[1], arguments[2]);",
+        vec![azimuth.into(), elevation.into(), radius.into()],
+    )?;
     Ok(())
 }
 

@@ -99,7 +99,9 @@ impl Pose {
     pub fn eye(&self, v: usize) -> [f64; 3] {
         let m = &self.matrices[v].0;
         let t = [m[12], m[13], m[14]].map(f64::from);
-        std::array::from_fn(|i| -(f64::from(m[i * 4]) * t[0] + f64::from(m[i * 4 + 1]) * t[1] + f64::from(m[i * 4 + 2]) * t[2]))
+        std::array::from_fn(|i| {
+            -(f64::from(m[i * 4]) * t[0] + f64::from(m[i * 4 + 1]) * t[1] + f64::from(m[i * 4 + 2]) * t[2])
+        })
     }
 
     /// Azimuth of view `v`'s camera around `target` (radians, from +X towards +Y).
@@ -260,8 +262,13 @@ impl TestFarm {
         let offer = RTCSessionDescription::offer(offer_sdp).map_err(|e| OpenError::BadOffer(e.to_string()))?;
         let unavailable = |e: webrtc::Error| OpenError::Unavailable(e.to_string());
         let pc = Arc::new(shared.api.new_peer_connection(RTCConfiguration::default()).await.map_err(unavailable)?);
-        let track = Arc::new(TrackLocalStaticSample::new(h264_codec().capability, "video".into(), format!("nephele-{session_id}")));
-        let sender = pc.add_track(Arc::clone(&track) as Arc<dyn TrackLocal + Send + Sync>).await.map_err(unavailable)?;
+        let track = Arc::new(TrackLocalStaticSample::new(
+            h264_codec().capability,
+            "video".into(),
+            format!("nephele-{session_id}"),
+        ));
+        let sender =
+            pc.add_track(Arc::clone(&track) as Arc<dyn TrackLocal + Send + Sync>).await.map_err(unavailable)?;
         // RTCP must be read for the interceptors (NACK, reports) to work.
         tokio::spawn(async move { while sender.read_rtcp().await.is_ok() {} });
 
@@ -279,7 +286,8 @@ impl TestFarm {
                 Box::pin(async move {
                     if msg.is_string {
                         let text = String::from_utf8_lossy(&msg.data).into_owned();
-                        let ping = serde_json::from_str::<serde_json::Value>(&text).ok().filter(|v| v["type"] == "ping");
+                        let ping =
+                            serde_json::from_str::<serde_json::Value>(&text).ok().filter(|v| v["type"] == "ping");
                         log.lock().unwrap_or_else(|p| p.into_inner()).text.push(text);
                         if let Some(ping) = ping {
                             let pong = json!({ "type": "pong", "id": ping["id"], "t": ping["t"] });
@@ -335,7 +343,8 @@ impl TestFarm {
         if tokio::time::timeout(Duration::from_secs(5), gathered.recv()).await.is_err() {
             return Err(OpenError::Unavailable("ICE gathering did not finish in 5 s".into()));
         }
-        let local = pc.local_description().await.ok_or_else(|| OpenError::Unavailable("no local description".into()))?;
+        let local =
+            pc.local_description().await.ok_or_else(|| OpenError::Unavailable("no local description".into()))?;
         shared.state().peers.insert(session_id, Peer { pc, log, connected, frames_sent, stop });
         Ok(local.sdp)
     }
@@ -390,7 +399,8 @@ impl VideoLoop {
                                     self.frames_sent.fetch_add(1, Ordering::SeqCst);
                                     let dc = self.channel.lock().unwrap_or_else(|p| p.into_inner()).clone();
                                     if let Some(dc) = dc {
-                                        let note = json!({ "type": "frame", "seq": pose.sequence, "t": pose.client_time_ms });
+                                        let note =
+                                            json!({ "type": "frame", "seq": pose.sequence, "t": pose.client_time_ms });
                                         let _ = self.runtime.block_on(dc.send_text(note.to_string()));
                                     }
                                 }
@@ -434,7 +444,8 @@ impl FarmBackend for TestFarm {
     }
 
     fn admission(&self) -> Admission {
-        let refuse = self.shared.refuse_next.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1)).is_ok();
+        let refuse =
+            self.shared.refuse_next.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1)).is_ok();
         if refuse {
             self.shared.refused.fetch_add(1, Ordering::SeqCst);
             Admission::Refuse { retry_after: Duration::from_secs(1) }
@@ -443,7 +454,12 @@ impl FarmBackend for TestFarm {
         }
     }
 
-    fn open(&self, session_id: String, request: SessionRequest, offer_sdp: String) -> BoxFuture<Result<String, OpenError>> {
+    fn open(
+        &self,
+        session_id: String,
+        request: SessionRequest,
+        offer_sdp: String,
+    ) -> BoxFuture<Result<String, OpenError>> {
         self.shared.state().offers.push(Offer { session_id: session_id.clone(), request, sdp: offer_sdp.clone() });
         let shared = Arc::clone(&self.shared);
         Box::pin(TestFarm::answer(shared, session_id, offer_sdp))

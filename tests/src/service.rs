@@ -64,7 +64,18 @@ impl UpService {
         let log = tempfile::Builder::new().prefix("nephele-up-").suffix(".log").tempfile().expect("a log file");
         let ready_secs = (limit.as_secs() + 5).to_string();
         let mut child = Command::new(nephele_bin())
-            .args(["--quiet", "up", "--http", &http.to_string(), "--workers", &workers.to_string(), "--spp", "1", "--ready-secs", &ready_secs])
+            .args([
+                "--quiet",
+                "up",
+                "--http",
+                &http.to_string(),
+                "--workers",
+                &workers.to_string(),
+                "--spp",
+                "1",
+                "--ready-secs",
+                &ready_secs,
+            ])
             .args(extra)
             .env("NEPHELE_LOG", std::env::var("NEPHELE_LOG").unwrap_or_else(|_| "info".into()))
             .env("NO_COLOR", "1")
@@ -80,8 +91,15 @@ impl UpService {
                 let _ = line_tx.send(line);
             }
         });
-        let mut service =
-            UpService { child: Some(child), http, url_line: String::new(), composer_http: None, startup: Vec::new(), assets: None, log };
+        let mut service = UpService {
+            child: Some(child),
+            http,
+            url_line: String::new(),
+            composer_http: None,
+            startup: Vec::new(),
+            assets: None,
+            log,
+        };
         let deadline = Instant::now() + limit;
         while service.url_line.is_empty() {
             let left = deadline.saturating_duration_since(Instant::now());
@@ -89,14 +107,18 @@ impl UpService {
                 Ok(line) => line,
                 Err(e) => {
                     service.print_log_tail(40);
-                    panic!("nephele up did not print the URL once the farm was whole: {e}; it printed {:#?}", service.startup)
+                    panic!(
+                        "nephele up did not print the URL once the farm was whole: {e}; it printed {:#?}",
+                        service.startup
+                    )
                 }
             };
             if line.contains("open http://") {
                 service.url_line = line.clone();
             } else if line.starts_with("composer counters") {
                 // "composer counters and latency: http://ADDR/v1/sessions"
-                service.composer_http = line.split("http://").nth(1).and_then(|rest| rest.split('/').next()).and_then(|a| a.parse().ok());
+                service.composer_http =
+                    line.split("http://").nth(1).and_then(|rest| rest.split('/').next()).and_then(|a| a.parse().ok());
             }
             service.startup.push(line);
         }
@@ -149,7 +171,8 @@ impl Drop for UpService {
 /// A blocking `GET` of a JSON endpoint on loopback (`Connection: close`).
 pub fn get_json(addr: SocketAddr, path: &str) -> Result<serde_json::Value, String> {
     use std::io::{Read, Write};
-    let mut stream = std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(2)).map_err(|e| format!("connecting to {addr}: {e}"))?;
+    let mut stream = std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(2))
+        .map_err(|e| format!("connecting to {addr}: {e}"))?;
     stream.set_read_timeout(Some(Duration::from_secs(5))).map_err(|e| e.to_string())?;
     write!(stream, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").map_err(|e| e.to_string())?;
     let mut raw = Vec::new();

@@ -33,7 +33,8 @@ struct Service {
 
 impl Service {
     fn start(stream_video: bool) -> Service {
-        let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime");
+        let runtime =
+            tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime");
         let farm = TestFarm::new(stream_video).expect("test farm");
         let addr = runtime.block_on(farm.serve()).expect("serving the master");
         Service { farm, url: format!("http://{addr}/?width={WIDTH}&height={HEIGHT}"), _runtime: runtime }
@@ -80,10 +81,20 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
     let offers = farm.offers();
     assert_eq!(offers.len(), 1, "one POST /v1/sessions");
     let offer = &offers[0];
-    assert!(!client::h264_mode1_payload_types(&offer.sdp).is_empty(), "no H.264 packetization-mode=1 in the offer:\n{}", offer.sdp);
+    assert!(
+        !client::h264_mode1_payload_types(&offer.sdp).is_empty(),
+        "no H.264 packetization-mode=1 in the offer:\n{}",
+        offer.sdp
+    );
     assert!(offer.sdp.lines().any(|l| l.starts_with("m=application ")), "no data channel in the offer:\n{}", offer.sdp);
-    assert!(!offer.sdp.contains(".local"), "mDNS host candidates despite --disable-features=WebRtcHideLocalIpsWithMdns");
-    assert_eq!((offer.request.views, offer.request.width, offer.request.height), (1, u32::from(WIDTH), u32::from(HEIGHT)));
+    assert!(
+        !offer.sdp.contains(".local"),
+        "mDNS host candidates despite --disable-features=WebRtcHideLocalIpsWithMdns"
+    );
+    assert_eq!(
+        (offer.request.views, offer.request.width, offer.request.height),
+        (1, u32::from(WIDTH), u32::from(HEIGHT))
+    );
     let first = offer.session_id.clone();
     assert_eq!(client::session_id(&browser).expect("session id").as_deref(), Some(first.as_str()));
 
@@ -91,7 +102,8 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
     wait_for("the first poses", Duration::from_secs(5), || farm.latest_pose(&first));
     let since = Instant::now();
     std::thread::sleep(Duration::from_secs(1));
-    let window: Vec<_> = farm.binary_since(&first, since).into_iter().filter(|(t, _)| *t < since + Duration::from_secs(1)).collect();
+    let window: Vec<_> =
+        farm.binary_since(&first, since).into_iter().filter(|(t, _)| *t < since + Duration::from_secs(1)).collect();
     assert!((25..=60).contains(&window.len()), "{} poses in one second (every 20 ms expected)", window.len());
     let mut last_sequence = None;
     for (_, data) in &window {
@@ -102,7 +114,12 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
         last_sequence = Some(pose.sequence);
     }
     let pose = farm.latest_pose(&first).expect("a pose");
-    assert!(close(pose.eye(0), FIRST_VIEW.eye.map(f64::from), 1e-4), "first camera at {:?}, expected {:?}", pose.eye(0), FIRST_VIEW.eye);
+    assert!(
+        close(pose.eye(0), FIRST_VIEW.eye.map(f64::from), 1e-4),
+        "first camera at {:?}, expected {:?}",
+        pose.eye(0),
+        FIRST_VIEW.eye
+    );
 
     // A scripted orbit moves the camera in the very next poses...
     client::set_orbit(&browser, 1.0, 0.3, 5.0).expect("setOrbit");
@@ -126,12 +143,19 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
             if seen.is_some_and(|g| (g - want).abs() < 12.0) {
                 break;
             }
-            assert!(start.elapsed() < Duration::from_secs(5), "azimuth {azimuth}: the picture shows grey {seen:?}, the pose asks for {want:.0}");
+            assert!(
+                start.elapsed() < Duration::from_secs(5),
+                "azimuth {azimuth}: the picture shows grey {seen:?}, the pose asks for {want:.0}"
+            );
             std::thread::sleep(Duration::from_millis(20));
         }
     }
     let stats = client::inbound_video_stats(&browser).expect("getStats");
-    assert_eq!((stats["frameWidth"].as_u64(), stats["frameHeight"].as_u64()), (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))), "{stats}");
+    assert_eq!(
+        (stats["frameWidth"].as_u64(), stats["frameHeight"].as_u64()),
+        (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))),
+        "{stats}"
+    );
     assert!(farm.frames_sent(&first) > 0);
     // Pings go out and pongs come back (the client measures the round trip).
     browser.wait_until("window.nephele.rttMs !== null", Duration::from_secs(3)).expect("a round-trip time");
@@ -156,7 +180,9 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
     // Closing the tab ends its session (DELETE on pagehide); the first one streams on.
     browser.close_tab().expect("close the second tab");
     browser.switch_to(&first_tab).expect("back to the first tab");
-    wait_for("DELETE of the closed tab's session", Duration::from_secs(5), || farm.closed().contains(&second).then_some(()));
+    wait_for("DELETE of the closed tab's session", Duration::from_secs(5), || {
+        farm.closed().contains(&second).then_some(())
+    });
     assert!(!farm.closed().contains(&first));
     let after = Instant::now();
     std::thread::sleep(Duration::from_millis(300));
@@ -175,7 +201,9 @@ fn a_busy_farm_makes_the_client_wait_and_retry() {
     farm.refuse_next(1);
     let browser = Browser::start().expect("headless Chromium");
     browser.goto(&service.url).expect("open the client");
-    let busy = browser.wait_until("window.nephele && window.nephele.state.startsWith('farm busy')", Duration::from_secs(10)).expect("busy state");
+    let busy = browser
+        .wait_until("window.nephele && window.nephele.state.startsWith('farm busy')", Duration::from_secs(10))
+        .expect("busy state");
     assert_eq!(busy.as_bool(), Some(true));
     assert_eq!(client::state(&browser).expect("state"), "farm busy, retrying in 1 s");
     assert_eq!(farm.refused(), 1);
@@ -208,7 +236,11 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
     wait_for("decoded frames", Duration::from_secs(30), || client::frames_decoded(&browser).ok().filter(|&n| n >= 5));
     eprintln!("[{:.1} s] 5 frames decoded", started.elapsed().as_secs_f64());
     let stats = client::inbound_video_stats(&browser).expect("getStats");
-    assert_eq!((stats["frameWidth"].as_u64(), stats["frameHeight"].as_u64()), (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))), "{stats}");
+    assert_eq!(
+        (stats["frameWidth"].as_u64(), stats["frameHeight"].as_u64()),
+        (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))),
+        "{stats}"
+    );
 
     // Close to the scene, then far away: the farm renders the new pose and the picture follows.
     let whole = [0.0, 0.0, 1.0, 1.0];
@@ -216,14 +248,23 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
         client::set_orbit(&browser, 0.6, 0.35, radius).expect("setOrbit");
         let decoded = client::frames_decoded(&browser).expect("getStats");
         let asked = Instant::now();
-        wait_for("frames of the new pose", Duration::from_secs(20), || client::frames_decoded(&browser).ok().filter(|&n| n >= decoded + 10));
-        eprintln!("[{:.1} s] 10 frames at {radius} m in {:.1} s", started.elapsed().as_secs_f64(), asked.elapsed().as_secs_f64());
+        wait_for("frames of the new pose", Duration::from_secs(20), || {
+            client::frames_decoded(&browser).ok().filter(|&n| n >= decoded + 10)
+        });
+        eprintln!(
+            "[{:.1} s] 10 frames at {radius} m in {:.1} s",
+            started.elapsed().as_secs_f64(),
+            asked.elapsed().as_secs_f64()
+        );
         client::mean_grey(&browser, whole).expect("reading the picture back").expect("a picture")
     };
     let near = settle(3.0);
     let far = settle(80.0);
     eprintln!("mean grey of the whole picture: {near:.1} at 3 m, {far:.1} at 80 m");
-    assert!((near - far).abs() > 5.0, "moving the camera from 3 m to 80 m left the picture at grey {near:.1} -> {far:.1}");
+    assert!(
+        (near - far).abs() > 5.0,
+        "moving the camera from 3 m to 80 m left the picture at grey {near:.1} -> {far:.1}"
+    );
 
     // A second tab is a second user with its own stream.
     let first_tab = browser.window().expect("tab");
@@ -232,10 +273,13 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
     client::wait_streaming(&browser, Duration::from_secs(30)).expect("second tab streams");
     let second = client::session_id(&browser).expect("session id").expect("a session");
     assert_ne!(first, second);
-    wait_for("decoded frames in the second tab", Duration::from_secs(30), || client::frames_decoded(&browser).ok().filter(|&n| n >= 5));
+    wait_for("decoded frames in the second tab", Duration::from_secs(30), || {
+        client::frames_decoded(&browser).ok().filter(|&n| n >= 5)
+    });
     eprintln!("[{:.1} s] the second tab decodes", started.elapsed().as_secs_f64());
     let farm = browser.eval_promise("fetch('/v1/farm').then((r) => r.json())").expect("GET /v1/farm");
-    let sessions: Vec<&str> = farm["sessions"].as_array().expect("sessions").iter().filter_map(|s| s["id"].as_str()).collect();
+    let sessions: Vec<&str> =
+        farm["sessions"].as_array().expect("sessions").iter().filter_map(|s| s["id"].as_str()).collect();
     assert!(sessions.contains(&first.as_str()) && sessions.contains(&second.as_str()), "{farm}");
     browser.close_tab().expect("close the second tab");
     browser.switch_to(&first_tab).expect("back to the first tab");
@@ -245,6 +289,7 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
     // refuses it (503 + Retry-After, Algorithm 1's admission) and the page retries, which
     // Chromium logs as a failed resource load. Anything else is an error.
     let refused = "/v1/sessions - Failed to load resource: the server responded with a status of 503";
-    let unexpected: Vec<_> = client::page_errors(&errors).into_iter().filter(|e| !e.message.contains(refused)).collect();
+    let unexpected: Vec<_> =
+        client::page_errors(&errors).into_iter().filter(|e| !e.message.contains(refused)).collect();
     assert!(unexpected.is_empty(), "JavaScript errors: {errors:?}");
 }

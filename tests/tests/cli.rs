@@ -1,7 +1,7 @@
 //! The `nephele` command as a user runs it: real processes, real files.
 
-use nephele_train::dataset;
 use nephele_tests::{nephele_err, nephele_ok, shared_data};
+use nephele_train::dataset;
 
 #[test]
 fn help_explains_every_subcommand() {
@@ -9,7 +9,12 @@ fn help_explains_every_subcommand() {
     for sub in ["scenes", "pathtrace", "dataset", "eval", "bench"] {
         assert!(help.contains(sub), "--help lacks {sub}:\n{help}");
     }
-    for sub in [&["pathtrace", "--help"][..], &["dataset", "render", "--help"], &["eval", "--help"], &["bench", "reference", "--help"]] {
+    for sub in [
+        &["pathtrace", "--help"][..],
+        &["dataset", "render", "--help"],
+        &["eval", "--help"],
+        &["bench", "reference", "--help"],
+    ] {
         let text = nephele_ok(sub);
         assert!(text.contains("Usage"), "{sub:?}");
     }
@@ -29,8 +34,21 @@ fn dataset_render_then_load_then_eval() {
     let out = dir.path().join("ds");
     let out_str = out.to_str().expect("utf-8 path");
     nephele_ok(&[
-        "dataset", "render", "--scene", "diffuse", "--views", "3", "--test-views", "2", "--size", "32x24", "--spp", "2",
-        "--depth", "--out", out_str,
+        "dataset",
+        "render",
+        "--scene",
+        "diffuse",
+        "--views",
+        "3",
+        "--test-views",
+        "2",
+        "--size",
+        "32x24",
+        "--spp",
+        "2",
+        "--depth",
+        "--out",
+        out_str,
     ]);
     let train = dataset::load_split(&out, "train", 1).expect("train split loads");
     assert_eq!(train.views.len(), 3);
@@ -50,8 +68,22 @@ fn dataset_render_then_load_then_eval() {
     // A second render with another seed differs by noise only: high but finite PSNR.
     let other = dir.path().join("other");
     nephele_ok(&[
-        "dataset", "render", "--scene", "diffuse", "--views", "3", "--test-views", "2", "--size", "32x24", "--spp", "2",
-        "--seed", "0", "--out", other.to_str().expect("utf-8"),
+        "dataset",
+        "render",
+        "--scene",
+        "diffuse",
+        "--views",
+        "3",
+        "--test-views",
+        "2",
+        "--size",
+        "32x24",
+        "--spp",
+        "2",
+        "--seed",
+        "0",
+        "--out",
+        other.to_str().expect("utf-8"),
     ]);
     // Same seed: same images, bit for bit.
     let a = std::fs::read(out.join("test/r_1.png")).expect("read");
@@ -59,7 +91,8 @@ fn dataset_render_then_load_then_eval() {
     assert_eq!(a, b, "rendering is deterministic for a seed");
 
     // Refuses to write into a non-empty folder without --force.
-    let err = nephele_err(&["dataset", "render", "--scene", "diffuse", "--views", "1", "--size", "8x8", "--out", out_str]);
+    let err =
+        nephele_err(&["dataset", "render", "--scene", "diffuse", "--views", "1", "--size", "8x8", "--out", out_str]);
     assert!(err.contains("not empty"), "{err}");
 }
 
@@ -75,11 +108,31 @@ fn pathtrace_writes_every_output() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().to_str().expect("utf-8");
     let text = nephele_ok(&[
-        "pathtrace", "--scene", "shell", "--size", "24x16", "--spp", "2", "--aov",
-        "color,direct,alpha,depth,position,normal,albedo", "--exr", "--out", out,
+        "pathtrace",
+        "--scene",
+        "shell",
+        "--size",
+        "24x16",
+        "--spp",
+        "2",
+        "--aov",
+        "color,direct,alpha,depth,position,normal,albedo",
+        "--exr",
+        "--out",
+        out,
     ]);
     assert!(text.contains("samples/s"), "{text}");
-    for file in ["color.png", "color.exr", "direct.png", "direct.exr", "alpha.exr", "depth.exr", "position.exr", "normal.exr", "albedo.exr"] {
+    for file in [
+        "color.png",
+        "color.exr",
+        "direct.png",
+        "direct.exr",
+        "alpha.exr",
+        "depth.exr",
+        "position.exr",
+        "normal.exr",
+        "albedo.exr",
+    ] {
         assert!(dir.path().join(file).is_file(), "{file} missing");
     }
 }
@@ -97,7 +150,10 @@ fn bad_input_gets_a_clear_error() {
         (&["pathtrace", "--scene", "no-such-scene", "--out", out], "diffuse"),
         (&["pathtrace", "--scene", "diffuse", "--spp", "0", "--size", "4x4", "--out", out], "samples per pixel"),
         (&["pathtrace", "--scene", "diffuse", "--fov-y", "0", "--size", "4x4", "--out", out], "fov"),
-        (&["pathtrace", "--scene", "diffuse", "--eye", "0,0,0", "--target", "0,0,0", "--size", "4x4", "--out", out], "camera"),
+        (
+            &["pathtrace", "--scene", "diffuse", "--eye", "0,0,0", "--target", "0,0,0", "--size", "4x4", "--out", out],
+            "camera",
+        ),
         (&["pathtrace", "--scene", "diffuse", "--aov", "colour", "--size", "4x4", "--out", out], "unknown output"),
         (&["pathtrace", "--scene", "/nonexistent/model.gltf", "--out", out], "model.gltf"),
         (&["eval", "--pred", "/nonexistent/pred", "--gt", out], "/nonexistent/pred"),
@@ -119,6 +175,17 @@ fn bad_input_gets_a_clear_error() {
 
 #[test]
 fn bench_reference_runs_on_a_tiny_image() {
-    let text = nephele_ok(&["bench", "reference", "--size", "16x16", "--spp", "1", "--reference-spp", "4", "--scenes", "diffuse,furnace"]);
+    let text = nephele_ok(&[
+        "bench",
+        "reference",
+        "--size",
+        "16x16",
+        "--spp",
+        "1",
+        "--reference-spp",
+        "4",
+        "--scenes",
+        "diffuse,furnace",
+    ]);
     assert!(text.contains("tri/ray") && text.contains("furnace"), "{text}");
 }

@@ -12,7 +12,18 @@ use nephele_tests::nephele_bin;
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn composer_process_streams_to_a_client_and_stops_on_ctrl_c() {
     let mut child = Command::new(nephele_bin())
-        .args(["--quiet", "composer", "--source", "test-pattern", "--http", "127.0.0.1:0", "--results", "127.0.0.1:0", "--view", "128x96"])
+        .args([
+            "--quiet",
+            "composer",
+            "--source",
+            "test-pattern",
+            "--http",
+            "127.0.0.1:0",
+            "--results",
+            "127.0.0.1:0",
+            "--view",
+            "128x96",
+        ])
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -34,7 +45,11 @@ async fn composer_process_streams_to_a_client_and_stops_on_ctrl_c() {
 
     let mut client = Client::connect(http, ClientOptions::default()).await.unwrap();
     let picture = client.next_picture(Duration::from_secs(15), |_| true).await.unwrap();
-    assert!(picture.idr && (picture.width, picture.height) == (128, 96), "{:?}", (picture.idr, picture.width, picture.height));
+    assert!(
+        picture.idr && (picture.width, picture.height) == (128, 96),
+        "{:?}",
+        (picture.idr, picture.width, picture.height)
+    );
     let (status, list) = http_request(http, "GET", "/v1/sessions", &[], "").await.unwrap();
     assert_eq!(status, 200);
     assert!(list.contains(&format!("\"session\":{}", client.session)), "{list}");

@@ -22,7 +22,14 @@ fn two_users_stream_and_report_frame_rate_and_pose_to_frame_latency() {
     let rt = runtime();
     let (farm, url) = farm(&rt);
     farm.refuse_next(1);
-    let config = LoadConfig { url, users: 2, duration: Duration::from_secs(2), width: 160, height: 120, ..LoadConfig::default() };
+    let config = LoadConfig {
+        url,
+        users: 2,
+        duration: Duration::from_secs(2),
+        width: 160,
+        height: 120,
+        ..LoadConfig::default()
+    };
     let live = Arc::new(Live::default());
     let reports = rt.block_on(nephele_loadgen::run(&config, Arc::clone(&live))).expect("loadgen runs");
     let table = nephele_loadgen::table(&reports);
@@ -59,9 +66,22 @@ fn the_command_prints_a_table_and_writes_json() {
     let dir = tempfile::tempdir().expect("temp dir");
     let json = dir.path().join("loadgen.json");
     let json_arg = json.to_str().expect("utf-8 path");
-    let out = nephele_tests::nephele_ok(&["loadgen", "--url", &url, "--users", "1", "--seconds", "1", "--size", "160x120", "--json", json_arg]);
+    let out = nephele_tests::nephele_ok(&[
+        "loadgen",
+        "--url",
+        &url,
+        "--users",
+        "1",
+        "--seconds",
+        "1",
+        "--size",
+        "160x120",
+        "--json",
+        json_arg,
+    ]);
     assert!(out.contains("1 of 1 users streamed"), "{out}");
-    let reports: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).expect("json written")).expect("valid JSON");
+    let reports: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json written")).expect("valid JSON");
     assert!(reports[0]["frames"].as_u64().is_some_and(|n| n > 5), "{reports}");
     // A master that is not there is a clear failure.
     let err = nephele_tests::nephele_err(&["loadgen", "--url", "http://127.0.0.1:9/", "--seconds", "1"]);

@@ -23,14 +23,14 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 use glam::{Mat4, Vec3};
-use nephele_proto::{
-    BatchResult, ClientPose, ComposerRegister, ErrorCode, FrameConfig, FramePlan, FrameReader, FrameWriter, Message, Role,
-    StreamOpened, WireCamera,
-};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
 use nephele_pathtracer::Renderer;
 use nephele_pathtracer::scenes;
+use nephele_proto::{
+    BatchResult, ClientPose, ComposerRegister, ErrorCode, FrameConfig, FramePlan, FrameReader, FrameWriter, Message,
+    Role, StreamOpened, WireCamera,
+};
 use nephele_tests::nephele_bin;
 use serde_json::{Value, json};
 
@@ -137,7 +137,8 @@ struct Response {
 fn http(addr: SocketAddr, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> Response {
     let mut stream = TcpStream::connect(addr).expect("connect to the master's HTTP port");
     stream.set_read_timeout(Some(WAIT)).expect("timeout");
-    let mut request = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
+    let mut request =
+        format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
     if !body.is_empty() {
         request.push_str("Content-Type: application/json\r\n");
     }
@@ -152,7 +153,8 @@ fn http(addr: SocketAddr, method: &str, path: &str, headers: &[(&str, &str)], bo
     let text = String::from_utf8_lossy(&raw);
     let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
     let mut lines = head.lines();
-    let status = lines.next().and_then(|l| l.split_whitespace().nth(1)).and_then(|s| s.parse().ok()).expect("status line");
+    let status =
+        lines.next().and_then(|l| l.split_whitespace().nth(1)).and_then(|s| s.parse().ok()).expect("status line");
     let headers = lines
         .filter_map(|l| l.split_once(':'))
         .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
@@ -185,7 +187,8 @@ fn open_session(master: &MasterProcess, body: Value) -> Response {
 }
 
 fn delete_session(master: &MasterProcess, id: &str, token: &str) -> u16 {
-    http(master.http, "DELETE", &format!("/v1/sessions/{id}"), &[("Authorization", &format!("Bearer {token}"))], "").status
+    http(master.http, "DELETE", &format!("/v1/sessions/{id}"), &[("Authorization", &format!("Bearer {token}"))], "")
+        .status
 }
 
 // ---------------------------------------------------------------------------------------
@@ -211,7 +214,8 @@ fn connect_composer(farm: SocketAddr, name: &str) -> Result<TestComposer, Box<Me
             let Ok(stream) = stream else { return };
             let tx = results_tx.clone();
             thread::spawn(move || {
-                let mut reader = FrameReader::new(BufReader::new(stream.try_clone().expect("clone")), FrameConfig::default());
+                let mut reader =
+                    FrameReader::new(BufReader::new(stream.try_clone().expect("clone")), FrameConfig::default());
                 let mut writer = FrameWriter::new(stream, FrameConfig::default());
                 if nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Worker]).is_err() {
                     return;
@@ -234,8 +238,11 @@ fn connect_composer(farm: SocketAddr, name: &str) -> Result<TestComposer, Box<Me
     stream.set_nodelay(true).expect("nodelay");
     let mut reader = FrameReader::new(BufReader::new(stream.try_clone().expect("clone")), FrameConfig::default());
     let mut writer = FrameWriter::new(stream, FrameConfig::default());
-    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Master]).expect("handshake with the master");
-    writer.write_message(&Message::ComposerRegister(ComposerRegister { name: name.into(), results_address })).expect("register");
+    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Master])
+        .expect("handshake with the master");
+    writer
+        .write_message(&Message::ComposerRegister(ComposerRegister { name: name.into(), results_address }))
+        .expect("register");
     writer.flush().expect("flush");
     match reader.read_message() {
         Ok(Ok(Message::Registered(_))) => {}
@@ -248,10 +255,14 @@ fn connect_composer(farm: SocketAddr, name: &str) -> Result<TestComposer, Box<Me
     thread::spawn(move || {
         while let Ok(Ok(message)) = reader.read_message() {
             if let Message::OpenStream(open) = &message {
-                let answer =
-                    if open.offer_sdp.contains("refuse-me") { Err("no H.264 in the offer".to_string()) } else { Ok(ANSWER.to_string()) };
+                let answer = if open.offer_sdp.contains("refuse-me") {
+                    Err("no H.264 in the offer".to_string())
+                } else {
+                    Ok(ANSWER.to_string())
+                };
                 let mut w = answer_with.lock().expect("writer");
-                w.write_message(&Message::StreamOpened(StreamOpened { session_id: open.session_id, answer })).expect("answer");
+                w.write_message(&Message::StreamOpened(StreamOpened { session_id: open.session_id, answer }))
+                    .expect("answer");
                 w.flush().expect("flush");
             }
             if tx.send(message).is_err() {
@@ -320,7 +331,13 @@ impl TestComposer {
             }
             thread::sleep(Duration::from_millis(5));
         };
-        assert!(missing.is_empty(), "frame {}: {} covered pixels without a result, e.g. {:?}", plan.frame_id, missing.len(), &missing[..missing.len().min(5)]);
+        assert!(
+            missing.is_empty(),
+            "frame {}: {} covered pixels without a result, e.g. {:?}",
+            plan.frame_id,
+            missing.len(),
+            &missing[..missing.len().min(5)]
+        );
         let mut checked = 0;
         for r in tasks.iter().filter_map(|t| self.store.get(t)).flatten() {
             for (k, &p) in r.pixels.iter().enumerate() {
@@ -363,7 +380,12 @@ impl View {
 }
 
 fn client_pose(session_id: u64, sequence: u32, camera: WireCamera) -> Message {
-    Message::ClientPose(ClientPose { session_id, sequence, client_time_ms: f64::from(sequence) * 20.0, views: vec![camera] })
+    Message::ClientPose(ClientPose {
+        session_id,
+        sequence,
+        client_time_ms: f64::from(sequence) * 20.0,
+        views: vec![camera],
+    })
 }
 
 /// What the workers must deliver for a pose: the same conversions as the master (pose
@@ -377,7 +399,8 @@ struct Reference {
 impl Reference {
     fn new(scene: &str) -> Reference {
         let scene = scenes::builtin(scene).expect("scene");
-        let kernel = PathTracedKernel::new(Renderer::new(scene.scene).expect("renderer"), SPP, BOUNCES).expect("kernel");
+        let kernel =
+            PathTracedKernel::new(Renderer::new(scene.scene).expect("renderer"), SPP, BOUNCES).expect("kernel");
         Reference { kernel, cache: HashMap::new() }
     }
 
@@ -385,8 +408,13 @@ impl Reference {
         let kernel = &self.kernel;
         self.cache.entry(sequence).or_insert_with(|| {
             let to_camera = |w: &WireCamera| {
-                Camera::from_view_projection(w.width, w.height, Mat4::from_cols_array(&w.view), Mat4::from_cols_array(&w.projection))
-                    .expect("camera")
+                Camera::from_view_projection(
+                    w.width,
+                    w.height,
+                    Mat4::from_cols_array(&w.view),
+                    Mat4::from_cols_array(&w.projection),
+                )
+                .expect("camera")
             };
             let scheduled = to_camera(pose);
             let worker = to_camera(&nephele_master::farm::wire_camera(&scheduled, Vec3::ZERO));
@@ -405,7 +433,12 @@ struct PoseSender {
 }
 
 impl PoseSender {
-    fn start(writer: Arc<Mutex<FrameWriter<TcpStream>>>, session_id: u64, view: View, next: Arc<AtomicU32>) -> PoseSender {
+    fn start(
+        writer: Arc<Mutex<FrameWriter<TcpStream>>>,
+        session_id: u64,
+        view: View,
+        next: Arc<AtomicU32>,
+    ) -> PoseSender {
         let stop = Arc::new(AtomicBool::new(false));
         let sent = SendTimes::default();
         let (flag, times) = (stop.clone(), sent.clone());
@@ -442,7 +475,13 @@ fn object_view(scene: &str, width: u32, height: u32) -> View {
 }
 
 fn worker_id(state: &Value, name: &str) -> u64 {
-    state["workers"].as_array().expect("workers").iter().find(|w| w["name"] == name).and_then(|w| w["id"].as_u64()).expect("worker id")
+    state["workers"]
+        .as_array()
+        .expect("workers")
+        .iter()
+        .find(|w| w["name"] == name)
+        .and_then(|w| w["id"].as_u64())
+        .expect("worker id")
 }
 
 fn in_flight(state: &Value, id: u64) -> u64 {
@@ -466,22 +505,30 @@ fn a_live_farm_renders_frames_end_to_end_and_survives_a_killed_worker() {
     // Small batches, so that a frame spreads over both workers.
     let mut master = MasterProcess::start(&["--max-batch-rays", "256"]);
     let logs: Vec<PathBuf> = ["alpha", "beta"].iter().map(|n| dir.path().join(format!("{n}.log"))).collect();
-    let mut workers: Vec<Process> = ["alpha", "beta"].iter().zip(&logs).map(|(n, log)| start_worker(master.farm, &assets, n, log)).collect();
+    let mut workers: Vec<Process> =
+        ["alpha", "beta"].iter().zip(&logs).map(|(n, log)| start_worker(master.farm, &assets, n, log)).collect();
     let mut composer = connect_composer(master.farm, "composer-test").expect("composer registered");
     let state = wait_for_farm(&master, "two workers", |s| s["workers"].as_array().is_some_and(|w| w.len() == 2));
     assert_eq!(state["composer"]["name"], "composer-test");
 
     // Open a session as a browser would.
     let (width, height) = (64, 48);
-    let r = open_session(&master, json!({ "sdp": OFFER, "scene": "diffuse", "views": 1, "width": width, "height": height, "target_fps": 30 }));
+    let r = open_session(
+        &master,
+        json!({ "sdp": OFFER, "scene": "diffuse", "views": 1, "width": width, "height": height, "target_fps": 30 }),
+    );
     assert_eq!(r.status, 201, "{}", r.body);
     assert_eq!(r.body["sdp"], ANSWER);
-    let (name, token) = (r.body["session_id"].as_str().expect("id").to_string(), r.body["token"].as_str().expect("token").to_string());
+    let (name, token) =
+        (r.body["session_id"].as_str().expect("id").to_string(), r.body["token"].as_str().expect("token").to_string());
     let open = match composer.next() {
         Message::OpenStream(open) => open,
         other => panic!("expected the offer, got {other:?}"),
     };
-    assert_eq!((open.session_name.as_str(), open.offer_sdp.as_str(), open.views, open.width, open.height), (name.as_str(), OFFER, 1, width, height));
+    assert_eq!(
+        (open.session_name.as_str(), open.offer_sdp.as_str(), open.views, open.width, open.height),
+        (name.as_str(), OFFER, 1, width, height)
+    );
     assert_eq!(open.target_fps, 30.0);
     let sid = open.session_id;
 
@@ -601,9 +648,7 @@ fn admission_control_refuses_while_a_user_is_starved_and_bad_requests_are_answer
     let master = MasterProcess::start(&[]);
     let _worker = start_worker(master.farm, &assets, "solo", &dir.path().join("solo.log"));
     wait_for_farm(&master, "the worker", |s| s["workers"].as_array().is_some_and(|w| w.len() == 1));
-    let request = |scene: &str, size: (u32, u32), fps: f64, sdp: &str| {
-        json!({ "sdp": sdp, "scene": scene, "views": 1, "width": size.0, "height": size.1, "target_fps": fps })
-    };
+    let request = |scene: &str, size: (u32, u32), fps: f64, sdp: &str| json!({ "sdp": sdp, "scene": scene, "views": 1, "width": size.0, "height": size.1, "target_fps": fps });
 
     // Bad command lines are clear errors.
     let taken = master.http.to_string();
@@ -645,15 +690,28 @@ fn admission_control_refuses_while_a_user_is_starved_and_bad_requests_are_answer
     let (width, height) = (160, 120);
     let r = open_session(&master, request("default", (width, height), 240.0, OFFER));
     assert_eq!(r.status, 201, "{}", r.body);
-    let (name, token) = (r.body["session_id"].as_str().expect("id").to_string(), r.body["token"].as_str().expect("token").to_string());
+    let (name, token) =
+        (r.body["session_id"].as_str().expect("id").to_string(), r.body["token"].as_str().expect("token").to_string());
     let sid = match composer.next() {
         Message::OpenStream(open) => open.session_id,
         other => panic!("expected the offer, got {other:?}"),
     };
     let view = {
         let v = r.body["view"].clone();
-        let vec3 = |v: &Value| Vec3::new(v[0].as_f64().expect("x") as f32, v[1].as_f64().expect("y") as f32, v[2].as_f64().expect("z") as f32);
-        View { width, height, eye: vec3(&v["eye"]), target: vec3(&v["target"]), fov_y: (v["fov_y_deg"].as_f64().expect("fov") as f32).to_radians() }
+        let vec3 = |v: &Value| {
+            Vec3::new(
+                v[0].as_f64().expect("x") as f32,
+                v[1].as_f64().expect("y") as f32,
+                v[2].as_f64().expect("z") as f32,
+            )
+        };
+        View {
+            width,
+            height,
+            eye: vec3(&v["eye"]),
+            target: vec3(&v["target"]),
+            fov_y: (v["fov_y_deg"].as_f64().expect("fov") as f32).to_radians(),
+        }
     };
     let poses = PoseSender::start(composer.writer.clone(), sid, view, Arc::new(AtomicU32::new(1)));
     let start = Instant::now();
@@ -707,18 +765,33 @@ fn percentile(samples: &mut [f64], q: f64) -> f64 {
 fn bench_live_loop() {
     let seconds: f64 = std::env::var("BENCH_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(5.0);
     let (width, height) = (160u32, 120u32);
-    println!("live loop: diffuse {width}x{height}, 2 workers x 1 thread, spp {SPP}, poses every 20 ms, {seconds} s per row");
+    println!(
+        "live loop: diffuse {width}x{height}, 2 workers x 1 thread, spp {SPP}, poses every 20 ms, {seconds} s per row"
+    );
     println!(
         "{:>8} {:>5} {:>10} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8} {:>8} {:>8} {:>8}",
-        "admitted", "fps", "plans/s/u", "e2e p50", "e2e p99", "in p50", "in p99", "round50", "round99", "rounds", "reissue", "dropped"
+        "admitted",
+        "fps",
+        "plans/s/u",
+        "e2e p50",
+        "e2e p99",
+        "in p50",
+        "in p99",
+        "round50",
+        "round99",
+        "rounds",
+        "reissue",
+        "dropped"
     );
     for (sessions, fps) in [(1usize, 30.0), (1, 120.0), (4, 30.0), (4, 120.0)] {
         let dir = tempfile::tempdir().expect("temp dir");
         let assets = dir.path().join("assets");
         std::fs::create_dir(&assets).expect("assets");
         let master = MasterProcess::start(&["--max-batch-rays", "2048"]);
-        let _workers: Vec<Process> =
-            ["alpha", "beta"].iter().map(|n| start_worker(master.farm, &assets, n, &dir.path().join(format!("{n}.log")))).collect();
+        let _workers: Vec<Process> = ["alpha", "beta"]
+            .iter()
+            .map(|n| start_worker(master.farm, &assets, n, &dir.path().join(format!("{n}.log"))))
+            .collect();
         let mut composer = connect_composer(master.farm, "composer-bench").expect("composer");
         wait_for_farm(&master, "two workers", |s| s["workers"].as_array().is_some_and(|w| w.len() == 2));
         let mut senders = Vec::new();
@@ -737,7 +810,15 @@ fn bench_live_loop() {
             };
             // Sessions orbit from different angles: no two ask for the same rays.
             let first = 1 + 1000 * k as u32;
-            senders.push((sid, PoseSender::start(composer.writer.clone(), sid, object_view("diffuse", width, height), Arc::new(AtomicU32::new(first)))));
+            senders.push((
+                sid,
+                PoseSender::start(
+                    composer.writer.clone(),
+                    sid,
+                    object_view("diffuse", width, height),
+                    Arc::new(AtomicU32::new(first)),
+                ),
+            ));
         }
         let start = Instant::now();
         let mut e2e = Vec::new();
@@ -778,5 +859,7 @@ fn bench_live_loop() {
             n(&stats["frames_dropped"]),
         );
     }
-    println!("e2e: pose sent by the test composer -> first frame plan for it received (ms); in: the master's pose received -> plan sent (ms); round: scheduler tick (us)");
+    println!(
+        "e2e: pose sent by the test composer -> first frame plan for it received (ms); in: the master's pose received -> plan sent (ms); round: scheduler tick (us)"
+    );
 }

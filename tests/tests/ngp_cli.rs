@@ -9,14 +9,43 @@ fn train_render_eval_round_trip() {
     let data = dir.path().join("ds");
     let data_str = data.to_str().expect("utf-8 path");
     nephele_ok(&[
-        "dataset", "render", "--scene", "diffuse", "--views", "12", "--test-views", "2", "--size", "24x24", "--spp", "2",
-        "--out", data_str,
+        "dataset",
+        "render",
+        "--scene",
+        "diffuse",
+        "--views",
+        "12",
+        "--test-views",
+        "2",
+        "--size",
+        "24x24",
+        "--spp",
+        "2",
+        "--out",
+        data_str,
     ]);
     let asset = dir.path().join("knot.ngp");
     let asset_str = asset.to_str().expect("utf-8 path");
     let report = nephele_ok(&[
-        "train", "--dataset", data_str, "--out", asset_str, "--steps", "30", "--samples-per-step", "4096", "--table-log2",
-        "14", "--levels", "8", "--finest", "128", "--occupancy", "32", "--steps-per-diagonal", "256",
+        "train",
+        "--dataset",
+        data_str,
+        "--out",
+        asset_str,
+        "--steps",
+        "30",
+        "--samples-per-step",
+        "4096",
+        "--table-log2",
+        "14",
+        "--levels",
+        "8",
+        "--finest",
+        "128",
+        "--occupancy",
+        "32",
+        "--steps-per-diagonal",
+        "256",
     ]);
     assert!(report.contains("steps/s") && report.contains("PSNR"), "{report}");
     assert!(asset.is_file());
@@ -24,7 +53,15 @@ fn train_render_eval_round_trip() {
     let renders = dir.path().join("renders");
     let renders_str = renders.to_str().expect("utf-8 path");
     let transforms = data.join("transforms_test.json");
-    let out = nephele_ok(&["render", "--asset", asset_str, "--transforms", transforms.to_str().expect("utf-8"), "--out", renders_str]);
+    let out = nephele_ok(&[
+        "render",
+        "--asset",
+        asset_str,
+        "--transforms",
+        transforms.to_str().expect("utf-8"),
+        "--out",
+        renders_str,
+    ]);
     assert!(out.contains("ms per frame") && out.contains("'ngp'"), "{out}");
     // Named like the ground truth, at the ground truth's size, so eval pairs them up.
     for name in ["r_0.png", "r_1.png"] {
@@ -37,12 +74,28 @@ fn train_render_eval_round_trip() {
     // Not an asset: a clear error, no panic.
     let bogus = dir.path().join("bogus.bin");
     std::fs::write(&bogus, b"definitely not an asset file").expect("write");
-    let err = nephele_err(&["render", "--asset", bogus.to_str().expect("utf-8"), "--transforms", transforms.to_str().expect("utf-8"), "--out", renders_str]);
+    let err = nephele_err(&[
+        "render",
+        "--asset",
+        bogus.to_str().expect("utf-8"),
+        "--transforms",
+        transforms.to_str().expect("utf-8"),
+        "--out",
+        renders_str,
+    ]);
     assert!(err.contains("not a known asset format"), "{err}");
     // A truncated field file is refused by its loader.
     let bytes = std::fs::read(&asset).expect("read");
     std::fs::write(&bogus, &bytes[..bytes.len() / 3]).expect("write");
-    let err = nephele_err(&["render", "--asset", bogus.to_str().expect("utf-8"), "--transforms", transforms.to_str().expect("utf-8"), "--out", renders_str]);
+    let err = nephele_err(&[
+        "render",
+        "--asset",
+        bogus.to_str().expect("utf-8"),
+        "--transforms",
+        transforms.to_str().expect("utf-8"),
+        "--out",
+        renders_str,
+    ]);
     assert!(err.contains("truncated"), "{err}");
 }
 
@@ -55,21 +108,58 @@ fn bake_then_bench_inolf_prints_the_ablation_rows() {
     let path = |name: &str| dir.path().join(name).to_str().expect("utf-8 path").to_owned();
     let (data, field, first, second) = (path("ds"), path("field.ngp"), path("a.nolf"), path("b.nolf"));
     nephele_ok(&[
-        "dataset", "render", "--scene", "diffuse", "--views", "12", "--test-views", "2", "--size", "24x24", "--spp", "2", "--out", &data,
+        "dataset",
+        "render",
+        "--scene",
+        "diffuse",
+        "--views",
+        "12",
+        "--test-views",
+        "2",
+        "--size",
+        "24x24",
+        "--spp",
+        "2",
+        "--out",
+        &data,
     ]);
     let tiny = [
-        "--dataset", &data, "--downscale", "1", "--field-steps", "30", "--field-table-log2", "14", "--field-levels", "8",
-        "--field-finest", "128", "--field-samples", "4096", "--steps", "40", "--batch", "512", "--cubes", "16", "--cube-res", "4",
+        "--dataset",
+        &data,
+        "--downscale",
+        "1",
+        "--field-steps",
+        "30",
+        "--field-table-log2",
+        "14",
+        "--field-levels",
+        "8",
+        "--field-finest",
+        "128",
+        "--field-samples",
+        "4096",
+        "--steps",
+        "40",
+        "--batch",
+        "512",
+        "--cubes",
+        "16",
+        "--cube-res",
+        "4",
         "--keep-diffuse-network",
     ];
-    let report = nephele_ok(&[&["bake", "--out", &first, "--psh-res", "64", "--save-field", &field][..], &tiny].concat());
+    let report =
+        nephele_ok(&[&["bake", "--out", &first, "--psh-res", "64", "--save-field", &field][..], &tiny].concat());
     assert!(report.contains("perfect spatial hash") && report.contains("at 64^3"), "{report}");
     let report = nephele_ok(&[&["bake", "--out", &second, "--psh-res", "32", "--field", &field][..], &tiny].concat());
     assert!(report.contains("at 32^3"), "{report}");
 
     let assets = format!("{first},{second}");
     let bench = ["bench", "inolf", "--field", &field, "--dataset", &data, "--downscale", "1", "--views", "2"];
-    let out = nephele_ok(&[&bench[..], &["--asset", &assets, "--distances", "2,1", "--large-frame", "40x30", "--large-distance", "0.8"]].concat());
+    let out = nephele_ok(
+        &[&bench[..], &["--asset", &assets, "--distances", "2,1", "--large-frame", "40x30", "--large-distance", "0.8"]]
+            .concat(),
+    );
     let row = |label: &str| -> Vec<f64> {
         let line = out.lines().find(|l| l.starts_with(label)).unwrap_or_else(|| panic!("no row '{label}' in:\n{out}"));
         line[label.len()..].split_whitespace().filter_map(|v| v.trim_end_matches(['x', '%']).parse().ok()).collect()
@@ -101,5 +191,8 @@ fn bake_then_bench_inolf_prints_the_ablation_rows() {
     let err = nephele_err(&[&bench[..], &["--asset", &format!("{first},{missing}")]].concat());
     assert!(err.contains("loading") && err.contains("missing.nolf"), "{err}");
     let skipped = nephele_ok(&[&bench[..], &["--distances", "none", "--asset", &second]].concat());
-    assert!(!skipped.contains("distance curve") && skipped.contains("i-NOLF base (density network, diffuse MLP, PSH 32^3)"), "{skipped}");
+    assert!(
+        !skipped.contains("distance curve") && skipped.contains("i-NOLF base (density network, diffuse MLP, PSH 32^3)"),
+        "{skipped}"
+    );
 }

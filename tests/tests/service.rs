@@ -23,15 +23,23 @@ async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_
         assert!(baked.is_some_and(|l| l.contains(" dB on held-out views")), "{object}: {:#?}", up.startup);
         assert!(assets.path().join(format!("{object}.nolf")).is_file(), "{object}.nolf");
     }
-    let names: Vec<String> = std::fs::read_dir(assets.path()).expect("the asset folder").filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().into_owned()).collect();
-    assert!(!names.iter().any(|n| n.contains(".part") || n.starts_with(".bake-")), "scratch files left behind: {names:?}");
+    let names: Vec<String> = std::fs::read_dir(assets.path())
+        .expect("the asset folder")
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(
+        !names.iter().any(|n| n.contains(".part") || n.starts_with(".bake-")),
+        "scratch files left behind: {names:?}"
+    );
     assert!(up.startup.iter().any(|l| l.contains("served by the i-NOLF kernel")), "{:#?}", up.startup);
     assert!(up.url_line.contains(&http.to_string()), "{}", up.url_line);
     let children = children_of(up.pid());
     assert_eq!(children.len(), 4, "master, composer, two workers: {children:?}");
 
     let (w, h) = (64, 48);
-    let options = ClientOptions { extra_json: format!(r#""scene":"default","width":{w},"height":{h}"#), ..Default::default() };
+    let options =
+        ClientOptions { extra_json: format!(r#""scene":"default","width":{w},"height":{h}"#), ..Default::default() };
     let mut client = Client::connect(http, options).await.expect("a session through the master");
     let name = client.session_name.clone().expect("the master's session_id");
 
@@ -69,7 +77,8 @@ async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_
 
     // The composer timed every frame from the pose it received to the frame it sent.
     let composer = up.composer_http.expect("nephele up prints the composer's address");
-    let (status, body) = http_request(composer, "GET", "/v1/sessions", &[], "").await.expect("composer GET /v1/sessions");
+    let (status, body) =
+        http_request(composer, "GET", "/v1/sessions", &[], "").await.expect("composer GET /v1/sessions");
     assert_eq!(status, 200, "{body}");
     let report: serde_json::Value = serde_json::from_str(&body).expect("JSON");
     let latency = &report["latency_ms"];
@@ -82,7 +91,9 @@ async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_
     assert!(total >= latency["encode"]["p50"].as_f64().unwrap_or(0.0), "{latency}");
 
     let auth = format!("Bearer {}", client.token);
-    let (status, body) = http_request(http, "DELETE", &format!("/v1/sessions/{name}"), &[("authorization", &auth)], "").await.expect("DELETE");
+    let (status, body) = http_request(http, "DELETE", &format!("/v1/sessions/{name}"), &[("authorization", &auth)], "")
+        .await
+        .expect("DELETE");
     assert_eq!(status, 204, "{body}");
     client.close().await;
 

@@ -30,7 +30,17 @@ fn simulate_prints_the_table_and_writes_csv() {
     assert_eq!(per_user.lines().count(), 1 + 2 * 6);
     // Same seed, same numbers.
     let again = dir.path().join("again.csv");
-    nephele_ok(&["simulate", "--scenario", "straggler", "--duration", "1", "--policy", "nephele,round-robin", "--csv", again.to_str().expect("utf-8")]);
+    nephele_ok(&[
+        "simulate",
+        "--scenario",
+        "straggler",
+        "--duration",
+        "1",
+        "--policy",
+        "nephele,round-robin",
+        "--csv",
+        again.to_str().expect("utf-8"),
+    ]);
     assert_eq!(std::fs::read_to_string(&again).expect("csv"), table);
 }
 
@@ -41,9 +51,21 @@ fn simulate_replays_a_trace_and_rejects_malformed_ones() {
     let farm = dir.path().join("farm.csv");
     std::fs::write(&trace, "# two users\nuser,arrive_s,depart_s,fps,width,height,fov_deg,views,objects,radius_m,height_m,speed_deg_s,start_deg\na,0,1,30,320,240,50,mono,cube:0:0:0:0.5,3,0.5,10,0\nb,0.2,1,30,320,240,50,quilt8,cube:0:0:0:0.5,3,0.5,0,45\n").expect("write");
     std::fs::write(&farm, "w1,5e7\nw2,5e7,0.1,0,0.5,drop\n").expect("write");
-    let out = nephele_ok(&["simulate", "--trace", trace.to_str().expect("utf-8"), "--workers", farm.to_str().expect("utf-8"), "--policy", "fifo"]);
+    let out = nephele_ok(&[
+        "simulate",
+        "--trace",
+        trace.to_str().expect("utf-8"),
+        "--workers",
+        farm.to_str().expect("utf-8"),
+        "--policy",
+        "fifo",
+    ]);
     assert!(out.contains("trace") && out.contains("fifo"), "{out}");
-    std::fs::write(&trace, "a,0,1,30,320,240,50,mono,cube:0:0:0:0.5,3,0.5,10,0\nb,0,1,-5,320,240,50,mono,cube:0:0:0:0.5,3,0.5,10,0\n").expect("write");
+    std::fs::write(
+        &trace,
+        "a,0,1,30,320,240,50,mono,cube:0:0:0:0.5,3,0.5,10,0\nb,0,1,-5,320,240,50,mono,cube:0:0:0:0.5,3,0.5,10,0\n",
+    )
+    .expect("write");
     let err = nephele_err(&["simulate", "--trace", trace.to_str().expect("utf-8")]);
     assert!(err.contains("line 2") && err.contains("fps must be positive"), "{err}");
     std::fs::write(&farm, "w1,5e7\nw2,fast\n").expect("write");
@@ -64,6 +86,19 @@ fn help_documents_the_formats_and_the_bench() {
     for name in ["many-objects", "many-users", "quilt", "overload", "worker-death", "straggler"] {
         assert!(list.contains(name), "{list}");
     }
-    let bench = nephele_ok(&["bench", "scheduler", "--users", "5", "--pending", "200", "--rounds", "5", "--workers", "4", "--policy", "nephele"]);
+    let bench = nephele_ok(&[
+        "bench",
+        "scheduler",
+        "--users",
+        "5",
+        "--pending",
+        "200",
+        "--rounds",
+        "5",
+        "--workers",
+        "4",
+        "--policy",
+        "nephele",
+    ]);
     assert!(bench.contains("p50 us") && bench.contains("nephele"), "{bench}");
 }

@@ -13,14 +13,14 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 use glam::{Mat4, Vec3};
-use nephele_proto::{
-    BatchIds, BatchResult, Cancel, CancelTarget, ErrorCode, FrameConfig, FrameReader, FrameWriter, Hello, Message, RayBatch,
-    Register, Registered, Rejected, Role, WireCamera, encode_frame_unchecked,
-};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
 use nephele_pathtracer::Renderer;
 use nephele_pathtracer::scenes;
+use nephele_proto::{
+    BatchIds, BatchResult, Cancel, CancelTarget, ErrorCode, FrameConfig, FrameReader, FrameWriter, Hello, Message,
+    RayBatch, Register, Registered, Rejected, Role, WireCamera, encode_frame_unchecked,
+};
 use nephele_tests::nephele_bin;
 
 const WAIT: Duration = Duration::from_secs(30);
@@ -133,7 +133,8 @@ impl Master {
         let stream = self.accept_stream();
         let mut reader = FrameReader::new(stream.try_clone().expect("clone"), FrameConfig::default());
         let mut writer = FrameWriter::new(stream, FrameConfig::default());
-        let hello = nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Master, &[Role::Worker]).expect("handshake");
+        let hello = nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Master, &[Role::Worker])
+            .expect("handshake");
         assert_eq!(hello, Hello::new(Role::Worker));
         let register = match reader.read_message().expect("registration") {
             Ok(Message::Register(r)) => r,
@@ -141,7 +142,10 @@ impl Master {
         };
         let index = self.writers.len();
         writer
-            .write_message(&Message::Registered(Registered { worker_id: 100 + index as u64, load_report_interval_ms: 50 }))
+            .write_message(&Message::Registered(Registered {
+                worker_id: 100 + index as u64,
+                load_report_interval_ms: 50,
+            }))
             .expect("registered");
         writer.flush().expect("flush");
         let events = self.sender.clone();
@@ -212,7 +216,9 @@ impl Composer {
                     let mut reader =
                         FrameReader::new(BufReader::new(stream.try_clone().expect("clone")), FrameConfig::default());
                     let mut writer = FrameWriter::new(stream, FrameConfig::default());
-                    if nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Worker]).is_err() {
+                    if nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Worker])
+                        .is_err()
+                    {
                         return;
                     }
                     while let Ok(incoming) = reader.read_message() {
@@ -290,9 +296,13 @@ fn frame(width: u32, height: u32, spp: u32, bounces: u32) -> Frame {
         projection: look.projection_matrix(0.05, 100.0).to_cols_array(),
     };
     // Exactly the conversion the worker does.
-    let camera =
-        Camera::from_view_projection(width, height, Mat4::from_cols_array(&wire.view), Mat4::from_cols_array(&wire.projection))
-            .expect("camera from view and projection");
+    let camera = Camera::from_view_projection(
+        width,
+        height,
+        Mat4::from_cols_array(&wire.view),
+        Mat4::from_cols_array(&wire.projection),
+    )
+    .expect("camera from view and projection");
     let kernel = PathTracedKernel::new(Renderer::new(scene.scene).expect("renderer"), spp, bounces).expect("kernel");
     let (expected, _) = kernel.render_pixels(&camera, &all_pixels(&camera)).expect("reference render");
     assert!(expected.opacity.iter().any(|&a| a > 0.0) && expected.opacity.contains(&0.0));
@@ -700,7 +710,17 @@ fn an_unreachable_master_is_a_clear_error_and_bad_arguments_are_refused() {
     // A port nobody listens on.
     let port = TcpListener::bind("127.0.0.1:0").expect("bind").local_addr().expect("addr").port();
     let master = format!("127.0.0.1:{port}");
-    let err = nephele_tests::nephele_err(&["worker", "--master", &master, "--assets", dir, "--reconnect-secs", "0", "--spp", "1"]);
+    let err = nephele_tests::nephele_err(&[
+        "worker",
+        "--master",
+        &master,
+        "--assets",
+        dir,
+        "--reconnect-secs",
+        "0",
+        "--spp",
+        "1",
+    ]);
     assert!(err.contains("gave up on the master"), "{err}");
     let err = nephele_tests::nephele_err(&["worker", "--master", "no-port", "--assets", dir]);
     assert!(err.contains("--master"), "{err}");

@@ -148,15 +148,11 @@ fn check_relative_path(p: &str) -> Result<(), String> {
         return Err("empty path".into());
     }
     if p.starts_with('/') || p.starts_with('\\') || Path::new(p).is_absolute() {
-        return Err(format!(
-            "path {p:?} must be relative to the dataset directory"
-        ));
+        return Err(format!("path {p:?} must be relative to the dataset directory"));
     }
     let mut parts = p.split(['/', '\\']);
     if parts.next().is_some_and(|first| first.contains(':')) {
-        return Err(format!(
-            "path {p:?} must be relative (no drive or scheme prefix)"
-        ));
+        return Err(format!("path {p:?} must be relative (no drive or scheme prefix)"));
     }
     if p.split(['/', '\\']).any(|c| c == "..") {
         return Err(format!("path {p:?} must not contain '..' components"));
@@ -174,18 +170,14 @@ fn check_matrix(m: &Mat4) -> Result<(), String> {
     }
     let last = m.row(3);
     if (last - Vec4::W).abs().max_element() > LAST_ROW_TOLERANCE {
-        return Err(format!(
-            "transform_matrix last row must be (0, 0, 0, 1), got {last}"
-        ));
+        return Err(format!("transform_matrix last row must be (0, 0, 0, 1), got {last}"));
     }
     Ok(())
 }
 
 fn check_angle(camera_angle_x: f32) -> Result<(), String> {
     if !(camera_angle_x > 0.0 && camera_angle_x < std::f32::consts::PI) {
-        return Err(format!(
-            "camera_angle_x must be in (0, pi) radians, got {camera_angle_x}"
-        ));
+        return Err(format!("camera_angle_x must be in (0, pi) radians, got {camera_angle_x}"));
     }
     Ok(())
 }
@@ -215,9 +207,7 @@ impl Transforms {
 fn matrix_from_rows(rows: &[Vec<f64>]) -> Result<Mat4, String> {
     if rows.len() != 4 || rows.iter().any(|r| r.len() != 4) {
         let shape: Vec<usize> = rows.iter().map(Vec::len).collect();
-        return Err(format!(
-            "transform_matrix must be 4 rows of 4 numbers, got rows of lengths {shape:?}"
-        ));
+        return Err(format!("transform_matrix must be 4 rows of 4 numbers, got rows of lengths {shape:?}"));
     }
     let mut cols = [[0.0f32; 4]; 4];
     for (r, row) in rows.iter().enumerate() {
@@ -231,18 +221,10 @@ fn matrix_from_rows(rows: &[Vec<f64>]) -> Result<Mat4, String> {
 /// Reads and validates a `transforms_*.json` file. Unknown keys (e.g. `fl_x`) are ignored.
 pub fn read_transforms(path: impl AsRef<Path>) -> Result<Transforms, DatasetError> {
     let path = path.as_ref();
-    let text = std::fs::read_to_string(path).map_err(|source| DatasetError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let raw: RawTransforms = serde_json::from_str(&text).map_err(|source| DatasetError::Json {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let invalid = |message: String| DatasetError::Invalid {
-        path: path.to_path_buf(),
-        message,
-    };
+    let text = std::fs::read_to_string(path).map_err(|source| DatasetError::Io { path: path.to_path_buf(), source })?;
+    let raw: RawTransforms =
+        serde_json::from_str(&text).map_err(|source| DatasetError::Json { path: path.to_path_buf(), source })?;
+    let invalid = |message: String| DatasetError::Invalid { path: path.to_path_buf(), message };
     let mut frames = Vec::with_capacity(raw.frames.len());
     for (i, f) in raw.frames.into_iter().enumerate() {
         let camera_to_world = matrix_from_rows(&f.transform_matrix)
@@ -254,10 +236,7 @@ pub fn read_transforms(path: impl AsRef<Path>) -> Result<Transforms, DatasetErro
             depth_path: f.depth_file_path,
         });
     }
-    let transforms = Transforms {
-        camera_angle_x: raw.camera_angle_x as f32,
-        frames,
-    };
+    let transforms = Transforms { camera_angle_x: raw.camera_angle_x as f32, frames };
     transforms.validate().map_err(invalid)?;
     Ok(transforms)
 }
@@ -265,17 +244,9 @@ pub fn read_transforms(path: impl AsRef<Path>) -> Result<Transforms, DatasetErro
 /// Validates and writes a transforms file in the NeRF-synthetic layout (4-space indent,
 /// `transform_matrix` as rows). Numbers are written as the shortest decimal that reads back
 /// as the same `f32`, so a write/read round trip is exact.
-pub fn write_transforms(
-    path: impl AsRef<Path>,
-    transforms: &Transforms,
-) -> Result<(), DatasetError> {
+pub fn write_transforms(path: impl AsRef<Path>, transforms: &Transforms) -> Result<(), DatasetError> {
     let path = path.as_ref();
-    transforms
-        .validate()
-        .map_err(|message| DatasetError::Invalid {
-            path: path.to_path_buf(),
-            message,
-        })?;
+    transforms.validate().map_err(|message| DatasetError::Invalid { path: path.to_path_buf(), message })?;
     let out = OutTransforms {
         camera_angle_x: transforms.camera_angle_x,
         frames: transforms
@@ -293,16 +264,9 @@ pub fn write_transforms(
     let mut bytes = Vec::new();
     let formatter = serde_json::ser::PrettyFormatter::with_indent(b"    ");
     let mut ser = serde_json::Serializer::with_formatter(&mut bytes, formatter);
-    out.serialize(&mut ser)
-        .map_err(|source| DatasetError::Json {
-            path: path.to_path_buf(),
-            source,
-        })?;
+    out.serialize(&mut ser).map_err(|source| DatasetError::Json { path: path.to_path_buf(), source })?;
     bytes.push(b'\n');
-    std::fs::write(path, bytes).map_err(|source| DatasetError::Io {
-        path: path.to_path_buf(),
-        source,
-    })
+    std::fs::write(path, bytes).map_err(|source| DatasetError::Io { path: path.to_path_buf(), source })
 }
 
 /// One view of a dataset: a posed image, with an optional depth map.
@@ -344,34 +308,21 @@ pub struct Dataset {
 }
 
 fn check_split(split: &str) -> Result<(), DatasetError> {
-    let ok = !split.is_empty()
-        && split
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-');
-    if ok {
-        Ok(())
-    } else {
-        Err(DatasetError::SplitName(split.to_string()))
-    }
+    let ok = !split.is_empty() && split.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-');
+    if ok { Ok(()) } else { Err(DatasetError::SplitName(split.to_string())) }
 }
 
 /// Joins a validated relative `file_path` to `dir`, dropping `.` components.
 fn join_relative(dir: &Path, rel: &str) -> PathBuf {
     let mut p = dir.to_path_buf();
-    for part in rel
-        .split(['/', '\\'])
-        .filter(|c| !c.is_empty() && *c != ".")
-    {
+    for part in rel.split(['/', '\\']).filter(|c| !c.is_empty() && *c != ".") {
         p.push(part);
     }
     p
 }
 
 fn has_extension(p: &str, ext: &str) -> bool {
-    Path::new(p)
-        .extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| e.eq_ignore_ascii_case(ext))
+    Path::new(p).extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case(ext))
 }
 
 /// The image file of a frame: `file_path`, with `.png` appended unless already there.
@@ -389,11 +340,7 @@ fn image_path(dir: &Path, file_path: &str) -> PathBuf {
 /// The view name of a frame: the last component of `file_path` without a `.png` extension.
 fn view_name(file_path: &str) -> String {
     let last = file_path.rsplit(['/', '\\']).next().unwrap_or(file_path);
-    if has_extension(last, "png") {
-        last[..last.len() - 4].to_string()
-    } else {
-        last.to_string()
-    }
+    if has_extension(last, "png") { last[..last.len() - 4].to_string() } else { last.to_string() }
 }
 
 /// Path of the transforms file of `split` in `dir`.
@@ -417,10 +364,7 @@ pub fn load_split(dir: &Path, split: &str, downscale: u32) -> Result<Dataset, Da
         .par_iter()
         .map(|frame| load_view(dir, &json, frame, downscale))
         .collect::<Result<Vec<_>, _>>()?;
-    Ok(Dataset {
-        camera_angle_x: transforms.camera_angle_x,
-        views,
-    })
+    Ok(Dataset { camera_angle_x: transforms.camera_angle_x, views })
 }
 
 fn load_view(dir: &Path, json: &Path, frame: &Frame, downscale: u32) -> Result<View, DatasetError> {
@@ -437,10 +381,7 @@ fn load_view(dir: &Path, json: &Path, frame: &Frame, downscale: u32) -> Result<V
     if downscale > 1 {
         image = image
             .downscale(downscale)
-            .map_err(|e| DatasetError::Invalid {
-                path: path.clone(),
-                message: e.to_string(),
-            })?;
+            .map_err(|e| DatasetError::Invalid { path: path.clone(), message: e.to_string() })?;
     }
     let depth = match &frame.depth_path {
         None => None,
@@ -455,16 +396,11 @@ fn load_view(dir: &Path, json: &Path, frame: &Frame, downscale: u32) -> Result<V
             if !depth_path.is_file() {
                 return Err(missing(depth_path));
             }
-            let invalid = |message: String| DatasetError::Invalid {
-                path: depth_path.clone(),
-                message,
-            };
+            let invalid = |message: String| DatasetError::Invalid { path: depth_path.clone(), message };
             // Written as RGB with the depth replicated (see `FloatImage::save_exr`): keep R.
             let mut depth = FloatImage::load_exr(&depth_path)?.channel(0)?;
             if downscale > 1 {
-                depth = depth
-                    .downscale_ignoring_zeros(downscale)
-                    .map_err(|e| invalid(e.to_string()))?;
+                depth = depth.downscale_ignoring_zeros(downscale).map_err(|e| invalid(e.to_string()))?;
             }
             if (depth.width(), depth.height()) != (image.width(), image.height()) {
                 return Err(invalid(format!(
@@ -478,12 +414,7 @@ fn load_view(dir: &Path, json: &Path, frame: &Frame, downscale: u32) -> Result<V
             Some(depth)
         }
     };
-    Ok(View {
-        name: view_name(&frame.file_path),
-        camera_to_world: frame.camera_to_world,
-        image,
-        depth,
-    })
+    Ok(View { name: view_name(&frame.file_path), camera_to_world: frame.camera_to_world, image, depth })
 }
 
 /// The splits present in `dir` (those with a `transforms_{split}.json`): `train`, `val`,
@@ -496,21 +427,10 @@ pub fn available_splits(dir: &Path) -> Vec<String> {
         .filter_map(Result::ok)
         .filter(|e| e.path().is_file())
         .filter_map(|e| e.file_name().into_string().ok())
-        .filter_map(|n| {
-            Some(
-                n.strip_prefix("transforms_")?
-                    .strip_suffix(".json")?
-                    .to_string(),
-            )
-        })
+        .filter_map(|n| Some(n.strip_prefix("transforms_")?.strip_suffix(".json")?.to_string()))
         .filter(|s| check_split(s).is_ok())
         .collect();
-    let rank = |s: &str| {
-        ["train", "val", "test"]
-            .iter()
-            .position(|&k| k == s)
-            .unwrap_or(3)
-    };
+    let rank = |s: &str| ["train", "val", "test"].iter().position(|&k| k == s).unwrap_or(3);
     splits.sort_by(|a, b| rank(a).cmp(&rank(b)).then_with(|| a.cmp(b)));
     splits
 }
@@ -527,18 +447,10 @@ fn check_view_name(name: &str) -> Result<(), String> {
 /// (frames in the order of `views`, `file_path` `"./{split}/{name}"` as NeRF-synthetic
 /// writes it). Everything is validated before anything is written. Images are written in
 /// parallel.
-pub fn write_split(
-    dir: &Path,
-    split: &str,
-    camera_angle_x: f32,
-    views: &[View],
-) -> Result<(), DatasetError> {
+pub fn write_split(dir: &Path, split: &str, camera_angle_x: f32, views: &[View]) -> Result<(), DatasetError> {
     check_split(split)?;
     let json = transforms_path(dir, split);
-    let invalid = |message: String| DatasetError::Invalid {
-        path: json.clone(),
-        message,
-    };
+    let invalid = |message: String| DatasetError::Invalid { path: json.clone(), message };
     let mut seen = HashSet::new();
     for v in views {
         check_view_name(&v.name).map_err(invalid)?;
@@ -546,10 +458,7 @@ pub fn write_split(
             return Err(invalid(format!("two views are named {:?}", v.name)));
         }
         let image_size = (v.image.width(), v.image.height());
-        let bad_depth = v
-            .depth
-            .as_ref()
-            .filter(|d| d.channels() != 1 || (d.width(), d.height()) != image_size);
+        let bad_depth = v.depth.as_ref().filter(|d| d.channels() != 1 || (d.width(), d.height()) != image_size);
         if let Some(d) = bad_depth {
             return Err(invalid(format!(
                 "view {:?}: depth must be one channel of {}x{}, got {} channel(s) of {}x{}",
@@ -570,30 +479,21 @@ pub fn write_split(
                 file_path: format!("./{split}/{}", v.name),
                 camera_to_world: v.camera_to_world,
                 rotation: None,
-                depth_path: v
-                    .depth
-                    .as_ref()
-                    .map(|_| format!("./{split}/{}_depth.exr", v.name)),
+                depth_path: v.depth.as_ref().map(|_| format!("./{split}/{}_depth.exr", v.name)),
             })
             .collect(),
     };
     transforms.validate().map_err(invalid)?;
 
     let image_dir = dir.join(split);
-    std::fs::create_dir_all(&image_dir).map_err(|source| DatasetError::Io {
-        path: image_dir.clone(),
-        source,
+    std::fs::create_dir_all(&image_dir).map_err(|source| DatasetError::Io { path: image_dir.clone(), source })?;
+    views.par_iter().try_for_each(|v| -> Result<(), DatasetError> {
+        v.image.save_png(image_dir.join(format!("{}.png", v.name)))?;
+        if let Some(d) = &v.depth {
+            d.save_exr(image_dir.join(format!("{}_depth.exr", v.name)))?;
+        }
+        Ok(())
     })?;
-    views
-        .par_iter()
-        .try_for_each(|v| -> Result<(), DatasetError> {
-            v.image
-                .save_png(image_dir.join(format!("{}.png", v.name)))?;
-            if let Some(d) = &v.depth {
-                d.save_exr(image_dir.join(format!("{}_depth.exr", v.name)))?;
-            }
-            Ok(())
-        })?;
     write_transforms(&json, &transforms)
 }
 
@@ -656,12 +556,7 @@ pub fn sample_views_on_sphere(
         .map(|_| {
             // Archimedes: z uniform in [-1, 1] (or [0, 1]) is area-uniform on the sphere.
             let u = rng.next_f64();
-            let z = if upper_hemisphere_only {
-                u
-            } else {
-                2.0 * u - 1.0
-            }
-            .clamp(-MAX_ABS_Z, MAX_ABS_Z);
+            let z = if upper_hemisphere_only { u } else { 2.0 * u - 1.0 }.clamp(-MAX_ABS_Z, MAX_ABS_Z);
             let phi = std::f64::consts::TAU * rng.next_f64();
             let s = (1.0 - z * z).max(0.0).sqrt();
             let dir = DVec3::new(s * phi.cos(), s * phi.sin(), z);
@@ -675,7 +570,12 @@ mod tests {
 
     #[test]
     fn holdout_takes_every_nth_view() {
-        let view = |i: usize| View { name: format!("r_{i}"), camera_to_world: Mat4::IDENTITY, image: RgbaImage::new(1, 1), depth: None };
+        let view = |i: usize| View {
+            name: format!("r_{i}"),
+            camera_to_world: Mat4::IDENTITY,
+            image: RgbaImage::new(1, 1),
+            depth: None,
+        };
         let names = |v: &[View]| v.iter().map(|v| v.name.clone()).collect::<Vec<_>>();
         let (kept, held) = split_holdout((0..7).map(view).collect(), 3);
         assert_eq!(names(&held), ["r_2", "r_5"]);
@@ -718,24 +618,10 @@ mod tests {
 
     fn assert_lego_frame_0(m: &Mat4) {
         // The translation is the last column of the JSON rows: glam's w_axis.
-        assert!(
-            close(
-                m.w_axis.truncate(),
-                Vec3::new(-0.0538, 3.8455, 1.2081),
-                1e-4
-            ),
-            "{m}"
-        );
+        assert!(close(m.w_axis.truncate(), Vec3::new(-0.0538, 3.8455, 1.2081), 1e-4), "{m}");
         assert_eq!(m.w_axis.w, 1.0);
         // First column = first entries of the rows.
-        assert!(
-            close(
-                m.x_axis.truncate(),
-                Vec3::new(-0.999_902_2, -0.013_988_68, 0.0),
-                1e-6
-            ),
-            "{m}"
-        );
+        assert!(close(m.x_axis.truncate(), Vec3::new(-0.999_902_2, -0.013_988_68, 0.0), 1e-6), "{m}");
         assert_eq!(m.row(3), Vec4::W);
         // The camera looks down -Z, towards the origin where the model is.
         let forward = -m.z_axis.truncate();
@@ -777,24 +663,14 @@ mod tests {
         assert_eq!(back, t);
         // The file has NeRF's shape: rows of the matrix, optional keys only when present.
         let json: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&path).expect("read text"))
-                .expect("json");
+            serde_json::from_str(&std::fs::read_to_string(&path).expect("read text")).expect("json");
         let f0 = &json["frames"][0];
         assert_eq!(f0["transform_matrix"].as_array().map(Vec::len), Some(4));
-        assert_eq!(
-            f0["transform_matrix"][3],
-            serde_json::json!([0.0, 0.0, 0.0, 1.0])
-        );
-        assert_eq!(
-            f0["transform_matrix"][0][3].as_f64().map(|v| v as f32),
-            Some(mats[0].w_axis.x)
-        );
+        assert_eq!(f0["transform_matrix"][3], serde_json::json!([0.0, 0.0, 0.0, 1.0]));
+        assert_eq!(f0["transform_matrix"][0][3].as_f64().map(|v| v as f32), Some(mats[0].w_axis.x));
         assert!(json["frames"][1].get("rotation").is_none());
         assert!(f0.get("depth_file_path").is_none());
-        assert_eq!(
-            json["frames"][3]["depth_file_path"],
-            "./train/r_3_depth.exr"
-        );
+        assert_eq!(json["frames"][3]["depth_file_path"], "./train/r_3_depth.exr");
     }
 
     #[test]
@@ -810,56 +686,26 @@ mod tests {
             // (json, expected fragment of the message)
             (r#"{"frames": []}"#.to_string(), "camera_angle_x"),
             (r#"{"camera_angle_x": 0.69}"#.to_string(), "frames"),
-            (
-                r#"{"camera_angle_x": 0.69, "frames": [{"file_path": "./a"}]}"#.to_string(),
-                "transform_matrix",
-            ),
-            (
-                frame("./a", "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,null]]"),
-                "null",
-            ),
-            (
-                frame("./a", "[[1,0,0,NaN],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"),
-                "line",
-            ),
-            (
-                frame("./a", "[[1,0,0,0],[0,1,0,0],[0,0,1,0]]"),
-                "4 rows of 4",
-            ),
-            (
-                frame("./a", "[[1,0,0],[0,1,0],[0,0,1],[0,0,0]]"),
-                "4 rows of 4",
-            ),
-            (
-                frame("./a", "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0.5,1]]"),
-                "last row",
-            ),
-            (
-                frame("./a", "[[1,0,0,1e39],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"),
-                "non-finite",
-            ),
+            (r#"{"camera_angle_x": 0.69, "frames": [{"file_path": "./a"}]}"#.to_string(), "transform_matrix"),
+            (frame("./a", "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,null]]"), "null"),
+            (frame("./a", "[[1,0,0,NaN],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"), "line"),
+            (frame("./a", "[[1,0,0,0],[0,1,0,0],[0,0,1,0]]"), "4 rows of 4"),
+            (frame("./a", "[[1,0,0],[0,1,0],[0,0,1],[0,0,0]]"), "4 rows of 4"),
+            (frame("./a", "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0.5,1]]"), "last row"),
+            (frame("./a", "[[1,0,0,1e39],[0,1,0,0],[0,0,1,0],[0,0,0,1]]"), "non-finite"),
             (frame("../a", identity), ".."),
             (frame("./train/../../a", identity), ".."),
             (frame("/etc/a", identity), "relative"),
             (frame("C:\\\\a", identity), "relative"),
             (frame("", identity), "empty"),
-            (
-                r#"{"camera_angle_x": 0, "frames": []}"#.to_string(),
-                "camera_angle_x",
-            ),
-            (
-                r#"{"camera_angle_x": 3.5, "frames": []}"#.to_string(),
-                "camera_angle_x",
-            ),
+            (r#"{"camera_angle_x": 0, "frames": []}"#.to_string(), "camera_angle_x"),
+            (r#"{"camera_angle_x": 3.5, "frames": []}"#.to_string(), "camera_angle_x"),
             ("not json".to_string(), "line"),
         ];
         for (json, fragment) in cases {
             let err = read_transforms(write_json(dir.path(), &json)).expect_err(&json);
             let msg = err.to_string();
-            assert!(
-                msg.contains(fragment),
-                "{json}\n  -> {msg}\n  (expected {fragment:?})"
-            );
+            assert!(msg.contains(fragment), "{json}\n  -> {msg}\n  (expected {fragment:?})");
             assert!(msg.contains("transforms_test.json"), "{msg}");
         }
         // Depth paths are checked too.
@@ -886,12 +732,7 @@ mod tests {
     fn test_image(seed: u32, w: u32, h: u32) -> RgbaImage {
         RgbaImage::from_fn(w, h, |x, y| {
             let l = |k: u32| (k % 256) as f32 / 255.0;
-            [
-                l(x * 31 + seed),
-                l(y * 17 + seed * 3),
-                l(x * y + 5),
-                l(x * 7 + y * 13 + seed),
-            ]
+            [l(x * 31 + seed), l(y * 17 + seed * 3), l(x * y + 5), l(x * 7 + y * 13 + seed)]
         })
     }
 
@@ -907,15 +748,7 @@ mod tests {
                 camera_to_world: *m,
                 image: test_image(i as u32, 8, 6),
                 depth: (i != 1).then(|| {
-                    let data = (0..48)
-                        .map(|k| {
-                            if k % 5 == 0 {
-                                0.0
-                            } else {
-                                2.0 + k as f32 * 0.25
-                            }
-                        })
-                        .collect();
+                    let data = (0..48).map(|k| if k % 5 == 0 { 0.0 } else { 2.0 + k as f32 * 0.25 }).collect();
                     FloatImage::from_data(8, 6, 1, data).expect("depth")
                 }),
             })
@@ -937,10 +770,7 @@ mod tests {
             assert_eq!((v.image.width(), v.image.height()), (4, 3));
             assert_eq!(v.image, orig.image.downscale(2).expect("downscale"));
             assert_eq!(v.camera_to_world, orig.camera_to_world);
-            assert_eq!(
-                v.depth.as_ref().map(|d| (d.width(), d.height())),
-                orig.depth.as_ref().map(|_| (4, 3))
-            );
+            assert_eq!(v.depth.as_ref().map(|d| (d.width(), d.height())), orig.depth.as_ref().map(|_| (4, 3)));
         }
 
         // A missing image is named.
@@ -973,18 +803,9 @@ mod tests {
         let d = load_split(dir.path(), "test", 1).expect("load");
         assert_eq!(d.views[0].name, "a");
         assert_eq!(d.views[0].image, img);
-        assert!(matches!(
-            load_split(dir.path(), "test", 0),
-            Err(DatasetError::Downscale(0))
-        ));
-        assert!(matches!(
-            load_split(dir.path(), "../x", 1),
-            Err(DatasetError::SplitName(_))
-        ));
-        assert!(
-            load_split(dir.path(), "test", 8).is_err(),
-            "4x4 image cannot be downscaled by 8"
-        );
+        assert!(matches!(load_split(dir.path(), "test", 0), Err(DatasetError::Downscale(0))));
+        assert!(matches!(load_split(dir.path(), "../x", 1), Err(DatasetError::SplitName(_))));
+        assert!(load_split(dir.path(), "test", 8).is_err(), "4x4 image cannot be downscaled by 8");
         assert!(available_splits(&dir.path().join("does-not-exist")).is_empty());
     }
 
@@ -1022,18 +843,9 @@ mod tests {
         );
         let d = load_split(dir, "train", 8).expect("load lego");
         assert_eq!(d.views.len(), 80);
-        assert!(
-            (d.camera_angle_x - 0.6911).abs() < 1e-4,
-            "{}",
-            d.camera_angle_x
-        );
+        assert!((d.camera_angle_x - 0.6911).abs() < 1e-4, "{}", d.camera_angle_x);
         for v in &d.views {
-            assert_eq!(
-                (v.image.width(), v.image.height()),
-                (100, 100),
-                "{}",
-                v.name
-            );
+            assert_eq!((v.image.width(), v.image.height()), (100, 100), "{}", v.name);
             assert!(v.depth.is_none());
         }
         assert_eq!(d.views[0].name, "r_0");
@@ -1054,19 +866,12 @@ mod tests {
             let mut mean_z = 0.0;
             for m in &views {
                 let eye = m.w_axis.truncate();
-                assert!(
-                    ((eye - target).length() - radius).abs() < 1e-4 * radius,
-                    "{m}"
-                );
+                assert!(((eye - target).length() - radius).abs() < 1e-4 * radius, "{m}");
                 // Looking at the target: -Z points from the eye to the target.
                 let to_target = (target - eye).normalize();
                 assert!((-m.z_axis.truncate()).dot(to_target) > 1.0 - 1e-5, "{m}");
                 // Rigid, right-handed, no roll: +X horizontal, +Y upwards.
-                let (x, y, z) = (
-                    m.x_axis.truncate(),
-                    m.y_axis.truncate(),
-                    m.z_axis.truncate(),
-                );
+                let (x, y, z) = (m.x_axis.truncate(), m.y_axis.truncate(), m.z_axis.truncate());
                 assert!((x.length() - 1.0).abs() < 1e-5 && (y.length() - 1.0).abs() < 1e-5);
                 assert!(x.dot(y).abs() < 1e-5 && x.cross(y).dot(z) > 0.9999);
                 assert!(x.z.abs() < 1e-6, "roll: {m}");
@@ -1084,14 +889,8 @@ mod tests {
             assert!((mean_z - expected).abs() < 0.06, "mean z {mean_z}");
         }
         // Deterministic by seed.
-        assert_eq!(
-            sample_views_on_sphere(10, 2.0, target, true, 3),
-            sample_views_on_sphere(10, 2.0, target, true, 3)
-        );
-        assert_ne!(
-            sample_views_on_sphere(10, 2.0, target, true, 3),
-            sample_views_on_sphere(10, 2.0, target, true, 4)
-        );
+        assert_eq!(sample_views_on_sphere(10, 2.0, target, true, 3), sample_views_on_sphere(10, 2.0, target, true, 3));
+        assert_ne!(sample_views_on_sphere(10, 2.0, target, true, 3), sample_views_on_sphere(10, 2.0, target, true, 4));
         assert!(sample_views_on_sphere(0, 2.0, target, true, 3).is_empty());
     }
 

@@ -18,10 +18,10 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
-use nephele_proto::{ErrorCode, ValidationError, validate};
 use nephele_kernels::assets::{self, LoadOptions};
 use nephele_kernels::kernel::RayKernel;
 use nephele_pathtracer::scenes;
+use nephele_proto::{ErrorCode, ValidationError, validate};
 use thiserror::Error;
 
 /// A kernel ready to render batches.
@@ -119,12 +119,17 @@ impl DirAssetLoader {
     pub fn new(dir: &Path, options: AssetOptions) -> std::io::Result<DirAssetLoader> {
         let dir = dir.canonicalize()?;
         if !dir.is_dir() {
-            return Err(std::io::Error::new(std::io::ErrorKind::NotADirectory, format!("{} is not a directory", dir.display())));
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::NotADirectory,
+                format!("{} is not a directory", dir.display()),
+            ));
         }
-        let mut loader = DirAssetLoader { dir, options, formats: Vec::new(), cache: Mutex::new((HashMap::new(), Vec::new())) };
+        let mut loader =
+            DirAssetLoader { dir, options, formats: Vec::new(), cache: Mutex::new((HashMap::new(), Vec::new())) };
         for format in assets::FORMATS {
             let load = format.load;
-            let handler: FormatHandler = Arc::new(move |path, options| load(path, &options.load()).map_err(|e| e.to_string()));
+            let handler: FormatHandler =
+                Arc::new(move |path, options| load(path, &options.load()).map_err(|e| e.to_string()));
             loader.register_format(format.extension, format.kernel_kind, handler);
         }
         Ok(loader)
@@ -149,7 +154,8 @@ impl DirAssetLoader {
             if !candidate.exists() {
                 continue;
             }
-            let path = candidate.canonicalize().map_err(|e| AssetError::Load { id: id.into(), reason: e.to_string() })?;
+            let path =
+                candidate.canonicalize().map_err(|e| AssetError::Load { id: id.into(), reason: e.to_string() })?;
             if !path.starts_with(&self.dir) || !path.is_file() {
                 return Err(AssetError::Escapes { id: id.into() });
             }
@@ -162,10 +168,16 @@ impl DirAssetLoader {
         if scenes::names().contains(&id) {
             tracing::info!(asset = id, spp = self.options.pathtrace_spp, "loading built-in scene (path traced)");
             let scene = scenes::builtin(id).map_err(|e| AssetError::Load { id: id.into(), reason: e.to_string() })?;
-            return path_traced(scene.scene, &self.options).map_err(|reason| AssetError::Load { id: id.into(), reason });
+            return path_traced(scene.scene, &self.options)
+                .map_err(|reason| AssetError::Load { id: id.into(), reason });
         }
-        let extensions =
-            self.formats.iter().map(|(ext, _, _)| ext.as_str()).chain(PENDING_FORMATS.iter().copied()).collect::<Vec<_>>().join("|");
+        let extensions = self
+            .formats
+            .iter()
+            .map(|(ext, _, _)| ext.as_str())
+            .chain(PENDING_FORMATS.iter().copied())
+            .collect::<Vec<_>>()
+            .join("|");
         Err(AssetError::Unknown { id: id.into(), dir: self.dir.clone(), extensions })
     }
 }
@@ -223,7 +235,8 @@ mod tests {
     use super::*;
 
     fn loader(dir: &Path) -> DirAssetLoader {
-        DirAssetLoader::new(dir, AssetOptions { pathtrace_spp: 1, pathtrace_bounces: 1, max_cached: 2 }).expect("loader")
+        DirAssetLoader::new(dir, AssetOptions { pathtrace_spp: 1, pathtrace_bounces: 1, max_cached: 2 })
+            .expect("loader")
     }
 
     #[test]

@@ -95,13 +95,19 @@ fn drain(addr: &str, conn: &mut Link) -> bool {
                 tracing::warn!(composer = addr, "dropping composer link: {e}");
                 return false;
             }
-            Some(Some(Ok(Ok(Message::Error(e))))) => tracing::warn!(composer = addr, code = ?e.code, "composer says: {}", e.message),
+            Some(Some(Ok(Ok(Message::Error(e))))) => {
+                tracing::warn!(composer = addr, code = ?e.code, "composer says: {}", e.message)
+            }
             Some(Some(Ok(Ok(Message::Goodbye(g))))) => {
                 tracing::info!(composer = addr, "composer said goodbye: {}", g.reason);
                 return false;
             }
-            Some(Some(Ok(Ok(other)))) => tracing::debug!(composer = addr, kind = %other.kind(), "ignoring message from composer"),
-            Some(Some(Ok(Err(rejected)))) => tracing::warn!(composer = addr, "composer sent an invalid message: {rejected}"),
+            Some(Some(Ok(Ok(other)))) => {
+                tracing::debug!(composer = addr, kind = %other.kind(), "ignoring message from composer")
+            }
+            Some(Some(Ok(Err(rejected)))) => {
+                tracing::warn!(composer = addr, "composer sent an invalid message: {rejected}")
+            }
         }
     }
 }

@@ -15,14 +15,14 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use futures_util::{SinkExt, StreamExt};
 use glam::{Mat4, Vec3};
+use nephele_geometry::camera::{Camera, CameraError};
+use nephele_kernels::kernel::all_pixels;
 use nephele_proto::stream::{Connection, framed, handshake, recv};
 use nephele_proto::{
     BatchDone, BatchFailed, BatchIds, BatchResult, Cancel, CancelTarget, ErrorCode, ErrorMessage, FrameConfig, Goodbye,
     KernelStats, LoadReport, Message, ProtoError, RayBatch, Register, Registered, Role, WireCamera, clip_text,
     error_message, validate,
 };
-use nephele_geometry::camera::{Camera, CameraError};
-use nephele_kernels::kernel::all_pixels;
 use thiserror::Error;
 use tokio::net::TcpStream;
 use tokio::sync::mpsc;
@@ -116,10 +116,8 @@ pub async fn run<F: Future<Output = ()>>(
     if config.threads == 0 || config.max_concurrent_batches == 0 {
         return Err(WorkerError::Config("threads and concurrent batches must be at least 1".into()));
     }
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(config.threads)
-        .thread_name(|i| format!("render-{i}"))
-        .build()?;
+    let pool =
+        rayon::ThreadPoolBuilder::new().num_threads(config.threads).thread_name(|i| format!("render-{i}")).build()?;
     let shared = Arc::new(Shared {
         pool: Arc::new(pool),
         loader,
@@ -372,7 +370,9 @@ impl<'a> Session<'a> {
             Message::Cancel(Cancel { target }) => {
                 let matches = |ids: &BatchIds| match target {
                     CancelTarget::Batch(id) => ids.batch_id == id,
-                    CancelTarget::Frame { session_id, frame_id } => ids.session_id == session_id && ids.frame_id == frame_id,
+                    CancelTarget::Frame { session_id, frame_id } => {
+                        ids.session_id == session_id && ids.frame_id == frame_id
+                    }
                     CancelTarget::Session(session_id) => ids.session_id == session_id,
                 };
                 let (dropped, kept): (VecDeque<RayBatch>, VecDeque<RayBatch>) =
@@ -402,7 +402,11 @@ impl<'a> Session<'a> {
             let now = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64);
             if now > deadline {
                 let late_ms = (now - deadline) / 1000;
-                self.fail(batch.ids, ErrorCode::DeadlineExpired, format!("deadline passed {late_ms} ms before the batch could start"));
+                self.fail(
+                    batch.ids,
+                    ErrorCode::DeadlineExpired,
+                    format!("deadline passed {late_ms} ms before the batch could start"),
+                );
                 return;
             }
         }
@@ -450,7 +454,10 @@ impl<'a> Session<'a> {
 
     async fn say_goodbye(mut self, mut conn: Connection<TcpStream>, reason: &str) -> SessionEnd {
         self.returned.truncate(validate::MAX_RETURNED_BATCHES);
-        self.outbox.push(Message::Goodbye(Goodbye { reason: reason.into(), returned_batches: std::mem::take(&mut self.returned) }));
+        self.outbox.push(Message::Goodbye(Goodbye {
+            reason: reason.into(),
+            returned_batches: std::mem::take(&mut self.returned),
+        }));
         match tokio::time::timeout(self.config.io_timeout, flush(&mut conn, &mut self.outbox)).await {
             Ok(Ok(())) => tracing::info!("said goodbye to the master"),
             Ok(Err(e)) => tracing::warn!("could not say goodbye: {e}"),
@@ -521,7 +528,8 @@ async fn render_and_deliver(
         render_time_us,
         stats,
     });
-    validate::message(&result).map_err(|e| (ErrorCode::RenderFailed, format!("the kernel produced an invalid result: {e}")))?;
+    validate::message(&result)
+        .map_err(|e| (ErrorCode::RenderFailed, format!("the kernel produced an invalid result: {e}")))?;
     shared
         .composers
         .send(&composer, &result)

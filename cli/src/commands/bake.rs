@@ -10,16 +10,16 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use nephele_train::dataset;
-use nephele_train::inolf::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
+use nephele_geometry::Bounds;
 use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::model::{HeadsShape, InolfModel};
 use nephele_kernels::inolf::psh::PshOptions;
-use nephele_train::inolf::train::{TrainOptions, collect_hit_points, train, training_views};
-use nephele_geometry::Bounds;
-use nephele_nn::HashGridConfig;
 use nephele_kernels::ngp::{FieldConfig, RadianceField, load_field, save_field};
+use nephele_nn::HashGridConfig;
+use nephele_train::dataset;
+use nephele_train::inolf::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
+use nephele_train::inolf::train::{TrainOptions, collect_hit_points, train, training_views};
 use nephele_train::ngp::{TrainConfig, Trainer};
 use serde_json::json;
 
@@ -123,9 +123,15 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let field: RadianceField = match &args.field {
         Some(path) => load_field(path).with_context(|| format!("loading {}", path.display()))?,
         None => {
-            let config = TrainConfig { seed: args.seed, samples_per_step: args.field_samples, ..TrainConfig::default() };
+            let config =
+                TrainConfig { seed: args.seed, samples_per_step: args.field_samples, ..TrainConfig::default() };
             let field_config = FieldConfig {
-                grid: HashGridConfig::with_finest_resolution(args.field_levels, args.field_table_log2, 16, args.field_finest),
+                grid: HashGridConfig::with_finest_resolution(
+                    args.field_levels,
+                    args.field_table_log2,
+                    16,
+                    args.field_finest,
+                ),
                 ..FieldConfig::default()
             };
             let mut trainer = Trainer::from_dataset(field_config, config, &data)?;
@@ -140,7 +146,11 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
                 }
             }
             bar.finish_and_clear();
-            println!("radiance field: {} steps, last loss {last:.5}, {:.0} s", args.field_steps, t.elapsed().as_secs_f64());
+            println!(
+                "radiance field: {} steps, last loss {last:.5}, {:.0} s",
+                args.field_steps,
+                t.elapsed().as_secs_f64()
+            );
             let field = trainer.into_field();
             if let Some(path) = &args.save_field {
                 save_field(&field, path).with_context(|| format!("saving {}", path.display()))?;
@@ -243,6 +253,12 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     for (part, bytes) in &sizes.parts {
         println!("  {part:<14} {:>10.3} MiB", *bytes as f64 / 1048576.0);
     }
-    println!("  {:<14} {:>10.3} MiB (file {} bytes); total bake time {:.0} s", "total", sizes.total as f64 / 1048576.0, std::fs::metadata(&args.out)?.len(), start.elapsed().as_secs_f64());
+    println!(
+        "  {:<14} {:>10.3} MiB (file {} bytes); total bake time {:.0} s",
+        "total",
+        sizes.total as f64 / 1048576.0,
+        std::fs::metadata(&args.out)?.len(),
+        start.elapsed().as_secs_f64()
+    );
     Ok(())
 }

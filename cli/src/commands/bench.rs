@@ -8,8 +8,8 @@ use glam::Vec3;
 use nephele_geometry::camera::Camera;
 use nephele_imaging::metrics;
 use nephele_pathtracer::integrator::Aov;
-use nephele_pathtracer::{RenderOptions, Renderer};
 use nephele_pathtracer::scenes;
+use nephele_pathtracer::{RenderOptions, Renderer};
 use serde_json::json;
 
 use crate::progress::Progress;
@@ -82,7 +82,11 @@ pub fn run(command: Command, progress: &Progress) -> Result<()> {
 }
 
 fn reference(args: ReferenceArgs, progress: &Progress) -> Result<()> {
-    let names: Vec<String> = if args.scenes.is_empty() { scenes::names().iter().map(|s| s.to_string()).collect() } else { args.scenes.clone() };
+    let names: Vec<String> = if args.scenes.is_empty() {
+        scenes::names().iter().map(|s| s.to_string()).collect()
+    } else {
+        args.scenes.clone()
+    };
     let (width, height) = args.size;
     println!(
         "reference path tracer, {width}x{height}, {} spp timed, error against {} spp, {} threads",
@@ -146,7 +150,8 @@ fn reference(args: ReferenceArgs, progress: &Progress) -> Result<()> {
         rows.push(row);
     }
     if let Some(path) = args.json {
-        std::fs::write(&path, serde_json::to_string_pretty(&rows)?).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
 }

@@ -13,8 +13,8 @@ use nephele_composer::encode::{Effort, EncoderSettings, FrameKind, H264Encoder};
 use nephele_composer::fusion::{BatchKey, BatchResult, Compositor, FrameLayout, FusionLimits, PlannedBatch};
 use nephele_composer::testpattern;
 use nephele_composer::yuv::Yuv420;
-use nephele_geometry::camera::Camera;
 use nephele_geometry::PixelResults;
+use nephele_geometry::camera::Camera;
 use openh264_decode::decode_psnr;
 use serde_json::json;
 
@@ -55,7 +55,11 @@ fn parse_layout(text: &str) -> Result<FrameLayout> {
 
 /// One frame of the benchmark scene as plan + batches (one environment batch per view and
 /// per 64-row band, as several workers would send it, plus the test pattern's objects).
-fn scene_frame(layout: FrameLayout, frame: u64, deadline: Instant) -> (nephele_composer::fusion::FramePlan, Vec<BatchResult>) {
+fn scene_frame(
+    layout: FrameLayout,
+    frame: u64,
+    deadline: Instant,
+) -> (nephele_composer::fusion::FramePlan, Vec<BatchResult>) {
     let (w, h) = (layout.view_width(), layout.view_height());
     let cameras: Vec<Camera> = (0..layout.views())
         .filter_map(|v| {
@@ -242,7 +246,8 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         );
     }
     if let Some(path) = args.json {
-        std::fs::write(&path, serde_json::to_string_pretty(&rows)?).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
 }

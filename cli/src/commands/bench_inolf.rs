@@ -11,10 +11,10 @@ use nephele_geometry::camera::Camera;
 use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::psh::{PshOptions, PshTable};
-use nephele_pathtracer::voxel::{VoxelBits, VoxelGrid, surface_bits};
 use nephele_kernels::kernel::{Bounds, all_pixels};
 use nephele_nn::{HashGrid, HashGridConfig};
 use nephele_pathtracer::scenes;
+use nephele_pathtracer::voxel::{VoxelBits, VoxelGrid, surface_bits};
 use serde_json::json;
 
 use crate::progress::Progress;
@@ -151,10 +151,23 @@ fn scene_names(requested: &[String]) -> Vec<String> {
 }
 
 pub fn psh(args: PshArgs, progress: &Progress) -> Result<()> {
-    println!("perfect spatial hashing of surface voxels: paper settings (table factor 1.05, sigma 1/6) and i-NOLF's coherent settings (1.5, 1)");
+    println!(
+        "perfect spatial hashing of surface voxels: paper settings (table factor 1.05, sigma 1/6) and i-NOLF's coherent settings (1.5, 1)"
+    );
     println!(
         "{:<11} {:>5} {:>9} {:<8} {:>4} {:>4} {:>10} {:>8} {:>9} {:>8} {:>9} {:>10}",
-        "scene", "res", "voxels", "settings", "m", "r", "table KiB", "B/voxel", "build ms", "attempts", "coherence", "collisions"
+        "scene",
+        "res",
+        "voxels",
+        "settings",
+        "m",
+        "r",
+        "table KiB",
+        "B/voxel",
+        "build ms",
+        "attempts",
+        "coherence",
+        "collisions"
     );
     let names = scene_names(&args.scenes);
     let bar = progress.bar((names.len() * args.resolutions.len()) as u64, "psh", "builds");
@@ -246,7 +259,19 @@ pub fn cubes(args: CubesArgs, progress: &Progress) -> Result<()> {
     );
     println!(
         "{:<11} {:>8} {:>8} {:>10} {:>11} {:>7} {:>8} {:>6} {:>9} {:>11} {:>9} {:>9} {:>9}",
-        "scene", "cells", "cubes", "cubes MiB", "dense MiB", "ratio", "build s", "hit %", "cells/ray", "samples/ray", "dense/ray", "ns/ray", "ns/miss"
+        "scene",
+        "cells",
+        "cubes",
+        "cubes MiB",
+        "dense MiB",
+        "ratio",
+        "build s",
+        "hit %",
+        "cells/ray",
+        "samples/ray",
+        "dense/ray",
+        "ns/ray",
+        "ns/miss"
     );
     let names = scene_names(&args.scenes);
     let bar = progress.bar(names.len() as u64, "cubes", "scenes");
@@ -355,7 +380,14 @@ pub fn psh_cache(args: PshCacheArgs, progress: &Progress) -> Result<()> {
     let (name, bytes) = match args.encoding {
         CacheEncoding::None => ("none", 0usize),
         CacheEncoding::Psh => {
-            let enc = PshEncoding::from_points(&stream, bounds.min, voxel, args.lattice, args.features, &PshOptions::coherent())?;
+            let enc = PshEncoding::from_points(
+                &stream,
+                bounds.min,
+                voxel,
+                args.lattice,
+                args.features,
+                &PshOptions::coherent(),
+            )?;
             bar.inc(1);
             let mut out = vec![0.0; enc.dim()];
             for _ in 0..args.passes {
@@ -394,7 +426,8 @@ pub fn psh_cache(args: PshCacheArgs, progress: &Progress) -> Result<()> {
 
 fn write_json(path: Option<PathBuf>, rows: Vec<serde_json::Value>) -> Result<()> {
     if let Some(path) = path {
-        std::fs::write(&path, serde_json::to_string_pretty(&rows)?).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(&path, serde_json::to_string_pretty(&rows)?)
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
 }
@@ -408,7 +441,14 @@ struct Variant {
 
 /// The first view's camera moved along its line to the object's centre by `factor`, at
 /// `width x height` with the same horizontal field of view.
-fn moved_camera(data: &nephele_train::dataset::Dataset, view: usize, centre: Vec3, factor: f32, width: u32, height: u32) -> Result<(Camera, f32)> {
+fn moved_camera(
+    data: &nephele_train::dataset::Dataset,
+    view: usize,
+    centre: Vec3,
+    factor: f32,
+    width: u32,
+    height: u32,
+) -> Result<(Camera, f32)> {
     anyhow::ensure!(factor.is_finite() && factor > 0.0, "{factor} is not a positive distance factor");
     let mut c2w = data.views[view].camera_to_world;
     let eye = c2w.w_axis.truncate();
@@ -421,9 +461,9 @@ fn moved_camera(data: &nephele_train::dataset::Dataset, view: usize, centre: Vec
 /// (over white, as NeRF papers), time per frame, rays per second and memory, measured in
 /// one run; the ablation rows of NEPHELE table 5.
 pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
+    use nephele_imaging::metrics::psnr_and_ssim;
     use nephele_kernels::inolf::kernel::{DiffuseSource, InolfKernel};
     use nephele_kernels::kernel::frame_to_image;
-    use nephele_imaging::metrics::psnr_and_ssim;
     use nephele_kernels::ngp::NgpKernel;
 
     let mut data = nephele_train::dataset::load_split(&args.dataset, &args.split, args.downscale)?;
@@ -445,7 +485,9 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
         let psh = cubes.psh().table.domain();
         let mut network = cubes.clone();
         let has_network = network.set_diffuse_source(DiffuseSource::Network).is_ok();
-        cubes.set_diffuse_source(DiffuseSource::Cubes).with_context(|| format!("{}: no diffuse cubes", path.display()))?;
+        cubes
+            .set_diffuse_source(DiffuseSource::Cubes)
+            .with_context(|| format!("{}: no diffuse cubes", path.display()))?;
         let variant = |name: String, kernel: InolfKernel| {
             let model_bytes = kernel.memory().in_use;
             Variant { name, kernel: Box::new(kernel), model_bytes }
@@ -479,7 +521,8 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     }
     let mut rows = Vec::new();
     for variant in &variants {
-        let (mut seconds, mut rays, mut queries, mut psnr, mut ssim, mut runtime_bytes) = (0.0f64, 0u64, 0u64, 0.0f64, 0.0f64, 0usize);
+        let (mut seconds, mut rays, mut queries, mut psnr, mut ssim, mut runtime_bytes) =
+            (0.0f64, 0u64, 0u64, 0.0f64, 0.0f64, 0usize);
         for v in views {
             let (w, h) = (v.image.width(), v.image.height());
             let camera = Camera::from_fov_x(w, h, data.camera_angle_x, v.camera_to_world)?;
@@ -512,7 +555,9 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     let (w, h) = (views[0].image.width(), views[0].image.height());
     let mib = |b: f64| b / 1048576.0;
     println!("{} held-out views of {w}x{h}, {} threads", views.len(), rayon::current_num_threads());
-    println!("model MiB: the parts the kernel reads; runtime MiB: most extra heap in use at once during a frame (outputs included)");
+    println!(
+        "model MiB: the parts the kernel reads; runtime MiB: most extra heap in use at once during a frame (outputs included)"
+    );
     println!(
         "{:<58} {:>8} {:>7} {:>10} {:>12} {:>10} {:>12} {:>11} {:>9}",
         "kernel", "PSNR dB", "SSIM", "model MiB", "runtime MiB", "ms/frame", "rays/s", "queries/ray", "speed-up"
@@ -541,25 +586,41 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     if !args.distances.0.is_empty() {
         println!();
         println!("distance curve: the first view's camera moved towards the object's centre, {w}x{h}, {}", inolf.name);
-        println!("{:>8} {:>9} {:>9} {:>14} {:>14} {:>9}", "factor", "distance", "covered", "baseline ms", "i-NOLF ms", "speed-up");
+        println!(
+            "{:>8} {:>9} {:>9} {:>14} {:>14} {:>9}",
+            "factor", "distance", "covered", "baseline ms", "i-NOLF ms", "speed-up"
+        );
         for &factor in &args.distances.0 {
             let (camera, distance) = moved_camera(&data, 0, centre, factor, w, h).context("--distances")?;
             let (base_ms, _) = time_frame(variants[0].kernel.as_ref(), &camera)?;
             let (inolf_ms, covered) = time_frame(inolf.kernel.as_ref(), &camera)?;
-            println!("{factor:>8.2} {distance:>9.3} {:>8.1}% {base_ms:>14.1} {inolf_ms:>14.1} {:>8.1}x", 100.0 * covered, base_ms / inolf_ms.max(1e-9));
+            println!(
+                "{factor:>8.2} {distance:>9.3} {:>8.1}% {base_ms:>14.1} {inolf_ms:>14.1} {:>8.1}x",
+                100.0 * covered,
+                base_ms / inolf_ms.max(1e-9)
+            );
         }
     }
     if let Some((lw, lh)) = args.large_frame {
-        let (camera, distance) = moved_camera(&data, 0, centre, args.large_distance, lw, lh).context("--large-distance")?;
+        let (camera, distance) =
+            moved_camera(&data, 0, centre, args.large_distance, lw, lh).context("--large-distance")?;
         println!();
-        println!("large frame: {lw}x{lh} ({:.2} M rays), the first view's camera at {}x its distance ({distance:.3}), {}", f64::from(lw) * f64::from(lh) / 1e6, args.large_distance, inolf.name);
+        println!(
+            "large frame: {lw}x{lh} ({:.2} M rays), the first view's camera at {}x its distance ({distance:.3}), {}",
+            f64::from(lw) * f64::from(lh) / 1e6,
+            args.large_distance,
+            inolf.name
+        );
         let bar = progress.bar(2, "large frame", "frames");
         let (base_ms, _) = time_frame(variants[0].kernel.as_ref(), &camera)?;
         bar.inc(1);
         let (inolf_ms, covered) = time_frame(inolf.kernel.as_ref(), &camera)?;
         bar.finish_and_clear();
         let rays = f64::from(lw) * f64::from(lh);
-        println!("{:>9} {:>14} {:>14} {:>16} {:>16} {:>9}", "covered", "baseline ms", "i-NOLF ms", "baseline rays/s", "i-NOLF rays/s", "speed-up");
+        println!(
+            "{:>9} {:>14} {:>14} {:>16} {:>16} {:>9}",
+            "covered", "baseline ms", "i-NOLF ms", "baseline rays/s", "i-NOLF rays/s", "speed-up"
+        );
         println!(
             "{:>8.1}% {base_ms:>14.1} {inolf_ms:>14.1} {:>16.0} {:>16.0} {:>8.1}x",
             100.0 * covered,

@@ -4,9 +4,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, ensure};
 use glam::Vec3;
-use nephele_geometry::camera::{Camera, quilt_rig};
 use nephele_geometry::Bounds;
-use nephele_scheduler::{Action, ObjectId, ObjectInfo, Policy, Scheduler, SchedulerConfig, SessionSpec, Time, WorkerId};
+use nephele_geometry::camera::{Camera, quilt_rig};
+use nephele_scheduler::{
+    Action, ObjectId, ObjectInfo, Policy, Scheduler, SchedulerConfig, SessionSpec, Time, WorkerId,
+};
 
 use crate::progress::Progress;
 
@@ -122,18 +124,33 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 }
 
 pub fn run(args: SchedulerArgs, progress: &Progress) -> Result<()> {
-    ensure!(args.rounds > 0 && args.workers > 0 && args.pending > 0, "--rounds, --workers and --pending must be positive");
+    ensure!(
+        args.rounds > 0 && args.workers > 0 && args.pending > 0,
+        "--rounds, --workers and --pending must be positive"
+    );
     ensure!(args.users.iter().all(|&u| u > 0 && u <= args.pending), "--users must lie in 1..=--pending");
-    let policies: Vec<Policy> = args.policy.iter().map(|p| p.parse::<Policy>().map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
+    let policies: Vec<Policy> =
+        args.policy.iter().map(|p| p.parse::<Policy>().map_err(anyhow::Error::msg)).collect::<Result<_>>()?;
     ensure!(!policies.is_empty(), "--policy needs at least one policy");
     println!(
         "scheduler round cost: {} pending tasks spread over the users, {} workers, {} rounds each, one thread",
         args.pending, args.workers, args.rounds
     );
-    println!("(release: one tick running the TaskAssigner for every task; p50 is the robust figure, mean and p99 include preemption)");
+    println!(
+        "(release: one tick running the TaskAssigner for every task; p50 is the robust figure, mean and p99 include preemption)"
+    );
     println!(
         "{:<8} {:>6} {:>7} {:>10} {:>11} {:>10} {:>10} {:>10} {:>11} {:>8}",
-        "policy", "users", "tasks", "release ms", "pending avg", "p50 us", "mean us", "p99 us", "dispatch/rd", "p50 ratio"
+        "policy",
+        "users",
+        "tasks",
+        "release ms",
+        "pending avg",
+        "p50 us",
+        "mean us",
+        "p99 us",
+        "dispatch/rd",
+        "p50 ratio"
     );
     let bar = progress.bar((args.users.len() * policies.len()) as u64, "measuring", "runs");
     for &users in &args.users {

@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail, ensure};
 use nephele_proto::stream::{framed, handshake};
 use nephele_proto::{
-    BatchIds, BatchResult, FrameConfig, FrameReader, FrameWriter, Goodbye, KernelStats, Message, RayBatch, Role, WireCamera,
-    decode_frame, encode_frame,
+    BatchIds, BatchResult, FrameConfig, FrameReader, FrameWriter, Goodbye, KernelStats, Message, RayBatch, Role,
+    WireCamera, decode_frame, encode_frame,
 };
 use serde::{Deserialize, Serialize};
 use serde_json::json;
@@ -159,7 +159,10 @@ pub fn run(args: WireArgs, progress: &Progress) -> Result<()> {
 
     println!("protocol cost, {n} pixels per batch, {} repeats, medians", args.repeats);
     println!("{:<34} {:>12} {:>12} {:>12}", "encoding", "encode ns/px", "decode ns/px", "bytes/px");
-    println!("{:<34} {:>12.2} {:>12.2} {:>12.2}", "packed arrays (nephele-proto)", encode_ns, decode_ns, result_bytes_per_pixel);
+    println!(
+        "{:<34} {:>12.2} {:>12.2} {:>12.2}",
+        "packed arrays (nephele-proto)", encode_ns, decode_ns, result_bytes_per_pixel
+    );
     println!(
         "{:<34} {:>12.2} {:>12.2} {:>12.2}",
         "element by element (serde+postcard)",
@@ -207,7 +210,8 @@ pub fn run(args: WireArgs, progress: &Progress) -> Result<()> {
             "loopback_two_processes": loopback(&process),
             "loopback_tokio_tasks": loopback(&tasks),
         });
-        std::fs::write(path, serde_json::to_string_pretty(&out)?).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(path, serde_json::to_string_pretty(&out)?)
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
 }
@@ -262,7 +266,10 @@ fn loopback_processes(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<L
     let seconds = start.elapsed().as_secs_f64();
     let status = child.wait()?;
     ensure!(status.success(), "the receiving process failed");
-    Ok(Loopback { batches_per_second: args.batches as f64 / seconds, wire_bytes_per_second: wire_bytes as f64 / seconds })
+    Ok(Loopback {
+        batches_per_second: args.batches as f64 / seconds,
+        wire_bytes_per_second: wire_bytes as f64 / seconds,
+    })
 }
 
 /// `nephele bench wire-sink`: accepts one connection as a composer, decodes and validates
@@ -288,7 +295,10 @@ pub fn sink(args: SinkArgs) -> Result<()> {
             Err(rejected) => bail!("{rejected}"),
         }
     }
-    writer.write_message(&Message::Goodbye(Goodbye { reason: format!("received {received}"), returned_batches: vec![] }))?;
+    writer.write_message(&Message::Goodbye(Goodbye {
+        reason: format!("received {received}"),
+        returned_batches: vec![],
+    }))?;
     writer.flush()?;
     Ok(())
 }
@@ -317,7 +327,8 @@ fn loopback_tokio(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<Loopb
                     other => bail!("unexpected {} message", other.kind()),
                 }
             }
-            conn.send(&Message::Goodbye(Goodbye { reason: format!("received {received}"), returned_batches: vec![] })).await?;
+            conn.send(&Message::Goodbye(Goodbye { reason: format!("received {received}"), returned_batches: vec![] }))
+                .await?;
             anyhow::Ok(received)
         });
         let stream = tokio::net::TcpStream::connect(addr).await?;
@@ -346,6 +357,9 @@ fn loopback_tokio(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<Loopb
         let seconds = start.elapsed().as_secs_f64();
         let received = receiver.await??;
         ensure!(received == batches as u64, "received {received} of {batches}");
-        Ok(Loopback { batches_per_second: batches as f64 / seconds, wire_bytes_per_second: wire_bytes as f64 / seconds })
+        Ok(Loopback {
+            batches_per_second: batches as f64 / seconds,
+            wire_bytes_per_second: wire_bytes as f64 / seconds,
+        })
     })
 }

@@ -106,11 +106,17 @@ pub fn run(args: Args) -> Result<()> {
         master: args.master,
         name: args.name,
     };
-    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the async runtime")?;
+    let runtime =
+        tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the async runtime")?;
     runtime.block_on(async move {
         let composer = Composer::start(config).await?;
-        println!("composer: signalling on http://{}/v1/sessions, worker results on {}", composer.http_addr(), composer.results_addr());
-        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("waiting for SIGTERM")?;
+        println!(
+            "composer: signalling on http://{}/v1/sessions, worker results on {}",
+            composer.http_addr(),
+            composer.results_addr()
+        );
+        let mut term =
+            tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("waiting for SIGTERM")?;
         tokio::select! {
             r = tokio::signal::ctrl_c() => r.context("waiting for Ctrl-C")?,
             _ = term.recv() => {}

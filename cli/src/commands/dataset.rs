@@ -5,11 +5,11 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use glam::{Mat4, Vec3};
 use nephele_geometry::camera::Camera;
-use nephele_train::dataset::{self, Frame, Transforms};
 use nephele_pathtracer::integrator::Aov;
 use nephele_pathtracer::sampling::Rng;
-use nephele_pathtracer::{RenderOptions, Renderer};
 use nephele_pathtracer::scenes::{BuiltinScene, Framing};
+use nephele_pathtracer::{RenderOptions, Renderer};
+use nephele_train::dataset::{self, Frame, Transforms};
 
 use crate::progress::Progress;
 
@@ -79,7 +79,8 @@ pub fn run(command: Command, progress: &Progress) -> Result<()> {
 fn render(args: RenderArgs, progress: &Progress) -> Result<()> {
     anyhow::ensure!(args.views > 0, "--views must be at least 1");
     anyhow::ensure!(args.views + args.test_views <= 100_000, "at most 100000 views in all");
-    if args.out.exists() && !args.force && std::fs::read_dir(&args.out).map(|mut d| d.next().is_some()).unwrap_or(false) {
+    if args.out.exists() && !args.force && std::fs::read_dir(&args.out).map(|mut d| d.next().is_some()).unwrap_or(false)
+    {
         bail!("{} is not empty; pass --force to write into it", args.out.display());
     }
     let builtin = super::load_scene(&args.scene)?;
@@ -107,8 +108,12 @@ fn render(args: RenderArgs, progress: &Progress) -> Result<()> {
         for (i, &camera_to_world) in split_poses.iter().enumerate() {
             let camera = Camera::from_fov_x(width, height, fov_x, camera_to_world).context("view camera")?;
             // Every view gets its own noise: the seed mixes in the view's global index.
-            let view_seed = args.seed.wrapping_mul(0x9E37_79B9).wrapping_add(frames.len() as u64 + if split == "test" { 1 << 32 } else { 0 });
-            let out = renderer.render(&camera, &RenderOptions { seed: view_seed, ..options }, &|rows| bar.inc(u64::from(rows)))?;
+            let view_seed = args
+                .seed
+                .wrapping_mul(0x9E37_79B9)
+                .wrapping_add(frames.len() as u64 + if split == "test" { 1 << 32 } else { 0 });
+            let out = renderer
+                .render(&camera, &RenderOptions { seed: view_seed, ..options }, &|rows| bar.inc(u64::from(rows)))?;
             let name = format!("r_{i}");
             let mut aovs = vec![Aov::Color];
             if args.depth {
@@ -156,7 +161,8 @@ fn view_poses(builtin: &BuiltinScene, count: usize, allow_hemisphere: bool, seed
                 .map(|_| {
                     let r = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
                     let eye = min + (max - min) * r;
-                    let spread = Vec3::new(rng.next_f32() - 0.5, rng.next_f32() - 0.5, 0.3 * (rng.next_f32() - 0.5)) * (max - min);
+                    let spread = Vec3::new(rng.next_f32() - 0.5, rng.next_f32() - 0.5, 0.3 * (rng.next_f32() - 0.5))
+                        * (max - min);
                     let target = look_at + spread;
                     look_at_matrix(eye, if (target - eye).length() < 0.1 { look_at } else { target })
                 })
@@ -185,7 +191,9 @@ fn info(args: InfoArgs) -> Result<()> {
         let coverage: f64 = data
             .views
             .iter()
-            .map(|v| v.image.pixels().iter().map(|p| f64::from(p[3])).sum::<f64>() / v.image.pixels().len().max(1) as f64)
+            .map(|v| {
+                v.image.pixels().iter().map(|p| f64::from(p[3])).sum::<f64>() / v.image.pixels().len().max(1) as f64
+            })
             .sum::<f64>()
             / data.views.len().max(1) as f64;
         let distances: Vec<f32> = data.views.iter().map(|v| v.camera_to_world.w_axis.truncate().length()).collect();
@@ -201,4 +209,3 @@ fn info(args: InfoArgs) -> Result<()> {
     }
     Ok(())
 }
-

@@ -28,7 +28,12 @@ pub fn run(args: Args) -> Result<()> {
     for score in &report.per_image {
         println!("{:<32} {:>9.3} {:>8.5}", score.name, score.psnr, score.ssim);
     }
-    println!("{:<32} {:>9.3} {:>8.5}", format!("mean of {}", report.per_image.len()), report.mean_psnr, report.mean_ssim);
+    println!(
+        "{:<32} {:>9.3} {:>8.5}",
+        format!("mean of {}", report.per_image.len()),
+        report.mean_psnr,
+        report.mean_ssim
+    );
     if report.perfect_matches > 0 {
         println!("({} identical image(s) left out of the mean PSNR)", report.perfect_matches);
     }

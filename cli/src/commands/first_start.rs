@@ -21,9 +21,9 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Parser;
 use nephele_geometry::camera::Camera;
+use nephele_imaging::metrics::psnr_and_ssim;
 use nephele_kernels::inolf::kernel::InolfKernel;
 use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
-use nephele_imaging::metrics::psnr_and_ssim;
 
 use crate::progress::Progress;
 
@@ -187,7 +187,12 @@ fn loads(path: &Path) -> bool {
 
 /// Makes sure `dir/<name>.nolf` exists for every name, baking the missing ones (a corrupt or
 /// truncated one is baked again). Returns one line of account per object.
-pub fn ensure_baked(dir: &Path, names: &[String], quality: BakeQuality, progress: &Progress) -> Result<Vec<BakedObject>> {
+pub fn ensure_baked(
+    dir: &Path,
+    names: &[String],
+    quality: BakeQuality,
+    progress: &Progress,
+) -> Result<Vec<BakedObject>> {
     let Some(recipe) = quality.recipe() else { return Ok(Vec::new()) };
     std::fs::create_dir_all(dir).with_context(|| format!("creating the asset folder {}", dir.display()))?;
     remove_stale_scratch(dir);
@@ -207,7 +212,10 @@ pub fn ensure_baked(dir: &Path, names: &[String], quality: BakeQuality, progress
             path.display(),
             quality.folder()
         );
-        done.push(bake_object(dir, name, &recipe, progress).with_context(|| format!("baking the built-in object '{name}'"))?);
+        done.push(
+            bake_object(dir, name, &recipe, progress)
+                .with_context(|| format!("baking the built-in object '{name}'"))?,
+        );
     }
     Ok(done)
 }
@@ -330,7 +338,11 @@ mod tests {
         std::fs::write(&ours, b"in progress").expect("write");
         std::fs::write(dir.path().join("glossy.nolf"), b"kept").expect("write");
         remove_stale_scratch(dir.path());
-        let mut left: Vec<String> = std::fs::read_dir(dir.path()).expect("read").flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+        let mut left: Vec<String> = std::fs::read_dir(dir.path())
+            .expect("read")
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
         left.sort();
         assert_eq!(left, vec!["glossy.nolf".to_string(), format!("shell.nolf.part-{}", std::process::id())]);
     }

@@ -106,7 +106,10 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     }
     let failed = reports.iter().filter(|r| r.error.is_some()).count();
     if failed == reports.len() {
-        bail!("no user could stream (first error: {})", reports.iter().find_map(|r| r.error.clone()).unwrap_or_default());
+        bail!(
+            "no user could stream (first error: {})",
+            reports.iter().find_map(|r| r.error.clone()).unwrap_or_default()
+        );
     }
     Ok(())
 }

@@ -64,17 +64,19 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<()> {
+    ensure!((10..=60_000).contains(&args.load_report_ms), "--load-report-ms must be between 10 and 60000");
     ensure!(
-        (10..=60_000).contains(&args.load_report_ms),
-        "--load-report-ms must be between 10 and 60000"
+        args.heartbeat_timeout_ms > u64::from(args.load_report_ms),
+        "--heartbeat-timeout-ms must exceed --load-report-ms"
     );
-    ensure!(args.heartbeat_timeout_ms > u64::from(args.load_report_ms), "--heartbeat-timeout-ms must exceed --load-report-ms");
     let ice_servers: Vec<serde_json::Value> = args
         .ice_servers
         .iter()
         .map(|url| {
             let mut server = json!({ "urls": [url] });
-            if url.starts_with("turn") && let (Some(user), Some(secret)) = (&args.ice_username, &args.ice_credential) {
+            if url.starts_with("turn")
+                && let (Some(user), Some(secret)) = (&args.ice_username, &args.ice_credential)
+            {
                 server["username"] = json!(user);
                 server["credential"] = json!(secret);
             }

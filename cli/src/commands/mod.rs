@@ -3,11 +3,10 @@
 pub mod bake;
 pub mod bench;
 pub mod bench_encode;
-pub mod composer;
-pub mod up;
-pub mod bench_wire;
-pub mod bench_scheduler;
 pub mod bench_inolf;
+pub mod bench_scheduler;
+pub mod bench_wire;
+pub mod composer;
 pub mod dataset;
 pub mod eval;
 pub mod first_start;
@@ -16,9 +15,10 @@ pub mod master;
 pub mod pathtrace;
 pub mod render;
 pub mod scenes;
-pub mod worker;
 pub mod simulate;
 pub mod train;
+pub mod up;
+pub mod worker;
 
 use anyhow::{Context, Result, bail};
 use glam::Vec3;

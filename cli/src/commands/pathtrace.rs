@@ -76,8 +76,15 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         None => default_fov,
     };
     let (width, height) = args.size;
-    let camera = Camera::look_at(width, height, fov_y, args.eye.unwrap_or(default_eye), args.target.unwrap_or(default_target), Vec3::Z)
-        .context("building the camera")?;
+    let camera = Camera::look_at(
+        width,
+        height,
+        fov_y,
+        args.eye.unwrap_or(default_eye),
+        args.target.unwrap_or(default_target),
+        Vec3::Z,
+    )
+    .context("building the camera")?;
     let background = args.background.map(Background::from).unwrap_or_else(|| builtin.default_background());
     let options = RenderOptions { samples_per_pixel: args.spp, max_bounces: args.bounces, seed: args.seed, background };
     options.validate()?;

@@ -6,9 +6,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use nephele_geometry::camera::Camera;
-use nephele_train::dataset;
 use nephele_imaging::image::RgbaImage;
 use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
+use nephele_train::dataset;
 
 use crate::progress::Progress;
 
@@ -50,7 +50,8 @@ fn frame_image(dir: &Path, file_path: &str) -> PathBuf {
 pub fn run(args: Args, progress: &Progress) -> Result<()> {
     anyhow::ensure!(args.downscale > 0, "--downscale must be at least 1");
     let kernel = load_kernel(&args.asset)?;
-    let transforms = dataset::read_transforms(&args.transforms).with_context(|| format!("reading {}", args.transforms.display()))?;
+    let transforms =
+        dataset::read_transforms(&args.transforms).with_context(|| format!("reading {}", args.transforms.display()))?;
     let dir = args.transforms.parent().unwrap_or(Path::new("."));
     let (width, height) = match args.size {
         Some(s) => s,

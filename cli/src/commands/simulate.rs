@@ -81,7 +81,9 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         let last = users.iter().map(|u| u.depart_s).fold(0.0, f64::max);
         let params = SimParams { seed: args.seed, duration_s: args.duration.unwrap_or(last), ..SimParams::default() };
         let name = path.file_stem().and_then(|s| s.to_str()).unwrap_or("trace").to_string();
-        let workers = farm.clone().unwrap_or_else(|| (1..=8).map(|i| nephele_sim::SimWorker::new(&format!("w{i}"), 1e8)).collect());
+        let workers = farm
+            .clone()
+            .unwrap_or_else(|| (1..=8).map(|i| nephele_sim::SimWorker::new(&format!("w{i}"), 1e8)).collect());
         list.push(Scenario { name, description: format!("replay of {file}"), objects, users, workers, params });
     } else {
         let names: Vec<String> = if args.scenario.iter().any(|s| s == "all") {
@@ -90,8 +92,9 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
             args.scenario.clone()
         };
         for name in &names {
-            let mut scenario = scenarios::builtin(name, args.seed)
-                .with_context(|| format!("unknown scenario '{name}' (one of: {}, all)", scenarios::names().join(", ")))?;
+            let mut scenario = scenarios::builtin(name, args.seed).with_context(|| {
+                format!("unknown scenario '{name}' (one of: {}, all)", scenarios::names().join(", "))
+            })?;
             if let Some(d) = args.duration {
                 scenario.params.duration_s = d;
                 for u in &mut scenario.users {
@@ -113,9 +116,14 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     for scenario in &list {
         for variant in &variants {
             let start = Instant::now();
-            let result =
-                nephele_sim::run(scenario, variant).with_context(|| format!("simulating {} under {}", scenario.name, variant.label))?;
-            timings.push((scenario.name.clone(), variant.label.clone(), scenario.params.duration_s, start.elapsed().as_secs_f64()));
+            let result = nephele_sim::run(scenario, variant)
+                .with_context(|| format!("simulating {} under {}", scenario.name, variant.label))?;
+            timings.push((
+                scenario.name.clone(),
+                variant.label.clone(),
+                scenario.params.duration_s,
+                start.elapsed().as_secs_f64(),
+            ));
             for u in &result.users {
                 user_rows.push_str(&format!(
                     "{},{},{},{},{},{},{:.3},{},{},{},{:.3},{:.4},{:.3}\n",
@@ -141,7 +149,14 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     bar.finish_and_clear();
     println!("seed {}", args.seed);
     for s in &list {
-        println!("{}: {} ({} s, {} users, {} workers)", s.name, s.description, s.params.duration_s, s.users.len(), s.workers.len());
+        println!(
+            "{}: {} ({} s, {} users, {} workers)",
+            s.name,
+            s.description,
+            s.params.duration_s,
+            s.users.len(),
+            s.workers.len()
+        );
     }
     println!();
     print!("{}", report::table(&rows));

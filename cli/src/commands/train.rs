@@ -5,12 +5,12 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use nephele_geometry::camera::Camera;
-use nephele_train::dataset::{self, Dataset};
-use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
 use nephele_imaging::metrics;
+use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
 use nephele_kernels::ngp::{FieldConfig, NgpKernel, save_field};
-use nephele_train::ngp::{TrainConfig, Trainer};
 use nephele_nn::HashGridConfig;
+use nephele_train::dataset::{self, Dataset};
+use nephele_train::ngp::{TrainConfig, Trainer};
 
 use crate::progress::Progress;
 
@@ -89,7 +89,11 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     } else if args.holdout_every > 1 {
         let (kept, held) = dataset::split_holdout(train.views, args.holdout_every);
         let angle = train.camera_angle_x;
-        (Dataset { camera_angle_x: angle, views: kept }, Dataset { camera_angle_x: angle, views: held }, "held-out training views")
+        (
+            Dataset { camera_angle_x: angle, views: kept },
+            Dataset { camera_angle_x: angle, views: held },
+            "held-out training views",
+        )
     } else {
         let test = train.clone();
         (train, test, "training views (no held-out set)")
@@ -155,7 +159,9 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
             recent.remove(0);
         }
         last = stats;
-        for (p, s) in phases.iter_mut().zip([stats.seconds_rays, stats.seconds_grid, stats.seconds_adam, stats.seconds_occupancy]) {
+        for (p, s) in
+            phases.iter_mut().zip([stats.seconds_rays, stats.seconds_grid, stats.seconds_adam, stats.seconds_occupancy])
+        {
             *p += f64::from(s);
         }
         bar.inc(1);

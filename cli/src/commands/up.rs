@@ -108,7 +108,12 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let baked = ensure_baked(&assets, &objects, args.bake, progress)?;
     for object in &baked {
         match object.psnr_db {
-            Some(db) => println!("baked '{}' in {:.0} s ({db:.2} dB on held-out views): {}", object.name, object.seconds, object.path.display()),
+            Some(db) => println!(
+                "baked '{}' in {:.0} s ({db:.2} dB on held-out views): {}",
+                object.name,
+                object.seconds,
+                object.path.display()
+            ),
             None => println!("using the baked '{}': {}", object.name, object.path.display()),
         }
     }
@@ -133,7 +138,15 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     supervisor.spawn("composer", composer)?;
     for i in 0..args.workers {
         let mut worker = Command::new(&exe);
-        worker.args(["worker", "--master", &farm.to_string(), "--name", &format!("worker-{i}"), "--spp", &args.spp.to_string()]);
+        worker.args([
+            "worker",
+            "--master",
+            &farm.to_string(),
+            "--name",
+            &format!("worker-{i}"),
+            "--spp",
+            &args.spp.to_string(),
+        ]);
         worker.arg("--assets").arg(&assets);
         supervisor.spawn(&format!("worker-{i}"), worker)?;
     }
@@ -160,10 +173,16 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         std::thread::sleep(Duration::from_millis(200));
     }
     println!("nephele up: master, composer and {} workers ready", args.workers);
-    let (neural, traced): (Vec<&String>, Vec<&String>) = objects.iter().partition(|o| assets.join(format!("{o}.nolf")).is_file());
+    let (neural, traced): (Vec<&String>, Vec<&String>) =
+        objects.iter().partition(|o| assets.join(format!("{o}.nolf")).is_file());
     let list = |v: &[&String]| v.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(", ");
     if !neural.is_empty() {
-        println!("scene '{}': {} served by the i-NOLF kernel (assets in {})", args.scene, list(&neural), assets.display());
+        println!(
+            "scene '{}': {} served by the i-NOLF kernel (assets in {})",
+            args.scene,
+            list(&neural),
+            assets.display()
+        );
     }
     if !traced.is_empty() {
         println!("scene '{}': {} path traced at {} spp (no baked asset)", args.scene, list(&traced), args.spp);

@@ -9,7 +9,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use nephele_render::inolf::asset::{Asset, reseal_checksums};
+use nephele_kernels::inolf::asset::{Asset, reseal_checksums};
 
 fuzz_target!(|data: &[u8]| {
     let _ = Asset::from_bytes(data);

@@ -214,12 +214,19 @@ fn encode_tensors(tensors: &[Tensor]) -> Vec<u8> {
 impl Asset {
     /// Checks what the reader will check, so that a written asset always loads.
     fn check_writable(&self) -> Result<(), AssetError> {
-        let malformed = |section: SectionKind, reason: String| AssetError::Malformed { section: section.name(), reason };
+        let malformed =
+            |section: SectionKind, reason: String| AssetError::Malformed { section: section.name(), reason };
         if self.meta.len() as u64 > MAX_META_BYTES {
-            return Err(AssetError::TooLarge { what: "meta section", value: self.meta.len() as u64, limit: MAX_META_BYTES });
+            return Err(AssetError::TooLarge {
+                what: "meta section",
+                value: self.meta.len() as u64,
+                limit: MAX_META_BYTES,
+            });
         }
         if let Some(p) = &self.psh {
-            if p.feature_dim > MAX_FEATURE_DIM || p.features.len() as u64 != p.table.slot_count() as u64 * u64::from(p.feature_dim) {
+            if p.feature_dim > MAX_FEATURE_DIM
+                || p.features.len() as u64 != p.table.slot_count() as u64 * u64::from(p.feature_dim)
+            {
                 return Err(malformed(SectionKind::Psh, "feature table does not match the slots".into()));
             }
             if !(p.origin.is_finite() && p.voxel.is_finite() && p.voxel > 0.0) {
@@ -286,7 +293,8 @@ impl Asset {
 
     /// Bytes of each part as encoded.
     pub fn sizes(&self) -> AssetSizes {
-        let mut parts = vec![("meta", self.meta.len() as u64), ("density cubes", encode_cubes(self.density.cubes()).len() as u64)];
+        let mut parts =
+            vec![("meta", self.meta.len() as u64), ("density cubes", encode_cubes(self.density.cubes()).len() as u64)];
         if let Some(d) = &self.diffuse {
             parts.push(("diffuse cubes", encode_cubes(d).len() as u64));
         }
@@ -333,7 +341,10 @@ impl Asset {
                 SectionKind::Meta => meta = Some(decode_meta(payload)?),
                 SectionKind::DensityCubes => {
                     let cubes = decode_cubes(payload, kind)?;
-                    density = Some(DensityCubes::from_cubes(cubes).map_err(|e| AssetError::Malformed { section: kind.name(), reason: e.to_string() })?);
+                    density = Some(
+                        DensityCubes::from_cubes(cubes)
+                            .map_err(|e| AssetError::Malformed { section: kind.name(), reason: e.to_string() })?,
+                    );
                 }
                 SectionKind::DiffuseCubes => diffuse = Some(decode_cubes(payload, kind)?),
                 SectionKind::Psh => psh = Some(decode_psh(payload)?),
@@ -373,7 +384,11 @@ fn le_u64(b: &[u8], at: usize) -> u64 {
 fn read_table(bytes: &[u8]) -> Result<Vec<(SectionKind, &[u8])>, AssetError> {
     let available = bytes.len() as u64;
     if bytes.len() < MAGIC.len() {
-        return Err(if MAGIC.starts_with(bytes) { AssetError::Truncated { needed: HEADER_LEN as u64, available } } else { AssetError::NotAnAsset });
+        return Err(if MAGIC.starts_with(bytes) {
+            AssetError::Truncated { needed: HEADER_LEN as u64, available }
+        } else {
+            AssetError::NotAnAsset
+        });
     }
     if bytes[0..8] != MAGIC {
         return Err(AssetError::NotAnAsset);
@@ -397,7 +412,11 @@ fn read_table(bytes: &[u8]) -> Result<Vec<(SectionKind, &[u8])>, AssetError> {
         return Err(AssetError::LengthMismatch { header: file_len, actual: available });
     }
     if count > MAX_SECTIONS {
-        return Err(AssetError::TooLarge { what: "section count", value: u64::from(count), limit: u64::from(MAX_SECTIONS) });
+        return Err(AssetError::TooLarge {
+            what: "section count",
+            value: u64::from(count),
+            limit: u64::from(MAX_SECTIONS),
+        });
     }
     let table_end = HEADER_LEN + ENTRY_LEN * count as usize;
     if bytes.len() < table_end {
@@ -546,9 +565,11 @@ fn limit(what: &'static str, value: u64, max: u64) -> Result<(), AssetError> {
 
 fn decode_meta(payload: &[u8]) -> Result<String, AssetError> {
     limit("meta section", payload.len() as u64, MAX_META_BYTES)?;
-    let text = std::str::from_utf8(payload).map_err(|e| AssetError::Malformed { section: "meta", reason: e.to_string() })?;
+    let text =
+        std::str::from_utf8(payload).map_err(|e| AssetError::Malformed { section: "meta", reason: e.to_string() })?;
     if !text.is_empty() {
-        serde_json::from_str::<serde_json::Value>(text).map_err(|e| AssetError::Malformed { section: "meta", reason: e.to_string() })?;
+        serde_json::from_str::<serde_json::Value>(text)
+            .map_err(|e| AssetError::Malformed { section: "meta", reason: e.to_string() })?;
     }
     Ok(text.to_owned())
 }
@@ -621,7 +642,9 @@ fn decode_tensors(payload: &[u8]) -> Result<Vec<Tensor>, AssetError> {
     for _ in 0..count {
         let name_len = r.u32()?;
         limit("tensor name length", u64::from(name_len), u64::from(MAX_NAME_BYTES))?;
-        let name = std::str::from_utf8(r.take(u64::from(name_len))?).map_err(|_| r.malformed("tensor name is not UTF-8"))?.to_owned();
+        let name = std::str::from_utf8(r.take(u64::from(name_len))?)
+            .map_err(|_| r.malformed("tensor name is not UTF-8"))?
+            .to_owned();
         let ndim = r.u32()?;
         if !(1..=4).contains(&ndim) {
             return Err(r.malformed(format!("tensor {name:?} has {ndim} dimensions")));
@@ -630,7 +653,10 @@ fn decode_tensors(payload: &[u8]) -> Result<Vec<Tensor>, AssetError> {
         for _ in 0..ndim {
             shape.push(r.u32()?);
         }
-        let elements = shape.iter().try_fold(1u64, |acc, &d| acc.checked_mul(u64::from(d))).ok_or_else(|| r.malformed("tensor size overflows"))?;
+        let elements = shape
+            .iter()
+            .try_fold(1u64, |acc, &d| acc.checked_mul(u64::from(d)))
+            .ok_or_else(|| r.malformed("tensor size overflows"))?;
         limit("tensor elements", elements, MAX_TENSOR_ELEMENTS)?;
         let data = r.f32s(elements)?;
         if data.iter().any(|x| !x.is_finite()) {
@@ -656,13 +682,16 @@ mod tests {
         let density = DensityCubes::build(
             bounds,
             &options,
-            |p: &[Vec3], out: &mut [f32]| p.iter().zip(out).for_each(|(p, o)| *o = if p.length() < 0.6 { 50.0 } else { 0.0 }),
+            |p: &[Vec3], out: &mut [f32]| {
+                p.iter().zip(out).for_each(|(p, o)| *o = if p.length() < 0.6 { 50.0 } else { 0.0 })
+            },
             &|_| {},
         )
         .expect("cubes");
         let c = density.cubes();
         let diffuse_data: Vec<u8> = (0..c.cube_count() * 64 * 6).map(|i| (i % 251) as u8).collect();
-        let diffuse = SparseCubes::from_parts(c.min(), c.cell(), c.dims(), 4, 6, c.index().to_vec(), diffuse_data).expect("diffuse");
+        let diffuse = SparseCubes::from_parts(c.min(), c.cell(), c.dims(), 4, 6, c.index().to_vec(), diffuse_data)
+            .expect("diffuse");
         let points: Vec<[u32; 3]> = (0..40).map(|i| [i % 7, (i * 3) % 11, (i * 5) % 13]).collect();
         let (table, _) = PshTable::build(16, &points, &PshOptions::default()).expect("psh");
         let features = (0..table.slot_count() * 4).map(|i| i as f32 * 0.01).collect();
@@ -745,7 +774,11 @@ mod tests {
         let end = bytes.len() as u64;
         bytes[at + 8..at + 16].copy_from_slice(&end.to_le_bytes());
         reseal_checksums(&mut bytes);
-        assert!(matches!(Asset::from_bytes(&bytes), Err(AssetError::SectionOutOfBounds { .. })), "{:?}", Asset::from_bytes(&bytes));
+        assert!(
+            matches!(Asset::from_bytes(&bytes), Err(AssetError::SectionOutOfBounds { .. })),
+            "{:?}",
+            Asset::from_bytes(&bytes)
+        );
         // Length that overflows.
         let mut bytes = sample_bytes();
         bytes[at + 16..at + 24].copy_from_slice(&u64::MAX.to_le_bytes());
@@ -803,7 +836,11 @@ mod tests {
         let shape_at = offset + 4 + 4 + "specular.0".len() + 4;
         bytes[shape_at..shape_at + 4].copy_from_slice(&(1u32 << 25).to_le_bytes());
         reseal_checksums(&mut bytes);
-        assert!(matches!(Asset::from_bytes(&bytes), Err(AssetError::Malformed { section: "tensors", .. })), "{:?}", Asset::from_bytes(&bytes));
+        assert!(
+            matches!(Asset::from_bytes(&bytes), Err(AssetError::Malformed { section: "tensors", .. })),
+            "{:?}",
+            Asset::from_bytes(&bytes)
+        );
         // A PSH table whose key sits in the wrong slot.
         let mut bytes = sample_bytes();
         let offset = le_u64(&bytes, entry_of(&bytes, SectionKind::Psh) + 8) as usize;
@@ -817,7 +854,10 @@ mod tests {
         bytes[a..a + 4].copy_from_slice(&kb);
         bytes[b..b + 4].copy_from_slice(&ka);
         reseal_checksums(&mut bytes);
-        assert!(matches!(Asset::from_bytes(&bytes), Err(AssetError::Malformed { section: "perfect spatial hash", .. })));
+        assert!(matches!(
+            Asset::from_bytes(&bytes),
+            Err(AssetError::Malformed { section: "perfect spatial hash", .. })
+        ));
     }
 
     #[test]
@@ -826,7 +866,11 @@ mod tests {
         let mut bytes = sample_bytes();
         bytes[12..16].copy_from_slice(&1u32.to_le_bytes());
         reseal_checksums(&mut bytes);
-        assert!(matches!(Asset::from_bytes(&bytes), Err(AssetError::MissingSection("density cubes"))), "{:?}", Asset::from_bytes(&bytes));
+        assert!(
+            matches!(Asset::from_bytes(&bytes), Err(AssetError::MissingSection("density cubes"))),
+            "{:?}",
+            Asset::from_bytes(&bytes)
+        );
     }
 
     proptest! {

@@ -208,7 +208,9 @@ impl SparseCubes {
         for k in 0..8 {
             let (dx, dy, dz) = (k & 1, (k >> 1) & 1, k >> 2);
             offs[k] = (base + (ix + dx) + res * ((iy + dy) + res * (iz + dz))) * self.channels as usize;
-            ws[k] = (if dx == 1 { w.x } else { 1.0 - w.x }) * (if dy == 1 { w.y } else { 1.0 - w.y }) * (if dz == 1 { w.z } else { 1.0 - w.z });
+            ws[k] = (if dx == 1 { w.x } else { 1.0 - w.x })
+                * (if dy == 1 { w.y } else { 1.0 - w.y })
+                * (if dz == 1 { w.z } else { 1.0 - w.z });
         }
         (offs, ws)
     }
@@ -330,7 +332,11 @@ impl DensityCubes {
         F: Fn(&[Vec3], &mut [f32]) + Sync,
     {
         let o = options;
-        if !(1..=MAX_GRID_SIDE).contains(&o.resolution) || !(2..=MAX_CUBE_RES).contains(&o.cube_res) || !(1..=16).contains(&o.probe) || o.dilate > 8 {
+        if !(1..=MAX_GRID_SIDE).contains(&o.resolution)
+            || !(2..=MAX_CUBE_RES).contains(&o.cube_res)
+            || !(1..=16).contains(&o.probe)
+            || o.dilate > 8
+        {
             return Err(CubeError::BadOptions(format!("{o:?}")));
         }
         let size = bounds.size();
@@ -343,7 +349,8 @@ impl DensityCubes {
         let cells = nx * ny * nz;
         let step = cell / (o.cube_res - 1) as f32;
         let lut = decode_table(step);
-        let cell_min = |c: usize| bounds.min + cell * Vec3::new((c % nx) as f32, ((c / nx) % ny) as f32, (c / (nx * ny)) as f32);
+        let cell_min =
+            |c: usize| bounds.min + cell * Vec3::new((c % nx) as f32, ((c / nx) % ny) as f32, (c / (nx * ny)) as f32);
 
         // Phase 1: which cells hold matter visible at 8 bits.
         let done = AtomicU64::new(0);
@@ -705,15 +712,27 @@ mod tests {
     #[test]
     fn from_parts_round_trips_and_rejects_garbage() {
         let c = sphere_cubes().cubes();
-        let again = SparseCubes::from_parts(c.min(), c.cell(), c.dims(), c.cube_res(), 1, c.index().to_vec(), c.data().to_vec());
+        let again = SparseCubes::from_parts(
+            c.min(),
+            c.cell(),
+            c.dims(),
+            c.cube_res(),
+            1,
+            c.index().to_vec(),
+            c.data().to_vec(),
+        );
         assert_eq!(again.as_ref(), Ok(c));
         let mut index = c.index().to_vec();
         let first = index.iter().position(|&e| e != EMPTY_CELL).expect("a cube");
         index[first] = c.cube_count() as u32;
-        assert!(SparseCubes::from_parts(c.min(), c.cell(), c.dims(), c.cube_res(), 1, index, c.data().to_vec()).is_err());
+        assert!(
+            SparseCubes::from_parts(c.min(), c.cell(), c.dims(), c.cube_res(), 1, index, c.data().to_vec()).is_err()
+        );
         let mut data = c.data().to_vec();
         data.pop();
-        assert!(SparseCubes::from_parts(c.min(), c.cell(), c.dims(), c.cube_res(), 1, c.index().to_vec(), data).is_err());
+        assert!(
+            SparseCubes::from_parts(c.min(), c.cell(), c.dims(), c.cube_res(), 1, c.index().to_vec(), data).is_err()
+        );
     }
 
     /// A ray origin: anywhere (often inside the box or the sphere), or on a cell boundary
@@ -728,17 +747,20 @@ mod tests {
 
     /// A unit direction, often with zero components (axis-parallel rays).
     fn direction() -> impl Strategy<Value = Vec3> {
-        ((-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0), 0u8..8, any::<bool>()).prop_filter_map("zero", |((x, y, z), mask, keep)| {
-            let mut d = Vec3::new(x, y, z);
-            if !keep {
-                for a in 0..3 {
-                    if mask & (1 << a) != 0 {
-                        d[a] = 0.0;
+        ((-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0), 0u8..8, any::<bool>()).prop_filter_map(
+            "zero",
+            |((x, y, z), mask, keep)| {
+                let mut d = Vec3::new(x, y, z);
+                if !keep {
+                    for a in 0..3 {
+                        if mask & (1 << a) != 0 {
+                            d[a] = 0.0;
+                        }
                     }
                 }
-            }
-            (d.length() > 1e-3).then(|| d.normalize())
-        })
+                (d.length() > 1e-3).then(|| d.normalize())
+            },
+        )
     }
 
     proptest! {

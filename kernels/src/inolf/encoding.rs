@@ -36,7 +36,14 @@ impl PshEncoding {
     /// Builds the encoding over a lattice of side `u` at `origin`/`voxel` whose stored points
     /// are the 8 corners of the cells of `points` (the hit points seen in training); features
     /// start at small deterministic values.
-    pub fn from_points(points: &[Vec3], origin: Vec3, voxel: f32, u: u32, feature_dim: u32, options: &PshOptions) -> Result<PshEncoding, PshError> {
+    pub fn from_points(
+        points: &[Vec3],
+        origin: Vec3,
+        voxel: f32,
+        u: u32,
+        feature_dim: u32,
+        options: &PshOptions,
+    ) -> Result<PshEncoding, PshError> {
         if !(voxel.is_finite() && voxel > 0.0 && origin.is_finite()) || feature_dim == 0 || feature_dim > 64 {
             return Err(PshError::BadOption("lattice origin/voxel or feature size"));
         }
@@ -57,7 +64,9 @@ impl PshEncoding {
         let (table, _) = PshTable::build(u, &keys, options)?;
         let n = table.slot_count() * feature_dim as usize;
         // Small hashed values break the symmetry between slots (as i-NGP's U(-1e-4, 1e-4)).
-        let features = (0..n).map(|i| ((i as u32).wrapping_mul(2_654_435_761) >> 8) as f32 / (1u32 << 24) as f32 * 2e-4 - 1e-4).collect();
+        let features = (0..n)
+            .map(|i| ((i as u32).wrapping_mul(2_654_435_761) >> 8) as f32 / (1u32 << 24) as f32 * 2e-4 - 1e-4)
+            .collect();
         Ok(PshEncoding { table, origin, voxel, feature_dim, features })
     }
 
@@ -85,7 +94,9 @@ impl PshEncoding {
             let (dx, dy, dz) = (c & 1, (c >> 1) & 1, c >> 2);
             let v = [(bx + dx) as i32, (by + dy) as i32, (bz + dz) as i32];
             if let Some(slot) = self.table.slot_i(v) {
-                let wc = (if dx == 1 { w.x } else { 1.0 - w.x }) * (if dy == 1 { w.y } else { 1.0 - w.y }) * (if dz == 1 { w.z } else { 1.0 - w.z });
+                let wc = (if dx == 1 { w.x } else { 1.0 - w.x })
+                    * (if dy == 1 { w.y } else { 1.0 - w.y })
+                    * (if dz == 1 { w.z } else { 1.0 - w.z });
                 out.slots[out.count as usize] = slot;
                 out.weights[out.count as usize] = wc;
                 out.count += 1;

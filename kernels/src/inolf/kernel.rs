@@ -17,13 +17,13 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::asset::Asset;
-use super::heads::{decode_diffuse, load_heads};
 use super::cubes::{DensityCubes, SparseCubes};
 use super::encoding::PshEncoding;
+use super::heads::{decode_diffuse, load_heads};
 use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT, combine, specular_activation};
-use nephele_geometry::camera::Camera;
 use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 use crate::ngp::{FieldScratch, RadianceField};
+use nephele_geometry::camera::Camera;
 use nephele_nn::{HashGrid, Mlp, MlpWorkspace, sh_coefficient_count, sh_encode};
 
 /// Rays whose coarse opacity is below this are treated as misses (kernel and training).
@@ -192,7 +192,14 @@ impl InolfKernel {
 
     /// Renders one chunk of pixels into the given output slices; returns the rays that hit
     /// and the density-network samples taken (0 with the density cubes).
-    fn render_chunk(&self, camera: &Camera, pixels: &[u32], color: &mut [[f32; 3]], opacity: &mut [f32], depth: &mut [f32]) -> Result<(u64, u64), ModelError> {
+    fn render_chunk(
+        &self,
+        camera: &Camera,
+        pixels: &[u32],
+        color: &mut [[f32; 3]],
+        opacity: &mut [f32],
+        depth: &mut [f32],
+    ) -> Result<(u64, u64), ModelError> {
         let width = camera.width();
         let mut hits: Vec<(usize, Vec3, Vec3, f32)> = Vec::with_capacity(pixels.len());
         let mut field_scratch = self.hit_field.as_ref().map(|_| FieldScratch::new());
@@ -229,7 +236,8 @@ impl InolfKernel {
             }
             (_, _, Some((grid, mlp))) => {
                 let size = self.grid_bounds.size();
-                let points: Vec<[f32; 3]> = hits.iter().map(|h| ((h.1 - self.grid_bounds.min) / size).to_array()).collect();
+                let points: Vec<[f32; 3]> =
+                    hits.iter().map(|h| ((h.1 - self.grid_bounds.min) / size).to_array()).collect();
                 let mut enc = vec![0.0; n * grid.output_dim()];
                 grid.encode_batch(&points, &mut enc)?;
                 mlp.infer(&enc, &mut diffuse, &mut MlpWorkspace::new())?;
@@ -252,7 +260,10 @@ impl InolfKernel {
             specular_activation(raw, h.3);
         }
         for (i, h) in hits.iter().enumerate() {
-            let (c, a) = combine(&diffuse[i * DIFFUSE_OUT..(i + 1) * DIFFUSE_OUT], &specular[i * SPECULAR_OUT..(i + 1) * SPECULAR_OUT]);
+            let (c, a) = combine(
+                &diffuse[i * DIFFUSE_OUT..(i + 1) * DIFFUSE_OUT],
+                &specular[i * SPECULAR_OUT..(i + 1) * SPECULAR_OUT],
+            );
             let k = h.0;
             let d = camera.view_depth(h.1);
             if a > 0.0 && a.is_finite() && d.is_finite() && d > 0.0 && c.iter().all(|v| v.is_finite()) {

@@ -21,7 +21,9 @@ use thiserror::Error;
 
 use super::encoding::PshEncoding;
 use nephele_geometry::Bounds;
-use nephele_nn::{Activation, HashGrid, HashGridConfig, Mlp, MlpConfig, MlpWorkspace, NnError, sh_coefficient_count, sh_encode};
+use nephele_nn::{
+    Activation, HashGrid, HashGridConfig, Mlp, MlpConfig, MlpWorkspace, NnError, sh_coefficient_count, sh_encode,
+};
 
 /// Outputs of the diffuse MLP: diffuse RGB, tint RGB.
 pub const DIFFUSE_OUT: usize = 6;
@@ -71,7 +73,12 @@ impl Default for HeadsShape {
 
 impl HeadsShape {
     pub fn grid(&self) -> HashGridConfig {
-        HashGridConfig { levels: self.grid_levels, log2_table_size: self.grid_log2_table, base_resolution: self.grid_base, per_level_scale: self.grid_scale }
+        HashGridConfig {
+            levels: self.grid_levels,
+            log2_table_size: self.grid_log2_table,
+            base_resolution: self.grid_base,
+            per_level_scale: self.grid_scale,
+        }
     }
 
     pub fn diffuse_mlp(&self) -> MlpConfig {
@@ -166,7 +173,12 @@ impl InolfModel {
 
     /// Diffuse colour and tint of a batch of points through the hash grid and MLP
     /// (`out`: `n x 6`).
-    pub fn diffuse_batch(&self, points: &[[f32; 3]], out: &mut [f32], scratch: &mut (Vec<f32>, MlpWorkspace)) -> Result<(), ModelError> {
+    pub fn diffuse_batch(
+        &self,
+        points: &[[f32; 3]],
+        out: &mut [f32],
+        scratch: &mut (Vec<f32>, MlpWorkspace),
+    ) -> Result<(), ModelError> {
         scratch.0.resize(points.len() * self.grid.output_dim(), 0.0);
         self.grid.encode_batch(points, &mut scratch.0)?;
         self.diffuse.infer(&scratch.0, out, &mut scratch.1)?;
@@ -234,14 +246,17 @@ mod tests {
             let (mut p, mut m) = (diffuse, diffuse);
             p[i] += h;
             m[i] -= h;
-            let num = (head_gradients(&p, &specular, target, 0.5).loss - head_gradients(&m, &specular, target, 0.5).loss) / (2.0 * h);
+            let num = (head_gradients(&p, &specular, target, 0.5).loss
+                - head_gradients(&m, &specular, target, 0.5).loss)
+                / (2.0 * h);
             assert!((num - g.d_diffuse[i]).abs() < 1e-3, "diffuse {i}: {num} vs {}", g.d_diffuse[i]);
         }
         for i in 0..SPECULAR_OUT {
             let (mut p, mut m) = (specular, specular);
             p[i] += h;
             m[i] -= h;
-            let num = (head_gradients(&diffuse, &p, target, 0.5).loss - head_gradients(&diffuse, &m, target, 0.5).loss) / (2.0 * h);
+            let num = (head_gradients(&diffuse, &p, target, 0.5).loss - head_gradients(&diffuse, &m, target, 0.5).loss)
+                / (2.0 * h);
             assert!((num - g.d_specular[i]).abs() < 1e-3, "specular {i}: {num} vs {}", g.d_specular[i]);
         }
         let (c, a) = combine(&diffuse, &specular);

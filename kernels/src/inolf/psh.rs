@@ -79,7 +79,14 @@ impl PshOptions {
 
 impl Default for PshOptions {
     fn default() -> Self {
-        PshOptions { table_factor: 1.05, sigma: 1.0 / 6.0, max_attempts: 64, seed: 0x5eed, coherence: true, coarse_order: false }
+        PshOptions {
+            table_factor: 1.05,
+            sigma: 1.0 / 6.0,
+            max_attempts: 64,
+            seed: 0x5eed,
+            coherence: true,
+            coarse_order: false,
+        }
     }
 }
 
@@ -246,7 +253,8 @@ impl PshTable {
             let z = (p[2] % m + u32::from(o[2])) % m;
             x as usize + mu * (y as usize + mu * z as usize)
         };
-        let fits = |bucket: &[[u32; 3]], o: [u16; 3], slots: &[u32]| bucket.iter().all(|&p| slots[slot_of(p, o)] == EMPTY_KEY);
+        let fits =
+            |bucket: &[[u32; 3]], o: [u16; 3], slots: &[u32]| bucket.iter().all(|&p| slots[slot_of(p, o)] == EMPTY_KEY);
         let mut coherent = 0u64;
         let mut searched = 0u64;
 
@@ -292,11 +300,8 @@ impl PshTable {
                         continue;
                     }
                     let (sx, sy, sz) = ((s % mu) as u32, ((s / mu) % mu) as u32, (s / (mu * mu)) as u32);
-                    let o = [
-                        ((sx + m - h0[0]) % m) as u16,
-                        ((sy + m - h0[1]) % m) as u16,
-                        ((sz + m - h0[2]) % m) as u16,
-                    ];
+                    let o =
+                        [((sx + m - h0[0]) % m) as u16, ((sy + m - h0[1]) % m) as u16, ((sz + m - h0[2]) % m) as u16];
                     if fits(bucket, o, &slots) {
                         chosen = Some(o);
                         searched += 1;
@@ -534,7 +539,8 @@ mod tests {
         assert!(empty.is_empty());
         assert_eq!(empty.slot([0, 0, 0]), None);
         let full: Vec<[u32; 3]> = (0..512).map(|i| [i % 8, (i / 8) % 8, i / 64]).collect();
-        let (table, _) = PshTable::build(8, &full, &PshOptions { table_factor: 1.0, ..PshOptions::default() }).expect("full");
+        let (table, _) =
+            PshTable::build(8, &full, &PshOptions { table_factor: 1.0, ..PshOptions::default() }).expect("full");
         assert_perfect(&table, &full);
         assert_eq!(table.slot_count(), 512, "a full grid packs into exactly n slots");
     }
@@ -584,9 +590,15 @@ mod tests {
         assert_perfect(&table, &points);
         let (coherent, pairs) = table.coherence();
         let fraction = coherent as f64 / pairs as f64;
-        eprintln!("shell: n = {}, m = {}, r = {}, coherence {fraction:.3}, {stats:?}", points.len(), table.table_side(), table.offset_side());
+        eprintln!(
+            "shell: n = {}, m = {}, r = {}, coherence {fraction:.3}, {stats:?}",
+            points.len(),
+            table.table_side(),
+            table.offset_side()
+        );
         assert!(fraction > 0.3, "coherence {fraction}");
-        let (table, _) = PshTable::build(u, &points, &PshOptions { coherence: false, ..PshOptions::coherent() }).expect("build");
+        let (table, _) =
+            PshTable::build(u, &points, &PshOptions { coherence: false, ..PshOptions::coherent() }).expect("build");
         let (c2, p2) = table.coherence();
         assert!((c2 as f64 / p2 as f64) < fraction / 2.0, "the heuristic must matter");
     }

@@ -66,7 +66,10 @@ impl FieldConfig {
             return Err(NgpError::Invalid(format!("steps per diagonal {} not in 16..=8192", self.steps_per_diagonal)));
         }
         if !OccupancyGrid::valid_resolution(self.occupancy_resolution) {
-            return Err(NgpError::Invalid(format!("occupancy resolution {} must be a multiple of 8 in 16..=512", self.occupancy_resolution)));
+            return Err(NgpError::Invalid(format!(
+                "occupancy resolution {} must be a multiple of 8 in 16..=512",
+                self.occupancy_resolution
+            )));
         }
         Ok(())
     }
@@ -245,7 +248,13 @@ impl RadianceField {
     /// Colours (in `[0, 1]`, the dataset's sRGB-encoded space, not premultiplied) seen at
     /// world points `points` along unit directions `dirs` (the direction of travel of the
     /// camera ray).
-    pub fn color_batch(&self, points: &[Vec3], dirs: &[Vec3], out: &mut [[f32; 3]], scratch: &mut FieldScratch) -> Result<(), NgpError> {
+    pub fn color_batch(
+        &self,
+        points: &[Vec3],
+        dirs: &[Vec3],
+        out: &mut [[f32; 3]],
+        scratch: &mut FieldScratch,
+    ) -> Result<(), NgpError> {
         super::check_len("directions", points.len(), dirs.len())?;
         super::check_len("colour output", points.len(), out.len())?;
         scratch.points.clear();
@@ -269,7 +278,12 @@ impl RadianceField {
 
     /// View-independent ("diffuse") colour at world points: the mean of
     /// [`RadianceField::color_batch`] over the 12 directions of an icosahedron's vertices.
-    pub fn diffuse_batch(&self, points: &[Vec3], out: &mut [[f32; 3]], scratch: &mut FieldScratch) -> Result<(), NgpError> {
+    pub fn diffuse_batch(
+        &self,
+        points: &[Vec3],
+        out: &mut [[f32; 3]],
+        scratch: &mut FieldScratch,
+    ) -> Result<(), NgpError> {
         super::check_len("diffuse output", points.len(), out.len())?;
         let phi = (1.0 + 5f32.sqrt()) / 2.0;
         let mut dirs = Vec::with_capacity(12);
@@ -309,10 +323,19 @@ impl RadianceField {
         self.march_ray(origin, dir, t_min, scratch, false)
     }
 
-    fn march_ray(&self, origin: Vec3, dir: Vec3, t_min: f32, scratch: &mut FieldScratch, with_color: bool) -> RayResult {
+    fn march_ray(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        t_min: f32,
+        scratch: &mut FieldScratch,
+        with_color: bool,
+    ) -> RayResult {
         let mut result = RayResult::default();
         let dt = self.step_size();
-        let Some(mut marcher) = Marcher::new(origin, dir, self.min, self.size, dt, t_min, 0.5, self.occupancy.resolution()) else {
+        let Some(mut marcher) =
+            Marcher::new(origin, dir, self.min, self.size, dt, t_min, 0.5, self.occupancy.resolution())
+        else {
             return result;
         };
         let geo = 1 + self.config.geo_features;
@@ -412,7 +435,10 @@ impl RadianceField {
         if result.opacity <= 0.0 {
             result.peak_distance = 0.0;
         }
-        if !(result.color.iter().all(|c| c.is_finite()) && result.distance.is_finite() && result.peak_distance.is_finite()) {
+        if !(result.color.iter().all(|c| c.is_finite())
+            && result.distance.is_finite()
+            && result.peak_distance.is_finite())
+        {
             return RayResult { samples: result.samples, color_queries: result.color_queries, ..RayResult::default() };
         }
         result

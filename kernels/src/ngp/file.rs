@@ -77,7 +77,9 @@ pub fn to_bytes(field: &RadianceField) -> Vec<u8> {
     for v in [field.min.x, field.min.y, field.min.z, field.size] {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    for n in [field.grid.num_params(), field.density.num_params(), field.color.num_params(), field.occupancy.words().len()] {
+    for n in
+        [field.grid.num_params(), field.density.num_params(), field.color.num_params(), field.occupancy.words().len()]
+    {
         out.extend_from_slice(&(n as u64).to_le_bytes());
     }
     for p in [field.grid.params(), field.density.params(), field.color.params()] {
@@ -130,7 +132,12 @@ fn parse_header(b: &[u8]) -> Result<Header, String> {
     }
     let h: Vec<u32> = (0..12).map(|k| u32_at(b, 12 + 4 * k)).collect();
     let config = FieldConfig {
-        grid: HashGridConfig { levels: h[0], log2_table_size: h[1], base_resolution: h[2], per_level_scale: f32::from_bits(h[3]) },
+        grid: HashGridConfig {
+            levels: h[0],
+            log2_table_size: h[1],
+            base_resolution: h[2],
+            per_level_scale: f32::from_bits(h[3]),
+        },
         density_hidden: h[4] as usize,
         geo_features: h[5] as usize,
         color_hidden: h[6] as usize,
@@ -182,7 +189,8 @@ pub fn from_bytes(bytes: &[u8]) -> Result<RadianceField, String> {
     let mut at = HEADER_LEN;
     let mut floats = |n: u64| -> Result<Vec<f32>, String> {
         let n = n as usize;
-        let v: Vec<f32> = body[at..at + 4 * n].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        let v: Vec<f32> =
+            body[at..at + 4 * n].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
         at += 4 * n;
         if v.iter().all(|x| x.is_finite()) { Ok(v) } else { Err("non-finite parameter".into()) }
     };

@@ -6,9 +6,9 @@ use std::path::Path;
 use glam::Vec3;
 use rayon::prelude::*;
 
+use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 use nephele_geometry::camera::Camera;
 use nephele_imaging::image::srgb_to_linear;
-use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 
 use super::NgpError;
 use super::field::{FieldScratch, RadianceField, RayResult};
@@ -74,7 +74,11 @@ impl NgpKernel {
     }
 
     /// [`RayKernel::render_pixels`] with the marching totals.
-    pub fn render_pixels_with_stats(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, MarchStats), KernelError> {
+    pub fn render_pixels_with_stats(
+        &self,
+        camera: &Camera,
+        pixels: &[u32],
+    ) -> Result<(PixelResults, MarchStats), KernelError> {
         validate_pixels(camera, pixels)?;
         let width = camera.width();
         let per_task: Vec<(PixelResults, MarchStats)> = pixels
@@ -106,7 +110,11 @@ impl NgpKernel {
                 (out, stats)
             })
             .collect();
-        let mut out = PixelResults { color: Vec::with_capacity(pixels.len()), opacity: Vec::with_capacity(pixels.len()), depth: Vec::with_capacity(pixels.len()) };
+        let mut out = PixelResults {
+            color: Vec::with_capacity(pixels.len()),
+            opacity: Vec::with_capacity(pixels.len()),
+            depth: Vec::with_capacity(pixels.len()),
+        };
         let mut stats = MarchStats::default();
         for (r, s) in per_task {
             out.color.extend(r.color);

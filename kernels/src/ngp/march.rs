@@ -56,7 +56,16 @@ impl Marcher {
     /// sample grid by that fraction of a step (training jitter; 0.5 for rendering). `None`
     /// if the ray misses the box.
     #[allow(clippy::too_many_arguments)] // all plain numbers of one ray; a struct would only rename them
-    pub fn new(origin: Vec3, dir: Vec3, min: Vec3, size: f32, dt: f32, t_min: f32, offset: f32, resolution: u32) -> Option<Self> {
+    pub fn new(
+        origin: Vec3,
+        dir: Vec3,
+        min: Vec3,
+        size: f32,
+        dt: f32,
+        t_min: f32,
+        offset: f32,
+        resolution: u32,
+    ) -> Option<Self> {
         let (t0, t1) = ray_box(origin, dir, min, min + Vec3::splat(size))?;
         let start = t0.max(t_min);
         if start >= t1 {
@@ -171,7 +180,8 @@ mod tests {
         assert!(m.steps < 64, "{}", m.steps);
         // Empty grid: no samples, few steps, even along a diagonal.
         let empty = OccupancyGrid::filled(16, false);
-        let mut m = Marcher::new(Vec3::splat(-1.0), Vec3::ONE.normalize(), Vec3::ZERO, 1.0, dt, 0.0, 0.5, 16).expect("hit");
+        let mut m =
+            Marcher::new(Vec3::splat(-1.0), Vec3::ONE.normalize(), Vec3::ZERO, 1.0, dt, 0.0, 0.5, 16).expect("hit");
         assert!(m.next(&empty).is_none());
         assert!(m.steps <= 8, "{}", m.steps);
     }

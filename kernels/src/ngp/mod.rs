@@ -46,8 +46,13 @@ impl FieldConfig {
     /// The smallest useful field: what unit tests train and round-trip in a fraction of a
     /// second.
     pub fn small_test() -> FieldConfig {
-            FieldConfig {
-            grid: nephele_nn::HashGridConfig { levels: 4, log2_table_size: 10, base_resolution: 4, per_level_scale: 2.0 },
+        FieldConfig {
+            grid: nephele_nn::HashGridConfig {
+                levels: 4,
+                log2_table_size: 10,
+                base_resolution: 4,
+                per_level_scale: 2.0,
+            },
             density_hidden: 16,
             geo_features: 7,
             color_hidden: 16,

@@ -148,7 +148,8 @@ impl OccupancyGrid {
                 let row = self.index(0, y, z);
                 for x in 0..r {
                     if self.get(row + x as usize) {
-                        let b = (x / BLOCK) as usize + blocks as usize * ((y / BLOCK) as usize + blocks as usize * (z / BLOCK) as usize);
+                        let b = (x / BLOCK) as usize
+                            + blocks as usize * ((y / BLOCK) as usize + blocks as usize * (z / BLOCK) as usize);
                         coarse[b / 64] |= 1 << (b % 64);
                     }
                 }
@@ -185,7 +186,10 @@ impl OccupancyGrid {
         }
         any.then(|| {
             let s = r as f32;
-            (Vec3::new(lo[0] as f32, lo[1] as f32, lo[2] as f32) / s, Vec3::new(hi[0] as f32, hi[1] as f32, hi[2] as f32) / s)
+            (
+                Vec3::new(lo[0] as f32, lo[1] as f32, lo[2] as f32) / s,
+                Vec3::new(hi[0] as f32, hi[1] as f32, hi[2] as f32) / s,
+            )
         })
     }
 }
@@ -218,7 +222,8 @@ impl CoverageMask {
             }
         }
         let covered = |x: u32, y: u32| image.pixels()[(y * w + x) as usize][3] > threshold;
-        let complete = !((0..w).any(|x| covered(x, 0) || covered(x, h - 1)) || (0..h).any(|y| covered(0, y) || covered(w - 1, y)));
+        let complete =
+            !((0..w).any(|x| covered(x, 0) || covered(x, h - 1)) || (0..h).any(|y| covered(0, y) || covered(w - 1, y)));
         CoverageMask { camera, width: w, height: h, sums, complete }
     }
 
@@ -255,7 +260,8 @@ impl CoverageMask {
         // plus one pixel for the box filter of downscaled masks.
         let spread = radius / (depth - radius);
         let (rx, ry) = (fx * spread * 1.05 + 1.0, fy * spread * 1.05 + 1.0);
-        let (x0, x1, y0, y1) = ((pixel.x - rx).floor(), (pixel.x + rx).ceil(), (pixel.y - ry).floor(), (pixel.y + ry).ceil());
+        let (x0, x1, y0, y1) =
+            ((pixel.x - rx).floor(), (pixel.x + rx).ceil(), (pixel.y - ry).floor(), (pixel.y + ry).ceil());
         if !(x0 >= 0.0 && y0 >= 0.0 && x1 <= self.width as f32 && y1 <= self.height as f32) {
             return Seen::Maybe;
         }

@@ -26,9 +26,7 @@ pub mod shapes;
 use glam::{Affine3A, Quat, Vec2, Vec3};
 use thiserror::Error;
 
-use crate::{
-    Background, Environment, Material, Scene, SceneBuilder, Sun, scene::SceneError,
-};
+use crate::{Background, Environment, Material, Scene, SceneBuilder, Sun, scene::SceneError};
 use objects::{Parts, add_parts, parts_bounds};
 use shapes::{Fur, ShapeError};
 
@@ -38,20 +36,10 @@ pub enum Framing {
     /// An object centred at `center`, fits in a sphere of `radius`; dataset cameras orbit at
     /// `orbit_radius`, on the upper hemisphere only if `hemisphere` (an object standing on
     /// a ground).
-    Object {
-        center: Vec3,
-        radius: f32,
-        orbit_radius: f32,
-        hemisphere: bool,
-    },
+    Object { center: Vec3, radius: f32, orbit_radius: f32, hemisphere: bool },
     /// An interior: cameras stand inside the box `[min, max]` (kept away from walls)
     /// looking at `look_at` by default.
-    Interior {
-        min: Vec3,
-        max: Vec3,
-        eye: Vec3,
-        look_at: Vec3,
-    },
+    Interior { min: Vec3, max: Vec3, eye: Vec3, look_at: Vec3 },
 }
 
 /// Vertical field of view of the default interior view, radians (about 66 degrees).
@@ -67,23 +55,10 @@ impl Framing {
     /// and target with [`INTERIOR_FOV_Y`].
     pub fn default_view(&self) -> (Vec3, Vec3, f32) {
         match *self {
-            Framing::Object {
-                center,
-                radius,
-                orbit_radius,
-                ..
-            } => {
+            Framing::Object { center, radius, orbit_radius, .. } => {
                 let (azimuth, elevation) = ((-60f32).to_radians(), 25f32.to_radians());
-                let dir = Vec3::new(
-                    elevation.cos() * azimuth.cos(),
-                    elevation.cos() * azimuth.sin(),
-                    elevation.sin(),
-                );
-                let ratio = if orbit_radius > 0.0 {
-                    radius / orbit_radius
-                } else {
-                    1.0
-                };
+                let dir = Vec3::new(elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin());
+                let ratio = if orbit_radius > 0.0 { radius / orbit_radius } else { 1.0 };
                 let fov = 2.0 * ratio.clamp(0.0, 0.95).asin() * 1.05;
                 (center + dir * orbit_radius, center, fov)
             }
@@ -129,19 +104,10 @@ impl BuiltinScene {
     /// sphere of views. Interiors cannot be told apart from objects here; frame those by
     /// hand.
     pub fn from_imported(scene: Scene) -> Result<BuiltinScene, SceneLookupError> {
-        let unframeable = |reason: &str| SceneLookupError::Unframeable {
-            reason: reason.into(),
-        };
-        let (lo, hi) = scene
-            .bounds()
-            .ok_or_else(|| unframeable("the scene has no vertices"))?;
+        let unframeable = |reason: &str| SceneLookupError::Unframeable { reason: reason.into() };
+        let (lo, hi) = scene.bounds().ok_or_else(|| unframeable("the scene has no vertices"))?;
         let center = (lo + hi) * 0.5;
-        let radius = scene
-            .mesh
-            .positions
-            .iter()
-            .map(|p| p.distance(center))
-            .fold(0.0f32, f32::max);
+        let radius = scene.mesh.positions.iter().map(|p| p.distance(center)).fold(0.0f32, f32::max);
         if !(radius.is_finite() && radius > 0.0) {
             return Err(unframeable("the scene has no extent"));
         }
@@ -149,12 +115,7 @@ impl BuiltinScene {
             name: "imported",
             description: "A scene imported from a file.",
             scene,
-            framing: Framing::Object {
-                center,
-                radius,
-                orbit_radius: radius * 8.0 / 3.0,
-                hemisphere: false,
-            },
+            framing: Framing::Object { center, radius, orbit_radius: radius * 8.0 / 3.0, hemisphere: false },
         })
     }
 }
@@ -185,32 +146,20 @@ pub(crate) enum BuildFailure {
 
 /// Name and description of every built-in scene, in listing order.
 const CATALOGUE: [(&str, &str); 8] = [
-    (
-        "diffuse",
-        "An orange matte (Lambertian) trefoil knot floating in daylight.",
-    ),
+    ("diffuse", "An orange matte (Lambertian) trefoil knot floating in daylight."),
     (
         "glossy",
         "A polished gold torus (roughness 0.18) around a glossy blue plastic ball \
          (roughness 0.12): strong view-dependent highlights.",
     ),
-    (
-        "furry",
-        "A brown ball covered in 16,000 thin (0.8-2.5 mm) curved fibres: fine, fuzzy detail.",
-    ),
+    ("furry", "A brown ball covered in 16,000 thin (0.8-2.5 mm) curved fibres: fine, fuzzy detail."),
     (
         "shell",
         "A thin-walled glass sphere (ior 1.5, faint tint) around a blue cube and a red ring: \
          rays cross the glass twice before reaching the solid content.",
     ),
-    (
-        "room-day",
-        "A furnished 5 x 4 x 2.8 m room lit by the sun and the sky through two windows.",
-    ),
-    (
-        "room-night",
-        "The same room at night: a ceiling lamp, a table lamp, a dark blue sky outside.",
-    ),
+    ("room-day", "A furnished 5 x 4 x 2.8 m room lit by the sun and the sky through two windows."),
+    ("room-night", "The same room at night: a ceiling lamp, a table lamp, a dark blue sky outside."),
     (
         "assembly",
         "Smaller versions of the knot, the glossy pair, the furry ball and the glass shell \
@@ -241,20 +190,10 @@ pub fn names() -> &'static [&'static str] {
 /// Builds the built-in scene called `name` (see [`names`]).
 pub fn builtin(name: &str) -> Result<BuiltinScene, SceneLookupError> {
     let Some(&(name, description)) = CATALOGUE.iter().find(|(n, _)| *n == name) else {
-        return Err(SceneLookupError::Unknown {
-            name: name.to_owned(),
-        });
+        return Err(SceneLookupError::Unknown { name: name.to_owned() });
     };
-    let (scene, framing) = build(name).map_err(|e| SceneLookupError::Build {
-        name,
-        reason: e.to_string(),
-    })?;
-    Ok(BuiltinScene {
-        name,
-        description,
-        scene,
-        framing,
-    })
+    let (scene, framing) = build(name).map_err(|e| SceneLookupError::Build { name, reason: e.to_string() })?;
+    Ok(BuiltinScene { name, description, scene, framing })
 }
 
 fn build(name: &str) -> Result<(Scene, Framing), BuildFailure> {
@@ -278,12 +217,7 @@ fn build(name: &str) -> Result<(Scene, Framing), BuildFailure> {
             Ok((assembly()?, framing))
         }
         "furnace" => {
-            let framing = Framing::Object {
-                center: Vec3::ZERO,
-                radius: 1.0,
-                orbit_radius: 4.0,
-                hemisphere: false,
-            };
+            let framing = Framing::Object { center: Vec3::ZERO, radius: 1.0, orbit_radius: 4.0, hemisphere: false };
             Ok((furnace()?, framing))
         }
         other => Err(BuildFailure::Unlisted(other.to_owned())),
@@ -315,12 +249,7 @@ fn object(parts: Parts, radius: f32) -> Result<(Scene, Framing), BuildFailure> {
     add_parts(&mut b, &parts, Affine3A::IDENTITY);
     b.environment(daylight_sky());
     b.sun(daylight_sun());
-    let framing = Framing::Object {
-        center: Vec3::ZERO,
-        radius,
-        orbit_radius: 4.0,
-        hemisphere: false,
-    };
+    let framing = Framing::Object { center: Vec3::ZERO, radius, orbit_radius: 4.0, hemisphere: false };
     Ok((b.build()?, framing))
 }
 
@@ -354,27 +283,9 @@ fn place(
 
 fn assembly() -> Result<Scene, BuildFailure> {
     let mut b = SceneBuilder::new();
-    b.add(
-        &shapes::disc(ASSEMBLY_GROUND_RADIUS, 128)?,
-        Affine3A::IDENTITY,
-        Material::lambertian(Vec3::splat(0.5)),
-    );
-    place(
-        &mut b,
-        &objects::knot()?,
-        0.4,
-        Quat::from_rotation_z(0.4),
-        Vec2::new(-0.65, 0.55),
-        0.0,
-    )?;
-    place(
-        &mut b,
-        &objects::glossy_pair()?,
-        0.4,
-        Quat::IDENTITY,
-        Vec2::new(0.65, 0.55),
-        0.0,
-    )?;
+    b.add(&shapes::disc(ASSEMBLY_GROUND_RADIUS, 128)?, Affine3A::IDENTITY, Material::lambertian(Vec3::splat(0.5)));
+    place(&mut b, &objects::knot()?, 0.4, Quat::from_rotation_z(0.4), Vec2::new(-0.65, 0.55), 0.0)?;
+    place(&mut b, &objects::glossy_pair()?, 0.4, Quat::IDENTITY, Vec2::new(0.65, 0.55), 0.0)?;
     // A small ball with shorter, fewer fibres (the fibres keep their real thickness), resting
     // on the tips of its fur.
     let fur = Fur {
@@ -386,14 +297,7 @@ fn assembly() -> Result<Scene, BuildFailure> {
         segments: 2,
         ..objects::FUR
     };
-    place(
-        &mut b,
-        &objects::fur_ball(0.2, &fur)?,
-        1.0,
-        Quat::IDENTITY,
-        Vec2::new(-0.6, -0.6),
-        0.0,
-    )?;
+    place(&mut b, &objects::fur_ball(0.2, &fur)?, 1.0, Quat::IDENTITY, Vec2::new(-0.6, -0.6), 0.0)?;
     // The glass shell sits 3 mm above a dark pedestal so that no glass surface crosses
     // another surface.
     let pedestal = 0.06;
@@ -402,14 +306,7 @@ fn assembly() -> Result<Scene, BuildFailure> {
         Affine3A::from_translation(Vec3::new(0.6, -0.6, pedestal * 0.5)),
         Material::lambertian(Vec3::new(0.2, 0.2, 0.22)),
     );
-    place(
-        &mut b,
-        &objects::glass_shell()?,
-        0.3,
-        Quat::IDENTITY,
-        Vec2::new(0.6, -0.6),
-        pedestal + 0.003,
-    )?;
+    place(&mut b, &objects::glass_shell()?, 0.3, Quat::IDENTITY, Vec2::new(0.6, -0.6), pedestal + 0.003)?;
     b.environment(daylight_sky());
     b.sun(daylight_sun());
     Ok(b.build()?)
@@ -422,10 +319,7 @@ mod tests {
     use crate::Mesh;
 
     fn all() -> Vec<BuiltinScene> {
-        names()
-            .iter()
-            .map(|n| builtin(n).expect("built-in scene builds"))
-            .collect()
+        names().iter().map(|n| builtin(n).expect("built-in scene builds")).collect()
     }
 
     #[test]
@@ -437,23 +331,11 @@ mod tests {
             assert!((12..200_000).contains(&n), "{}: {n} triangles", s.name);
             assert_eq!(s.scene.material_of_triangle.len(), n);
             assert!(!s.description.is_empty());
-            let normals = s
-                .scene
-                .mesh
-                .normals
-                .as_ref()
-                .expect("shading normals everywhere");
-            assert!(
-                normals
-                    .iter()
-                    .all(|n| n.is_finite() && (n.length() - 1.0).abs() < 1e-3)
-            );
+            let normals = s.scene.mesh.normals.as_ref().expect("shading normals everywhere");
+            assert!(normals.iter().all(|n| n.is_finite() && (n.length() - 1.0).abs() < 1e-3));
             let has_light = s.scene.sun.is_some()
                 || !s.scene.environment.is_black()
-                || s.scene
-                    .materials
-                    .iter()
-                    .any(|m| matches!(m, Material::Emissive { .. }));
+                || s.scene.materials.iter().any(|m| matches!(m, Material::Emissive { .. }));
             assert!(has_light, "{} has no light", s.name);
             println!("{:<11} {n:>7} triangles", s.name);
         }
@@ -463,19 +345,9 @@ mod tests {
     fn imported_scenes_are_framed_around_their_bounds() {
         let mut b = SceneBuilder::new();
         let cube = shapes::cuboid(Vec3::splat(2.0)).expect("ok");
-        b.add(
-            &cube,
-            Affine3A::from_translation(Vec3::new(5.0, 0.0, 1.0)),
-            Material::lambertian(Vec3::ONE),
-        );
+        b.add(&cube, Affine3A::from_translation(Vec3::new(5.0, 0.0, 1.0)), Material::lambertian(Vec3::ONE));
         let framed = BuiltinScene::from_imported(b.build().expect("valid")).expect("framed");
-        let Framing::Object {
-            center,
-            radius,
-            orbit_radius,
-            hemisphere,
-        } = framed.framing
-        else {
+        let Framing::Object { center, radius, orbit_radius, hemisphere } = framed.framing else {
             panic!("object framing expected");
         };
         assert!((center - Vec3::new(5.0, 0.0, 1.0)).length() < 1e-5);
@@ -485,21 +357,14 @@ mod tests {
         assert!((eye.distance(target) - orbit_radius).abs() < 1e-4 && fov > 0.3);
         let mut flat = Scene::clone(&framed.scene);
         flat.mesh.positions.iter_mut().for_each(|p| *p = Vec3::ONE);
-        assert!(matches!(
-            BuiltinScene::from_imported(flat),
-            Err(SceneLookupError::Unframeable { .. })
-        ));
+        assert!(matches!(BuiltinScene::from_imported(flat), Err(SceneLookupError::Unframeable { .. })));
     }
 
     #[test]
     fn backgrounds_and_dataset_fov_follow_the_framing() {
         for s in all() {
             let interior = matches!(s.framing, Framing::Interior { .. });
-            let expected = if interior {
-                Background::Environment
-            } else {
-                Background::Transparent
-            };
+            let expected = if interior { Background::Environment } else { Background::Transparent };
             assert_eq!(s.default_background(), expected, "{}", s.name);
             let fov = s.dataset_fov_x();
             assert!((0.5..1.3).contains(&fov), "{}: {fov}", s.name);
@@ -524,12 +389,7 @@ mod tests {
     #[test]
     fn unknown_name_lists_the_valid_ones() {
         let err = builtin("teapot").expect_err("no teapot");
-        assert_eq!(
-            err,
-            SceneLookupError::Unknown {
-                name: "teapot".into()
-            }
-        );
+        assert_eq!(err, SceneLookupError::Unknown { name: "teapot".into() });
         let message = err.to_string();
         for n in names() {
             assert!(message.contains(n), "{message}");
@@ -544,24 +404,9 @@ mod tests {
             let (eye, target, fov) = s.default_view();
             assert!(eye.is_finite() && target.is_finite() && fov > 0.3 && fov < 1.6);
             match s.framing {
-                Framing::Object {
-                    center,
-                    radius,
-                    orbit_radius,
-                    hemisphere,
-                } => {
-                    let far = s
-                        .scene
-                        .mesh
-                        .positions
-                        .iter()
-                        .map(|p| p.distance(center))
-                        .fold(0.0f32, f32::max);
-                    assert!(
-                        far <= radius * (1.0 + 1e-5),
-                        "{}: vertex {far} from centre, radius {radius}",
-                        s.name
-                    );
+                Framing::Object { center, radius, orbit_radius, hemisphere } => {
+                    let far = s.scene.mesh.positions.iter().map(|p| p.distance(center)).fold(0.0f32, f32::max);
+                    assert!(far <= radius * (1.0 + 1e-5), "{}: vertex {far} from centre, radius {radius}", s.name);
                     assert!(radius <= 1.55 && orbit_radius > 2.0 * radius);
                     assert!((eye.distance(center) - orbit_radius).abs() < 1e-4);
                     assert!(eye.z > center.z);
@@ -572,18 +417,9 @@ mod tests {
                         assert!(lo.z >= -1e-4, "{}: nothing below the ground", s.name);
                     }
                 }
-                Framing::Interior {
-                    min,
-                    max,
-                    eye,
-                    look_at,
-                } => {
+                Framing::Interior { min, max, eye, look_at } => {
                     let (lo, hi) = s.scene.bounds().expect("bounds");
-                    assert!(
-                        min.cmpgt(lo).all() && max.cmplt(hi).all(),
-                        "{}: box inside",
-                        s.name
-                    );
+                    assert!(min.cmpgt(lo).all() && max.cmplt(hi).all(), "{}: box inside", s.name);
                     assert!(eye.cmpge(min).all() && eye.cmple(max).all());
                     assert!(look_at.cmpgt(lo).all() && look_at.cmplt(hi).all());
                     assert!((lo - Vec3::new(-2.5, -2.0, 0.0)).length() < 1e-5);
@@ -604,41 +440,25 @@ mod tests {
             .filter(|&(_, &m)| pick(&scene.materials[m as usize]))
             .map(|(t, _)| *t)
             .collect();
-        Mesh {
-            positions: scene.mesh.positions.clone(),
-            normals: None,
-            indices,
-        }
+        Mesh { positions: scene.mesh.positions.clone(), normals: None, indices }
     }
 
     #[test]
     fn furnace_sphere_is_white_closed_and_alone() {
         let s = builtin("furnace").expect("ok");
-        assert_eq!(
-            s.scene.materials,
-            vec![Material::Lambertian { albedo: Vec3::ONE }]
-        );
+        assert_eq!(s.scene.materials, vec![Material::Lambertian { albedo: Vec3::ONE }]);
         assert_eq!(s.scene.environment, Environment::Uniform(Vec3::splat(0.5)));
         assert!(s.scene.sun.is_none());
         assert!(open_edges(&s.scene.mesh).is_empty());
         assert!(signed_volume(&s.scene.mesh) > 0.0);
-        assert!(
-            s.scene
-                .mesh
-                .positions
-                .iter()
-                .all(|p| (p.length() - 1.0).abs() < 1e-5)
-        );
+        assert!(s.scene.mesh.positions.iter().all(|p| (p.length() - 1.0).abs() < 1e-5));
     }
 
     #[test]
     fn shell_is_a_closed_two_sided_glass_wall_around_solid_content() {
         for name in ["shell", "assembly"] {
             let s = builtin(name).expect("ok");
-            let glass = triangles_where(
-                &s,
-                |m| matches!(m, Material::Dielectric { ior, .. } if *ior == 1.5),
-            );
+            let glass = triangles_where(&s, |m| matches!(m, Material::Dielectric { ior, .. } if *ior == 1.5));
             assert!(!glass.indices.is_empty(), "{name}: glass present");
             // Outer sphere outward plus inner sphere inward: closed, and the enclosed volume
             // is the wall's (outer minus inner), positive and small.
@@ -646,26 +466,15 @@ mod tests {
             let wall = signed_volume(&glass);
             let outer = 4.0 / 3.0 * std::f32::consts::PI * objects::SHELL_RADIUS.powi(3);
             let scale = if name == "shell" { 1.0 } else { 0.3f32.powi(3) };
-            assert!(
-                wall > 0.0 && wall < 0.1 * outer * scale,
-                "{name}: wall volume {wall}"
-            );
+            assert!(wall > 0.0 && wall < 0.1 * outer * scale, "{name}: wall volume {wall}");
             let solid = triangles_where(&s, |m| matches!(m, Material::Lambertian { .. }));
             assert!(!solid.indices.is_empty());
         }
         // In "shell" the solid content lies strictly inside the inner glass surface.
         let s = builtin("shell").expect("ok");
         let solid = triangles_where(&s, |m| matches!(m, Material::Lambertian { .. }));
-        let used: Vec<Vec3> = solid
-            .indices
-            .iter()
-            .flatten()
-            .map(|&i| solid.positions[i as usize])
-            .collect();
-        assert!(
-            used.iter()
-                .all(|p| p.length() < objects::SHELL_RADIUS - 0.2)
-        );
+        let used: Vec<Vec3> = solid.indices.iter().flatten().map(|&i| solid.positions[i as usize]).collect();
+        assert!(used.iter().all(|p| p.length() < objects::SHELL_RADIUS - 0.2));
     }
 
     #[test]
@@ -674,9 +483,7 @@ mod tests {
             let s = builtin(name).expect("ok");
             assert!(open_edges(&s.scene.mesh).is_empty(), "{name}: watertight");
             assert!(signed_volume(&s.scene.mesh) > 0.0, "{name}: outward");
-            assert!(
-                s.scene.sun.is_some() && matches!(s.scene.environment, Environment::Sky { .. })
-            );
+            assert!(s.scene.sun.is_some() && matches!(s.scene.environment, Environment::Sky { .. }));
         }
         let glossy = builtin("glossy").expect("ok");
         assert!(glossy.scene.materials.iter().all(|m| matches!(
@@ -705,28 +512,14 @@ mod tests {
         let inside = Vec3::new(0.0, 0.0, 1.4);
         for t in &shell.indices {
             let [a, b, c] = t.map(|i| shell.positions[i as usize]);
-            assert!(
-                (b - a).cross(c - a).dot(inside - (a + b + c) / 3.0) > 0.0,
-                "faces inward"
-            );
+            assert!((b - a).cross(c - a).dot(inside - (a + b + c) / 3.0) > 0.0, "faces inward");
         }
         let day = builtin("room-day").expect("ok");
         let night = builtin("room-night").expect("ok");
-        assert_eq!(
-            day.scene.mesh.positions, night.scene.mesh.positions,
-            "same room"
-        );
+        assert_eq!(day.scene.mesh.positions, night.scene.mesh.positions, "same room");
         let sun = day.scene.sun.expect("sun by day");
-        assert!(
-            sun.direction.z > 0.0 && sun.direction.y < 0.0,
-            "shines in through the south wall"
-        );
-        assert!(
-            !day.scene
-                .materials
-                .iter()
-                .any(|m| matches!(m, Material::Emissive { .. }))
-        );
+        assert!(sun.direction.z > 0.0 && sun.direction.y < 0.0, "shines in through the south wall");
+        assert!(!day.scene.materials.iter().any(|m| matches!(m, Material::Emissive { .. })));
         assert!(night.scene.sun.is_none());
         let lamps = triangles_where(&night, |m| matches!(m, Material::Emissive { .. }));
         assert!(lamps.indices.len() >= 2);
@@ -742,29 +535,16 @@ mod tests {
         let start = Vec3::new(0.3, -0.5, 0.0);
         let t = (-2.0 - start.y) / sun.direction.y;
         let exit = start + sun.direction * t;
-        assert!(
-            room::WINDOWS
-                .iter()
-                .any(|w| exit.x > w[0] && exit.x < w[1] && exit.z > w[2] && exit.z < w[3])
-        );
+        assert!(room::WINDOWS.iter().any(|w| exit.x > w[0] && exit.x < w[1] && exit.z > w[2] && exit.z < w[3]));
     }
 
     #[test]
     fn assembly_stands_on_its_ground() {
         let s = builtin("assembly").expect("ok");
-        assert!(matches!(
-            s.framing,
-            Framing::Object {
-                hemisphere: true,
-                ..
-            }
-        ));
+        assert!(matches!(s.framing, Framing::Object { hemisphere: true, .. }));
         let (lo, hi) = s.scene.bounds().expect("bounds");
         assert!(lo.z.abs() < 1e-4 && hi.z > 0.5);
-        assert!(
-            s.scene.materials.len() >= 8,
-            "all four objects' materials are there"
-        );
+        assert!(s.scene.materials.len() >= 8, "all four objects' materials are there");
     }
 
     #[test]

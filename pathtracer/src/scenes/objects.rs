@@ -18,14 +18,12 @@ pub(crate) fn add_parts(builder: &mut SceneBuilder, parts: &Parts, transform: Af
 
 /// Axis-aligned bounds of the parts once moved by `transform` (`None` if they are empty).
 pub(crate) fn parts_bounds(parts: &Parts, transform: Affine3A) -> Option<(Vec3, Vec3)> {
-    parts
-        .iter()
-        .flat_map(|(m, _)| m.positions.iter())
-        .map(|&p| transform.transform_point3(p))
-        .fold(None, |acc, p| match acc {
+    parts.iter().flat_map(|(m, _)| m.positions.iter()).map(|&p| transform.transform_point3(p)).fold(None, |acc, p| {
+        match acc {
             None => Some((p, p)),
             Some((lo, hi)) => Some((lo.min(p), hi.max(p))),
-        })
+        }
+    })
 }
 
 /// Radius of the sphere around the origin that holds the knot (centre line within 1.2,
@@ -35,10 +33,7 @@ pub(crate) const KNOT_RADIUS: f32 = 1.38;
 /// An orange matte trefoil knot, about 2.8 m across and 1.2 m tall.
 pub(crate) fn knot() -> Result<Parts, ShapeError> {
     let mesh = shapes::torus_knot(2, 3, 1.2, 0.18, 512, 24)?;
-    Ok(vec![(
-        mesh,
-        Material::lambertian(Vec3::new(0.8, 0.32, 0.06)),
-    )])
+    Ok(vec![(mesh, Material::lambertian(Vec3::new(0.8, 0.32, 0.06)))])
 }
 
 /// Everything lies within this radius of the origin (the torus: 0.95 + 0.28).
@@ -47,16 +42,12 @@ pub(crate) const GLOSSY_RADIUS: f32 = 1.23;
 /// A tilted polished-gold torus around a glossy blue plastic ball: sharp, moving
 /// highlights from the sun and the sky.
 pub(crate) fn glossy_pair() -> Result<Parts, ShapeError> {
-    let ring = shapes::torus(0.95, 0.28, 160, 48)?.transformed(Affine3A::from_quat(
-        Quat::from_rotation_x(55f32.to_radians()),
-    ));
+    let ring =
+        shapes::torus(0.95, 0.28, 160, 48)?.transformed(Affine3A::from_quat(Quat::from_rotation_x(55f32.to_radians())));
     let ball = shapes::icosphere(0.55, 5)?;
     Ok(vec![
         (ring, Material::metal(Vec3::new(0.95, 0.74, 0.36), 0.18)),
-        (
-            ball,
-            Material::glossy(Vec3::new(0.04, 0.09, 0.42), Vec3::splat(0.04), 0.12),
-        ),
+        (ball, Material::glossy(Vec3::new(0.04, 0.09, 0.42), Vec3::splat(0.04), 0.12)),
     ])
 }
 
@@ -102,12 +93,14 @@ pub(crate) fn glass_shell() -> Result<Parts, ShapeError> {
     let inner = shapes::flipped(&shapes::icosphere(SHELL_RADIUS - SHELL_THICKNESS, 5)?);
     // Content: every point of the cube is within 0.65 of the centre, every point of the
     // ring between 0.79 and 0.97, and the inner glass is at 1.22, so nothing touches.
-    let cube = shapes::cuboid(Vec3::splat(0.75))?.transformed(Affine3A::from_quat(
-        Quat::from_euler(glam::EulerRot::XYZ, 0.6, 0.5, 0.3),
-    ));
-    let ring = shapes::torus(0.88, 0.09, 96, 16)?.transformed(Affine3A::from_quat(
-        Quat::from_rotation_z(0.35) * Quat::from_rotation_x(70f32.to_radians()),
-    ));
+    let cube = shapes::cuboid(Vec3::splat(0.75))?.transformed(Affine3A::from_quat(Quat::from_euler(
+        glam::EulerRot::XYZ,
+        0.6,
+        0.5,
+        0.3,
+    )));
+    let ring = shapes::torus(0.88, 0.09, 96, 16)?
+        .transformed(Affine3A::from_quat(Quat::from_rotation_z(0.35) * Quat::from_rotation_x(70f32.to_radians())));
     Ok(vec![
         (outer, shell_glass()),
         (inner, shell_glass()),
@@ -118,8 +111,5 @@ pub(crate) fn glass_shell() -> Result<Parts, ShapeError> {
 
 /// A closed white (albedo exactly 1) sphere of radius 1 for the furnace test.
 pub(crate) fn furnace_sphere() -> Result<Parts, ShapeError> {
-    Ok(vec![(
-        shapes::icosphere(1.0, 4)?,
-        Material::lambertian(Vec3::ONE),
-    )])
+    Ok(vec![(shapes::icosphere(1.0, 4)?, Material::lambertian(Vec3::ONE))])
 }

@@ -65,10 +65,7 @@ fn panel(
     if Vec3::from(unit_a).cross(Vec3::from(unit_b)).dot(facing) > 0.0 {
         Ok(mesh)
     } else {
-        Ok(Mesh {
-            normals: Some(vec![facing; mesh.positions.len()]),
-            ..shapes::flipped(&mesh)
-        })
+        Ok(Mesh { normals: Some(vec![facing; mesh.positions.len()]), ..shapes::flipped(&mesh) })
     }
 }
 
@@ -104,19 +101,11 @@ const TABLE_TOP: f32 = 0.76;
 fn furniture() -> Result<Vec<(Mesh, Affine3A, Material)>, ShapeError> {
     let wood = Material::lambertian(Vec3::new(0.42, 0.25, 0.12));
     let (tx, ty) = (0.3, 0.3);
-    let mut items = vec![(
-        shapes::cuboid(Vec3::new(1.4, 0.8, 0.05))?,
-        at(tx, ty, TABLE_TOP - 0.025),
-        wood,
-    )];
+    let mut items = vec![(shapes::cuboid(Vec3::new(1.4, 0.8, 0.05))?, at(tx, ty, TABLE_TOP - 0.025), wood)];
     // Legs reach 1 cm into the top so that no crack shows.
     let leg = shapes::cuboid(Vec3::new(0.06, 0.06, TABLE_TOP - 0.04))?;
     for (sx, sy) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
-        items.push((
-            leg.clone(),
-            at(tx + sx * 0.62, ty + sy * 0.32, (TABLE_TOP - 0.04) / 2.0),
-            wood,
-        ));
+        items.push((leg.clone(), at(tx + sx * 0.62, ty + sy * 0.32, (TABLE_TOP - 0.04) / 2.0), wood));
     }
     // On the table: a glossy red ball and a brushed-metal capsule "vase".
     items.push((
@@ -140,11 +129,7 @@ fn furniture() -> Result<Vec<(Mesh, Affine3A, Material)>, ShapeError> {
         turned(-0.35, -1.8, 1.28, 0.8),
         Material::lambertian(Vec3::new(0.25, 0.42, 0.6)),
     ));
-    items.push((
-        shapes::icosphere(0.25, 4)?,
-        at(0.9, -0.7, 0.25),
-        Material::lambertian(Vec3::new(0.85, 0.65, 0.15)),
-    ));
+    items.push((shapes::icosphere(0.25, 4)?, at(0.9, -0.7, 0.25), Material::lambertian(Vec3::new(0.85, 0.65, 0.15))));
     // The ceiling lamp's housing and the table lamp's base and stem.
     items.push((
         shapes::cuboid(Vec3::new(0.7, 0.5, 0.06))?,
@@ -152,16 +137,8 @@ fn furniture() -> Result<Vec<(Mesh, Affine3A, Material)>, ShapeError> {
         Material::lambertian(Vec3::splat(0.7)),
     ));
     let dark_metal = Material::metal(Vec3::splat(0.3), 0.4);
-    items.push((
-        shapes::cylinder(0.07, 0.02, 32)?,
-        at(0.85, 0.55, TABLE_TOP + 0.01),
-        dark_metal,
-    ));
-    items.push((
-        shapes::cylinder(0.012, 0.3, 16)?,
-        at(0.85, 0.55, TABLE_TOP + 0.17),
-        dark_metal,
-    ));
+    items.push((shapes::cylinder(0.07, 0.02, 32)?, at(0.85, 0.55, TABLE_TOP + 0.01), dark_metal));
+    items.push((shapes::cylinder(0.012, 0.3, 16)?, at(0.85, 0.55, TABLE_TOP + 0.17), dark_metal));
     Ok(items)
 }
 
@@ -180,26 +157,12 @@ pub(crate) fn room(night: bool) -> Result<Scene, BuildFailure> {
     // The lamps are diffusers by day and area lights (front faces only) by night: the
     // ceiling one is a quad 1 mm below its housing, facing down.
     let (ceiling_lamp, table_lamp) = if night {
-        (
-            Material::emissive(CEILING_LAMP),
-            Material::emissive(TABLE_LAMP),
-        )
+        (Material::emissive(CEILING_LAMP), Material::emissive(TABLE_LAMP))
     } else {
-        (
-            Material::lambertian(Vec3::splat(0.9)),
-            Material::lambertian(Vec3::new(0.9, 0.9, 0.85)),
-        )
+        (Material::lambertian(Vec3::splat(0.9)), Material::lambertian(Vec3::new(0.9, 0.9, 0.85)))
     };
-    b.add(
-        &shapes::flipped(&shapes::quad(0.6, 0.4)?),
-        at(0.0, 0.0, HEIGHT - 0.061),
-        ceiling_lamp,
-    );
-    b.add(
-        &shapes::icosphere(0.05, 3)?,
-        at(0.85, 0.55, TABLE_TOP + 0.365),
-        table_lamp,
-    );
+    b.add(&shapes::flipped(&shapes::quad(0.6, 0.4)?), at(0.0, 0.0, HEIGHT - 0.061), ceiling_lamp);
+    b.add(&shapes::icosphere(0.05, 3)?, at(0.85, 0.55, TABLE_TOP + 0.365), table_lamp);
     if night {
         b.environment(Environment::Sky {
             zenith: Vec3::new(0.004, 0.006, 0.02),

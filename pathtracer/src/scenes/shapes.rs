@@ -14,8 +14,8 @@ use std::f32::consts::{PI, TAU};
 use glam::{Quat, Vec2, Vec3};
 use thiserror::Error;
 
-use nephele_geometry::SplitMix64;
 use crate::Mesh;
+use nephele_geometry::SplitMix64;
 
 /// The largest mesh any generator builds (keeps indices in `u32` and memory bounded).
 pub const MAX_TRIANGLES: u64 = 4_000_000;
@@ -31,17 +31,9 @@ pub enum ShapeError {
     #[error("{what} must be finite")]
     NotFinite { what: &'static str },
     #[error("{what} must be at least {min}, got {value}")]
-    TooFew {
-        what: &'static str,
-        value: u32,
-        min: u32,
-    },
+    TooFew { what: &'static str, value: u32, min: u32 },
     #[error("{what} must be at most {max}, got {value}")]
-    TooMany {
-        what: &'static str,
-        value: u32,
-        max: u32,
-    },
+    TooMany { what: &'static str, value: u32, max: u32 },
     #[error("the mesh would have {triangles} triangles, more than the limit of {MAX_TRIANGLES}")]
     TooLarge { triangles: u64 },
     #[error("{0}")]
@@ -49,46 +41,26 @@ pub enum ShapeError {
 }
 
 fn positive(what: &'static str, value: f32) -> Result<f32, ShapeError> {
-    if value.is_finite() && value > 0.0 {
-        Ok(value)
-    } else {
-        Err(ShapeError::NotPositive { what, value })
-    }
+    if value.is_finite() && value > 0.0 { Ok(value) } else { Err(ShapeError::NotPositive { what, value }) }
 }
 
 fn finite(what: &'static str, value: Vec3) -> Result<Vec3, ShapeError> {
-    if value.is_finite() {
-        Ok(value)
-    } else {
-        Err(ShapeError::NotFinite { what })
-    }
+    if value.is_finite() { Ok(value) } else { Err(ShapeError::NotFinite { what }) }
 }
 
 fn at_least(what: &'static str, value: u32, min: u32) -> Result<u32, ShapeError> {
-    if value >= min {
-        Ok(value)
-    } else {
-        Err(ShapeError::TooFew { what, value, min })
-    }
+    if value >= min { Ok(value) } else { Err(ShapeError::TooFew { what, value, min }) }
 }
 
 fn at_most(what: &'static str, value: u32, max: u32) -> Result<u32, ShapeError> {
-    if value <= max {
-        Ok(value)
-    } else {
-        Err(ShapeError::TooMany { what, value, max })
-    }
+    if value <= max { Ok(value) } else { Err(ShapeError::TooMany { what, value, max }) }
 }
 
 /// Checks that a mesh of `factors` multiplied together triangles stays within
 /// [`MAX_TRIANGLES`] (saturating, so absurd arguments cannot overflow).
 fn budget(factors: &[u64]) -> Result<(), ShapeError> {
     let triangles = factors.iter().fold(1u64, |acc, &f| acc.saturating_mul(f));
-    if triangles <= MAX_TRIANGLES {
-        Ok(())
-    } else {
-        Err(ShapeError::TooLarge { triangles })
-    }
+    if triangles <= MAX_TRIANGLES { Ok(()) } else { Err(ShapeError::TooLarge { triangles }) }
 }
 
 /// The same surface seen from the other side: winding reversed and normals negated (turns
@@ -96,10 +68,7 @@ fn budget(factors: &[u64]) -> Result<(), ShapeError> {
 pub fn flipped(mesh: &Mesh) -> Mesh {
     Mesh {
         positions: mesh.positions.clone(),
-        normals: mesh
-            .normals
-            .as_ref()
-            .map(|ns| ns.iter().map(|&n| -n).collect()),
+        normals: mesh.normals.as_ref().map(|ns| ns.iter().map(|&n| -n).collect()),
         indices: mesh.indices.iter().map(|&[a, b, c]| [a, c, b]).collect(),
     }
 }
@@ -118,12 +87,7 @@ pub fn uv_sphere(radius: f32, segments: u32, rings: u32) -> Result<Mesh, ShapeEr
             (n * radius, n)
         })
         .collect();
-    Ok(lathe(
-        &profile,
-        segments,
-        Vec3::Z * radius,
-        Vec3::NEG_Z * radius,
-    ))
+    Ok(lathe(&profile, segments, Vec3::Z * radius, Vec3::NEG_Z * radius))
 }
 
 /// A closed surface of revolution about Z. `profile` lists `(position, normal)` at azimuth
@@ -157,12 +121,7 @@ fn lathe(profile: &[(Vec3, Vec3)], segments: u32, north: Vec3, south: Vec3) -> M
     }
     for k in 0..rings.saturating_sub(1) {
         for j in 0..segments {
-            let (a, b, c, d) = (
-                ring(k, j),
-                ring(k + 1, j),
-                ring(k + 1, j + 1),
-                ring(k, j + 1),
-            );
+            let (a, b, c, d) = (ring(k, j), ring(k + 1, j), ring(k + 1, j + 1), ring(k, j + 1));
             indices.push([a, b, c]);
             indices.push([a, c, d]);
         }
@@ -170,11 +129,7 @@ fn lathe(profile: &[(Vec3, Vec3)], segments: u32, north: Vec3, south: Vec3) -> M
     for j in 0..segments {
         indices.push([ring(rings - 1, j), south_index, ring(rings - 1, j + 1)]);
     }
-    Mesh {
-        positions,
-        normals: Some(normals),
-        indices,
-    }
+    Mesh { positions, normals: Some(normals), indices }
 }
 
 /// A geodesic sphere centred at the origin: an icosahedron subdivided `subdivisions` times
@@ -182,11 +137,7 @@ fn lathe(profile: &[(Vec3, Vec3)], segments: u32, north: Vec3, south: Vec3) -> M
 /// shared, normals radial.
 pub fn icosphere(radius: f32, subdivisions: u32) -> Result<Mesh, ShapeError> {
     positive("icosphere radius", radius)?;
-    at_most(
-        "icosphere subdivisions",
-        subdivisions,
-        MAX_ICOSPHERE_SUBDIVISIONS,
-    )?;
+    at_most("icosphere subdivisions", subdivisions, MAX_ICOSPHERE_SUBDIVISIONS)?;
     let t = (1.0 + 5f32.sqrt()) / 2.0;
     let mut unit: Vec<Vec3> = [
         (-1.0, t, 0.0),
@@ -252,11 +203,7 @@ pub fn icosphere(radius: f32, subdivisions: u32) -> Result<Mesh, ShapeError> {
         }
         faces = next;
     }
-    Ok(Mesh {
-        positions: unit.iter().map(|&n| n * radius).collect(),
-        normals: Some(unit),
-        indices: faces,
-    })
+    Ok(Mesh { positions: unit.iter().map(|&n| n * radius).collect(), normals: Some(unit), indices: faces })
 }
 
 /// An axis-aligned box of the given full `size`, centred at the origin: 6 faces of 4
@@ -290,11 +237,7 @@ pub fn cuboid(size: Vec3) -> Result<Mesh, ShapeError> {
         indices.push([base, base + 1, base + 2]);
         indices.push([base, base + 2, base + 3]);
     }
-    Ok(Mesh {
-        positions,
-        normals: Some(normals),
-        indices,
-    })
+    Ok(Mesh { positions, normals: Some(normals), indices })
 }
 
 /// Sweeps a circle of `radius` (with `sides` vertices) along a closed polyline `centres`
@@ -333,11 +276,7 @@ fn sweep_closed(centres: &[Vec3], frames: &[Vec3], radius: f32, sides: u32) -> M
             indices.push([index(i + 1, j), index(i, j + 1), index(i + 1, j + 1)]);
         }
     }
-    Mesh {
-        positions,
-        normals: Some(normals),
-        indices,
-    }
+    Mesh { positions, normals: Some(normals), indices }
 }
 
 /// A ring torus around the Z axis: tube of `minor_radius` around a circle of
@@ -366,12 +305,7 @@ pub fn torus(
             (radial * major_radius, radial)
         })
         .unzip();
-    Ok(sweep_closed(
-        &centres,
-        &frames,
-        minor_radius,
-        minor_segments,
-    ))
+    Ok(sweep_closed(&centres, &frames, minor_radius, minor_segments))
 }
 
 fn gcd(a: u32, b: u32) -> u32 {
@@ -396,9 +330,7 @@ pub fn torus_knot(
     let p = at_least("torus knot p", p, 1)?;
     let q = at_least("torus knot q", q, 1)?;
     if gcd(p, q) != 1 {
-        return Err(ShapeError::Inconsistent(format!(
-            "torus knot ({p}, {q}) is not a knot: p and q must be coprime"
-        )));
+        return Err(ShapeError::Inconsistent(format!("torus knot ({p}, {q}) is not a knot: p and q must be coprime")));
     }
     positive("torus knot radius", radius)?;
     positive("torus knot tube radius", tube_radius)?;
@@ -415,11 +347,7 @@ pub fn torus_knot(
     let (pf, qf) = (p as f32, q as f32);
     let curve = |t: f32| {
         let r = big + small * (qf * t).cos();
-        Vec3::new(
-            r * (pf * t).cos(),
-            r * (pf * t).sin(),
-            small * (qf * t).sin(),
-        )
+        Vec3::new(r * (pf * t).cos(), r * (pf * t).sin(), small * (qf * t).sin())
     };
     let n = segments as usize;
     let centres: Vec<Vec3> = (0..n).map(|i| curve(TAU * i as f32 / n as f32)).collect();
@@ -443,9 +371,7 @@ pub fn torus_knot(
     }
     let mesh = sweep_closed(&centres, &frames, tube_radius, sides);
     if !mesh.positions.iter().all(|p| p.is_finite()) {
-        return Err(ShapeError::Inconsistent(
-            "torus knot frame degenerated".into(),
-        ));
+        return Err(ShapeError::Inconsistent("torus knot frame degenerated".into()));
     }
     Ok(mesh)
 }
@@ -492,18 +418,10 @@ pub fn cylinder(radius: f32, height: f32, segments: u32) -> Result<Mesh, ShapeEr
         }
         for j in 0..segments {
             let (a, b) = (centre + 1 + j, centre + 1 + (j + 1) % segments);
-            indices.push(if n.z > 0.0 {
-                [centre, a, b]
-            } else {
-                [centre, b, a]
-            });
+            indices.push(if n.z > 0.0 { [centre, a, b] } else { [centre, b, a] });
         }
     }
-    Ok(Mesh {
-        positions,
-        normals: Some(normals),
-        indices,
-    })
+    Ok(Mesh { positions, normals: Some(normals), indices })
 }
 
 /// A capsule along Z centred at the origin: a cylinder of `length` (>= 0) capped by two
@@ -512,9 +430,7 @@ pub fn cylinder(radius: f32, height: f32, segments: u32) -> Result<Mesh, ShapeEr
 pub fn capsule(radius: f32, length: f32, segments: u32, rings: u32) -> Result<Mesh, ShapeError> {
     positive("capsule radius", radius)?;
     if !(length.is_finite() && length >= 0.0) {
-        return Err(ShapeError::Inconsistent(format!(
-            "capsule length {length} must be finite and >= 0"
-        )));
+        return Err(ShapeError::Inconsistent(format!("capsule length {length} must be finite and >= 0")));
     }
     let segments = at_least("capsule segments", segments, 3)?;
     let rings = at_least("capsule rings", rings, 1)?;
@@ -535,12 +451,7 @@ pub fn capsule(radius: f32, length: f32, segments: u32, rings: u32) -> Result<Me
         let n = Vec3::new(theta.sin(), 0.0, theta.cos());
         profile.push((n * radius - Vec3::Z * half, n));
     }
-    Ok(lathe(
-        &profile,
-        segments,
-        Vec3::Z * (half + radius),
-        Vec3::NEG_Z * (half + radius),
-    ))
+    Ok(lathe(&profile, segments, Vec3::Z * (half + radius), Vec3::NEG_Z * (half + radius)))
 }
 
 /// A `width` x `height` rectangle in the XY plane, centred at the origin, facing +Z.
@@ -549,12 +460,7 @@ pub fn quad(width: f32, height: f32) -> Result<Mesh, ShapeError> {
     positive("quad height", height)?;
     let (w, h) = (width * 0.5, height * 0.5);
     Ok(Mesh {
-        positions: vec![
-            Vec3::new(-w, -h, 0.0),
-            Vec3::new(w, -h, 0.0),
-            Vec3::new(w, h, 0.0),
-            Vec3::new(-w, h, 0.0),
-        ],
+        positions: vec![Vec3::new(-w, -h, 0.0), Vec3::new(w, -h, 0.0), Vec3::new(w, h, 0.0), Vec3::new(-w, h, 0.0)],
         normals: Some(vec![Vec3::Z; 4]),
         indices: vec![[0, 1, 2], [0, 2, 3]],
     })
@@ -570,14 +476,8 @@ pub fn disc(radius: f32, segments: u32) -> Result<Mesh, ShapeError> {
         let phi = TAU * j as f32 / segments as f32;
         Vec3::new(radius * phi.cos(), radius * phi.sin(), 0.0)
     }));
-    let indices = (0..segments)
-        .map(|j| [0, 1 + j, 1 + (j + 1) % segments])
-        .collect();
-    Ok(Mesh {
-        normals: Some(vec![Vec3::Z; positions.len()]),
-        positions,
-        indices,
-    })
+    let indices = (0..segments).map(|j| [0, 1 + j, 1 + (j + 1) % segments]).collect();
+    Ok(Mesh { normals: Some(vec![Vec3::Z; positions.len()]), positions, indices })
 }
 
 /// A rectangular opening in a [`wall_with_openings`], in the wall's local coordinates.
@@ -591,11 +491,7 @@ pub struct Opening {
 /// facing +Z, with rectangular holes. The wall is a grid cut at every opening edge, so
 /// neighbouring cells share whole edges (no T-junctions). Openings must lie strictly inside
 /// the wall; overlapping openings simply merge.
-pub fn wall_with_openings(
-    width: f32,
-    height: f32,
-    openings: &[Opening],
-) -> Result<Mesh, ShapeError> {
+pub fn wall_with_openings(width: f32, height: f32, openings: &[Opening]) -> Result<Mesh, ShapeError> {
     positive("wall width", width)?;
     positive("wall height", height)?;
     let mut xs = vec![0.0, width];
@@ -618,10 +514,7 @@ pub fn wall_with_openings(
         xs.extend([o.min.x, o.max.x]);
         ys.extend([o.min.y, o.max.y]);
     }
-    let holes: Vec<[f32; 4]> = openings
-        .iter()
-        .map(|o| [o.min.x, o.max.x, o.min.y, o.max.y])
-        .collect();
+    let holes: Vec<[f32; 4]> = openings.iter().map(|o| [o.min.x, o.max.x, o.min.y, o.max.y]).collect();
     grid_panel(&xs, &ys, &holes)
 }
 
@@ -644,37 +537,22 @@ pub(crate) fn grid_panel(xs: &[f32], ys: &[f32], holes: &[[f32; 4]]) -> Result<M
     at_least("panel rows", ys.len().saturating_sub(1) as u32, 1)?;
     budget(&[2, xs.len() as u64, ys.len() as u64])?;
     let nx = xs.len() as u32;
-    let positions: Vec<Vec3> = ys
-        .iter()
-        .flat_map(|&y| xs.iter().map(move |&x| Vec3::new(x, y, 0.0)))
-        .collect();
+    let positions: Vec<Vec3> = ys.iter().flat_map(|&y| xs.iter().map(move |&x| Vec3::new(x, y, 0.0))).collect();
     let mut indices = Vec::new();
     for j in 0..ys.len() - 1 {
         for i in 0..xs.len() - 1 {
             let cx = 0.5 * (xs[i] + xs[i + 1]);
             let cy = 0.5 * (ys[j] + ys[j + 1]);
-            if holes
-                .iter()
-                .any(|h| cx > h[0] && cx < h[1] && cy > h[2] && cy < h[3])
-            {
+            if holes.iter().any(|h| cx > h[0] && cx < h[1] && cy > h[2] && cy < h[3]) {
                 continue;
             }
             let (i, j) = (i as u32, j as u32);
-            let (a, b, c, d) = (
-                j * nx + i,
-                j * nx + i + 1,
-                (j + 1) * nx + i + 1,
-                (j + 1) * nx + i,
-            );
+            let (a, b, c, d) = (j * nx + i, j * nx + i + 1, (j + 1) * nx + i + 1, (j + 1) * nx + i);
             indices.push([a, b, c]);
             indices.push([a, c, d]);
         }
     }
-    Ok(Mesh {
-        normals: Some(vec![Vec3::Z; positions.len()]),
-        positions,
-        indices,
-    })
+    Ok(Mesh { normals: Some(vec![Vec3::Z; positions.len()]), positions, indices })
 }
 
 /// Shape of one fibre: a flat ribbon tapering from `root_width` to `tip_width`, following
@@ -699,10 +577,7 @@ pub const MAX_FIBRE_SEGMENTS: u32 = 3;
 
 /// One fibre as a mesh (see [`Fibre`]).
 pub fn fibre(spec: &Fibre) -> Result<Mesh, ShapeError> {
-    let mut mesh = Mesh {
-        normals: Some(Vec::new()),
-        ..Mesh::default()
-    };
+    let mut mesh = Mesh { normals: Some(Vec::new()), ..Mesh::default() };
     push_fibre(&mut mesh, spec)?;
     Ok(mesh)
 }
@@ -713,18 +588,13 @@ fn push_fibre(mesh: &mut Mesh, spec: &Fibre) -> Result<(), ShapeError> {
     positive("fibre length", spec.length)?;
     positive("fibre root width", spec.root_width)?;
     if !(spec.tip_width.is_finite() && spec.tip_width >= 0.0) {
-        return Err(ShapeError::Inconsistent(format!(
-            "fibre tip width {} must be finite and >= 0",
-            spec.tip_width
-        )));
+        return Err(ShapeError::Inconsistent(format!("fibre tip width {} must be finite and >= 0", spec.tip_width)));
     }
     let segments = at_least("fibre segments", spec.segments, 1)?;
     at_most("fibre segments", segments, MAX_FIBRE_SEGMENTS)?;
     let dir = finite("fibre direction", spec.direction)?.normalize_or_zero();
     if dir == Vec3::ZERO {
-        return Err(ShapeError::Inconsistent(
-            "fibre direction must not be zero".into(),
-        ));
+        return Err(ShapeError::Inconsistent("fibre direction must not be zero".into()));
     }
     let p0 = spec.root;
     let p1 = p0 + dir * (0.5 * spec.length);
@@ -746,12 +616,7 @@ fn push_fibre(mesh: &mut Mesh, spec: &Fibre) -> Result<(), ShapeError> {
         normals.extend([n, n]);
     }
     for k in 0..segments {
-        let (l0, r0, l1, r1) = (
-            base + 2 * k,
-            base + 2 * k + 1,
-            base + 2 * k + 2,
-            base + 2 * k + 3,
-        );
+        let (l0, r0, l1, r1) = (base + 2 * k, base + 2 * k + 1, base + 2 * k + 2, base + 2 * k + 3);
         mesh.indices.push([l0, r0, r1]);
         mesh.indices.push([l0, r1, l1]);
     }
@@ -795,16 +660,10 @@ pub fn fur_on_sphere(radius: f32, fur: &Fur) -> Result<Mesh, ShapeError> {
         )));
     }
     if !(fur.max_tilt.is_finite() && (0.0..PI / 2.0).contains(&fur.max_tilt)) {
-        return Err(ShapeError::Inconsistent(format!(
-            "fibre tilt {} must lie in [0, pi/2)",
-            fur.max_tilt
-        )));
+        return Err(ShapeError::Inconsistent(format!("fibre tilt {} must lie in [0, pi/2)", fur.max_tilt)));
     }
     if !(fur.curl.is_finite() && fur.curl >= 0.0) {
-        return Err(ShapeError::Inconsistent(format!(
-            "fibre curl {} must be >= 0",
-            fur.curl
-        )));
+        return Err(ShapeError::Inconsistent(format!("fibre curl {} must be >= 0", fur.curl)));
     }
     at_most("fibre segments", fur.segments, MAX_FIBRE_SEGMENTS)?;
     budget(&[u64::from(fur.count), 2, u64::from(fur.segments)])?;
@@ -861,10 +720,7 @@ pub(crate) mod tests {
                 *ids.entry(key(p)).or_insert(next)
             })
             .collect();
-        mesh.indices
-            .iter()
-            .map(|t| t.map(|i| remap[i as usize]))
-            .collect()
+        mesh.indices.iter().map(|t| t.map(|i| remap[i as usize])).collect()
     }
 
     /// Directed edges that do not have exactly one opposite partner, after welding. Empty
@@ -908,61 +764,24 @@ pub(crate) mod tests {
 
     fn assert_closed_outward(name: &str, mesh: &Mesh, volume: f32, tolerance: f32) {
         mesh.validate().expect("valid mesh");
-        assert!(
-            open_edges(mesh).is_empty(),
-            "{name}: open or inconsistent edges"
-        );
+        assert!(open_edges(mesh).is_empty(), "{name}: open or inconsistent edges");
         let v = signed_volume(mesh);
         assert!(v > 0.0, "{name}: signed volume {v} not positive");
-        assert!(
-            (v - volume).abs() <= tolerance * volume,
-            "{name}: volume {v}, expected {volume}"
-        );
-        assert!(
-            normals_agree(mesh),
-            "{name}: shading normals disagree with winding"
-        );
+        assert!((v - volume).abs() <= tolerance * volume, "{name}: volume {v}, expected {volume}");
+        assert!(normals_agree(mesh), "{name}: shading normals disagree with winding");
         let n = mesh.normals.as_ref().expect("normals");
-        assert!(
-            n.iter().all(|n| (n.length() - 1.0).abs() < 1e-4),
-            "{name}: unit normals"
-        );
+        assert!(n.iter().all(|n| (n.length() - 1.0).abs() < 1e-4), "{name}: unit normals");
     }
 
     #[test]
     fn closed_meshes_are_watertight_and_outward() {
         let sphere_v = |r: f32| 4.0 / 3.0 * PI * r * r * r;
-        assert_closed_outward(
-            "uv sphere",
-            &uv_sphere(1.5, 48, 24).expect("ok"),
-            sphere_v(1.5),
-            0.02,
-        );
-        assert_closed_outward(
-            "icosphere",
-            &icosphere(0.7, 4).expect("ok"),
-            sphere_v(0.7),
-            0.01,
-        );
-        assert_closed_outward(
-            "icosphere0",
-            &icosphere(1.0, 0).expect("ok"),
-            sphere_v(1.0),
-            0.5,
-        );
-        assert_closed_outward(
-            "box",
-            &cuboid(Vec3::new(1.0, 2.0, 3.0)).expect("ok"),
-            6.0,
-            1e-5,
-        );
+        assert_closed_outward("uv sphere", &uv_sphere(1.5, 48, 24).expect("ok"), sphere_v(1.5), 0.02);
+        assert_closed_outward("icosphere", &icosphere(0.7, 4).expect("ok"), sphere_v(0.7), 0.01);
+        assert_closed_outward("icosphere0", &icosphere(1.0, 0).expect("ok"), sphere_v(1.0), 0.5);
+        assert_closed_outward("box", &cuboid(Vec3::new(1.0, 2.0, 3.0)).expect("ok"), 6.0, 1e-5);
         let torus_v = |big: f32, small: f32| 2.0 * PI * PI * big * small * small;
-        assert_closed_outward(
-            "torus",
-            &torus(1.0, 0.3, 96, 32).expect("ok"),
-            torus_v(1.0, 0.3),
-            0.02,
-        );
+        assert_closed_outward("torus", &torus(1.0, 0.3, 96, 32).expect("ok"), torus_v(1.0, 0.3), 0.02);
         let knot = torus_knot(2, 3, 1.2, 0.18, 512, 24).expect("ok");
         // Tube volume ~ pi r^2 times the length of the centre line.
         let ring: Vec<Vec3> = (0..512)
@@ -971,9 +790,7 @@ pub(crate) mod tests {
                 knot.positions[k..k + 24].iter().copied().sum::<Vec3>() / 24.0
             })
             .collect();
-        let length: f32 = (0..512)
-            .map(|i| ring[i].distance(ring[(i + 1) % 512]))
-            .sum();
+        let length: f32 = (0..512).map(|i| ring[i].distance(ring[(i + 1) % 512])).sum();
         assert_closed_outward("knot", &knot, PI * 0.18 * 0.18 * length, 0.03);
         let cyl = cylinder(0.5, 2.0, 40).expect("ok");
         assert_closed_outward("cylinder", &cyl, PI * 0.25 * 2.0, 0.02);
@@ -1005,11 +822,7 @@ pub(crate) mod tests {
             })
             .fold(0.0f32, f32::max);
         assert!(max_edge < 0.1, "longest edge {max_edge}");
-        let r = knot
-            .positions
-            .iter()
-            .map(|p| p.truncate().length())
-            .fold(0.0f32, f32::max);
+        let r = knot.positions.iter().map(|p| p.truncate().length()).fold(0.0f32, f32::max);
         assert!(r <= 1.1 + 1e-4, "knot within radius + tube, got {r}");
     }
 
@@ -1018,15 +831,8 @@ pub(crate) mod tests {
         for mesh in [
             quad(2.0, 1.0).expect("ok"),
             disc(1.0, 12).expect("ok"),
-            wall_with_openings(
-                5.0,
-                2.8,
-                &[Opening {
-                    min: Vec2::new(1.0, 1.0),
-                    max: Vec2::new(2.0, 2.0),
-                }],
-            )
-            .expect("ok"),
+            wall_with_openings(5.0, 2.8, &[Opening { min: Vec2::new(1.0, 1.0), max: Vec2::new(2.0, 2.0) }])
+                .expect("ok"),
         ] {
             mesh.validate().expect("valid");
             assert!(normals_agree(&mesh));
@@ -1035,15 +841,8 @@ pub(crate) mod tests {
                 assert!((b - a).cross(c - a).z > 0.0);
             }
         }
-        let wall = wall_with_openings(
-            5.0,
-            2.8,
-            &[Opening {
-                min: Vec2::new(1.0, 1.0),
-                max: Vec2::new(2.0, 2.0),
-            }],
-        )
-        .expect("ok");
+        let wall = wall_with_openings(5.0, 2.8, &[Opening { min: Vec2::new(1.0, 1.0), max: Vec2::new(2.0, 2.0) }])
+            .expect("ok");
         let area: f32 = wall
             .indices
             .iter()
@@ -1100,87 +899,27 @@ pub(crate) mod tests {
 
     #[test]
     fn nonsense_arguments_are_errors_not_panics() {
-        assert!(matches!(
-            uv_sphere(1.0, 0, 8),
-            Err(ShapeError::TooFew { .. })
-        ));
-        assert!(matches!(
-            uv_sphere(1.0, 8, 1),
-            Err(ShapeError::TooFew { .. })
-        ));
-        assert!(matches!(
-            uv_sphere(f32::NAN, 8, 8),
-            Err(ShapeError::NotPositive { .. })
-        ));
-        assert!(matches!(
-            uv_sphere(1.0, u32::MAX, u32::MAX),
-            Err(ShapeError::TooLarge { .. })
-        ));
-        assert!(matches!(
-            icosphere(-1.0, 2),
-            Err(ShapeError::NotPositive { .. })
-        ));
-        assert!(matches!(
-            icosphere(1.0, 99),
-            Err(ShapeError::TooMany { .. })
-        ));
-        assert!(matches!(
-            cuboid(Vec3::new(1.0, 0.0, 1.0)),
-            Err(ShapeError::NotPositive { .. })
-        ));
-        assert!(matches!(
-            cuboid(Vec3::INFINITY),
-            Err(ShapeError::NotPositive { .. })
-        ));
-        assert!(matches!(
-            torus(1.0, 2.0, 8, 8),
-            Err(ShapeError::Inconsistent(_))
-        ));
-        assert!(matches!(
-            torus(1.0, 0.2, 0, 8),
-            Err(ShapeError::TooFew { .. })
-        ));
-        assert!(matches!(
-            torus_knot(2, 4, 1.0, 0.1, 64, 8),
-            Err(ShapeError::Inconsistent(_))
-        ));
-        assert!(matches!(
-            torus_knot(0, 3, 1.0, 0.1, 64, 8),
-            Err(ShapeError::TooFew { .. })
-        ));
-        assert!(matches!(
-            torus_knot(2, 3, 1.0, 0.5, 64, 8),
-            Err(ShapeError::Inconsistent(_))
-        ));
-        assert!(matches!(
-            torus_knot(2, 3, 1.0, 0.1, 2, 8),
-            Err(ShapeError::TooFew { .. })
-        ));
-        assert!(matches!(
-            cylinder(1.0, 1.0, 2),
-            Err(ShapeError::TooFew { .. })
-        ));
-        assert!(matches!(
-            capsule(1.0, -1.0, 8, 2),
-            Err(ShapeError::Inconsistent(_))
-        ));
-        assert!(matches!(
-            capsule(1.0, 1.0, 8, 0),
-            Err(ShapeError::TooFew { .. })
-        ));
-        assert!(matches!(
-            quad(0.0, 1.0),
-            Err(ShapeError::NotPositive { .. })
-        ));
+        assert!(matches!(uv_sphere(1.0, 0, 8), Err(ShapeError::TooFew { .. })));
+        assert!(matches!(uv_sphere(1.0, 8, 1), Err(ShapeError::TooFew { .. })));
+        assert!(matches!(uv_sphere(f32::NAN, 8, 8), Err(ShapeError::NotPositive { .. })));
+        assert!(matches!(uv_sphere(1.0, u32::MAX, u32::MAX), Err(ShapeError::TooLarge { .. })));
+        assert!(matches!(icosphere(-1.0, 2), Err(ShapeError::NotPositive { .. })));
+        assert!(matches!(icosphere(1.0, 99), Err(ShapeError::TooMany { .. })));
+        assert!(matches!(cuboid(Vec3::new(1.0, 0.0, 1.0)), Err(ShapeError::NotPositive { .. })));
+        assert!(matches!(cuboid(Vec3::INFINITY), Err(ShapeError::NotPositive { .. })));
+        assert!(matches!(torus(1.0, 2.0, 8, 8), Err(ShapeError::Inconsistent(_))));
+        assert!(matches!(torus(1.0, 0.2, 0, 8), Err(ShapeError::TooFew { .. })));
+        assert!(matches!(torus_knot(2, 4, 1.0, 0.1, 64, 8), Err(ShapeError::Inconsistent(_))));
+        assert!(matches!(torus_knot(0, 3, 1.0, 0.1, 64, 8), Err(ShapeError::TooFew { .. })));
+        assert!(matches!(torus_knot(2, 3, 1.0, 0.5, 64, 8), Err(ShapeError::Inconsistent(_))));
+        assert!(matches!(torus_knot(2, 3, 1.0, 0.1, 2, 8), Err(ShapeError::TooFew { .. })));
+        assert!(matches!(cylinder(1.0, 1.0, 2), Err(ShapeError::TooFew { .. })));
+        assert!(matches!(capsule(1.0, -1.0, 8, 2), Err(ShapeError::Inconsistent(_))));
+        assert!(matches!(capsule(1.0, 1.0, 8, 0), Err(ShapeError::TooFew { .. })));
+        assert!(matches!(quad(0.0, 1.0), Err(ShapeError::NotPositive { .. })));
         assert!(matches!(disc(1.0, 0), Err(ShapeError::TooFew { .. })));
-        let bad = Opening {
-            min: Vec2::new(-1.0, 0.5),
-            max: Vec2::new(1.0, 1.0),
-        };
-        assert!(matches!(
-            wall_with_openings(2.0, 2.0, &[bad]),
-            Err(ShapeError::Inconsistent(_))
-        ));
+        let bad = Opening { min: Vec2::new(-1.0, 0.5), max: Vec2::new(1.0, 1.0) };
+        assert!(matches!(wall_with_openings(2.0, 2.0, &[bad]), Err(ShapeError::Inconsistent(_))));
         let fur = Fur {
             count: 0,
             min_length: 0.1,
@@ -1192,33 +931,13 @@ pub(crate) mod tests {
             curl: 0.1,
             seed: 1,
         };
-        assert!(matches!(
-            fur_on_sphere(1.0, &fur),
-            Err(ShapeError::TooFew { .. })
-        ));
-        let fur = Fur {
-            count: 10,
-            segments: 0,
-            ..fur
-        };
-        assert!(matches!(
-            fur_on_sphere(1.0, &fur),
-            Err(ShapeError::TooFew { .. })
-        ));
+        assert!(matches!(fur_on_sphere(1.0, &fur), Err(ShapeError::TooFew { .. })));
+        let fur = Fur { count: 10, segments: 0, ..fur };
+        assert!(matches!(fur_on_sphere(1.0, &fur), Err(ShapeError::TooFew { .. })));
         let fur = Fur { segments: 9, ..fur };
-        assert!(matches!(
-            fur_on_sphere(1.0, &fur),
-            Err(ShapeError::TooMany { .. })
-        ));
-        let fur = Fur {
-            segments: 2,
-            min_length: 0.5,
-            ..fur
-        };
-        assert!(matches!(
-            fur_on_sphere(1.0, &fur),
-            Err(ShapeError::Inconsistent(_))
-        ));
+        assert!(matches!(fur_on_sphere(1.0, &fur), Err(ShapeError::TooMany { .. })));
+        let fur = Fur { segments: 2, min_length: 0.5, ..fur };
+        assert!(matches!(fur_on_sphere(1.0, &fur), Err(ShapeError::Inconsistent(_))));
         let zero_dir = Fibre {
             root: Vec3::ZERO,
             direction: Vec3::ZERO,

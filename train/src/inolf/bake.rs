@@ -40,7 +40,13 @@ type BakeScratch = (Vec<[f32; 3]>, Vec<f32>, (Vec<f32>, MlpWorkspace));
 
 /// Samples the diffuse branch into cubes of `cube_res^3` on the density cubes' coarse grid,
 /// in the cells that hold density and lie within `margin` cells of a hit point.
-pub fn bake_diffuse_cubes(model: &InolfModel, cubes: &DensityCubes, hits: &[Vec3], margin: u32, cube_res: u32) -> Result<SparseCubes, ModelError> {
+pub fn bake_diffuse_cubes(
+    model: &InolfModel,
+    cubes: &DensityCubes,
+    hits: &[Vec3],
+    margin: u32,
+    cube_res: u32,
+) -> Result<SparseCubes, ModelError> {
     let grid = cubes.cubes();
     let dims = grid.dims();
     let (nx, ny) = (dims[0] as usize, dims[1] as usize);
@@ -83,18 +89,26 @@ pub fn bake_diffuse_cubes(model: &InolfModel, cubes: &DensityCubes, hits: &[Vec3
         index[c] = n as u32;
         data.extend_from_slice(&cube?);
     }
-    SparseCubes::from_parts(min, grid.cell(), dims, cube_res, DIFFUSE_OUT as u32, index, data).map_err(|e: CubeError| ModelError::Shape(e.to_string()))
+    SparseCubes::from_parts(min, grid.cell(), dims, cube_res, DIFFUSE_OUT as u32, index, data)
+        .map_err(|e: CubeError| ModelError::Shape(e.to_string()))
 }
 
 /// Assembles the asset. `keep_diffuse_network` also stores the hash grid and diffuse MLP.
-pub fn to_asset(model: &InolfModel, cubes: DensityCubes, diffuse: Option<SparseCubes>, keep_diffuse_network: bool, bake: serde_json::Value) -> Result<Asset, ModelError> {
+pub fn to_asset(
+    model: &InolfModel,
+    cubes: DensityCubes,
+    diffuse: Option<SparseCubes>,
+    keep_diffuse_network: bool,
+    bake: serde_json::Value,
+) -> Result<Asset, ModelError> {
     let meta = InolfMeta {
         format: "inolf".into(),
         shape: model.shape,
         grid_bounds: [model.bounds.min.to_array(), model.bounds.max.to_array()],
         bake,
     };
-    let flat = |name: &str, data: &[f32]| Tensor { name: name.into(), shape: vec![data.len() as u32], data: data.to_vec() };
+    let flat =
+        |name: &str, data: &[f32]| Tensor { name: name.into(), shape: vec![data.len() as u32], data: data.to_vec() };
     let mut tensors = vec![flat("specular.mlp", model.specular.params())];
     if keep_diffuse_network || diffuse.is_none() {
         tensors.push(flat("diffuse.grid", model.grid.params()));
@@ -108,4 +122,3 @@ pub fn to_asset(model: &InolfModel, cubes: DensityCubes, diffuse: Option<SparseC
         tensors,
     })
 }
-

@@ -25,8 +25,15 @@ fn bounds() -> Bounds {
 
 fn sphere_cubes() -> DensityCubes {
     let options = CubeOptions { resolution: 16, cube_res: 6, probe: 2, dilate: 1 };
-    DensityCubes::build(bounds(), &options, |p: &[Vec3], out: &mut [f32]| p.iter().zip(out).for_each(|(p, o)| *o = if p.length() < RADIUS { 300.0 } else { 0.0 }), &|_| {})
-        .expect("cubes")
+    DensityCubes::build(
+        bounds(),
+        &options,
+        |p: &[Vec3], out: &mut [f32]| {
+            p.iter().zip(out).for_each(|(p, o)| *o = if p.length() < RADIUS { 300.0 } else { 0.0 })
+        },
+        &|_| {},
+    )
+    .expect("cubes")
 }
 
 /// Analytic view: a sphere whose linear colour varies with the surface normal.
@@ -61,7 +68,17 @@ fn views() -> Vec<TrainingView> {
 }
 
 fn small_shape() -> HeadsShape {
-    HeadsShape { grid_levels: 4, grid_log2_table: 12, grid_base: 4, grid_scale: 2.0, diffuse_hidden: 16, diffuse_layers: 1, sh_degree: 2, specular_hidden: 16, specular_layers: 1 }
+    HeadsShape {
+        grid_levels: 4,
+        grid_log2_table: 12,
+        grid_base: 4,
+        grid_scale: 2.0,
+        diffuse_hidden: 16,
+        diffuse_layers: 1,
+        sh_degree: 2,
+        specular_hidden: 16,
+        specular_layers: 1,
+    }
 }
 
 struct Trained {
@@ -78,7 +95,8 @@ fn trained() -> &'static Trained {
         let cubes = sphere_cubes();
         let views = views();
         let hits = collect_hit_points(&cubes, &views, 1);
-        let psh = PshEncoding::from_points(&hits, bounds().min, 2.0 / 31.0, 32, 4, &PshOptions::coherent()).expect("psh");
+        let psh =
+            PshEncoding::from_points(&hits, bounds().min, 2.0 / 31.0, 32, 4, &PshOptions::coherent()).expect("psh");
         let mut model = InolfModel::new(small_shape(), bounds(), psh, 3).expect("model");
         let mut first_loss = f32::NAN;
         let options = TrainOptions { steps: 1000, batch: 512, ..TrainOptions::default() };
@@ -116,14 +134,17 @@ fn training_fits_the_views_and_the_asset_renders_the_same() {
     // Bake the diffuse branch and go through the file format.
     let diffuse = bake_diffuse_cubes(&t.model, &t.cubes, &t.hits, 1, 6).expect("bake");
     assert!(diffuse.cube_count() > 0 && diffuse.cube_count() <= t.cubes.cubes().cube_count());
-    let asset = to_asset(&t.model, t.cubes.clone(), Some(diffuse), true, serde_json::json!({"test": true})).expect("asset");
+    let asset =
+        to_asset(&t.model, t.cubes.clone(), Some(diffuse), true, serde_json::json!({"test": true})).expect("asset");
     let bytes = asset.to_bytes().expect("encode");
     let mut kernel = InolfKernel::from_asset(Asset::from_bytes(&bytes).expect("decode")).expect("kernel");
     assert_eq!(kernel.diffuse_source(), DiffuseSource::Cubes);
     let psnr_cubes = psnr_against(&kernel, &views[0]);
     kernel.set_diffuse_source(DiffuseSource::Network).expect("network kept");
     let psnr_loaded_net = psnr_against(&kernel, &views[0]);
-    eprintln!("PSNR (linear, premultiplied + alpha): network {psnr_net:.2} dB, diffuse cubes {psnr_cubes:.2} dB, loaded network {psnr_loaded_net:.2} dB");
+    eprintln!(
+        "PSNR (linear, premultiplied + alpha): network {psnr_net:.2} dB, diffuse cubes {psnr_cubes:.2} dB, loaded network {psnr_loaded_net:.2} dB"
+    );
     assert!(psnr_net > 35.0, "{psnr_net}");
     assert!((psnr_loaded_net - psnr_net).abs() < 1e-6, "the asset holds the same network");
     assert!(psnr_cubes > psnr_net - 3.0, "baking loses little: {psnr_cubes} vs {psnr_net}");
@@ -236,7 +257,13 @@ fn memory_counts_the_parts_in_use() {
     let mut kernel = InolfKernel::from_model(&t.model, t.cubes.clone(), None);
     let m = kernel.memory();
     assert_eq!(m.in_use, m.density_cubes + m.diffuse_network + m.psh_tables + m.psh_features + m.specular_mlp);
-    assert!(m.density_cubes > 0 && m.diffuse_network > 0 && m.psh_features > 0 && m.specular_mlp > 0 && m.density_network == 0);
+    assert!(
+        m.density_cubes > 0
+            && m.diffuse_network > 0
+            && m.psh_features > 0
+            && m.specular_mlp > 0
+            && m.density_network == 0
+    );
     kernel.use_density_network(fog_field());
     let m = kernel.memory();
     assert!(m.density_network > 0);

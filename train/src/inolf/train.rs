@@ -10,13 +10,16 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
+use crate::dataset::Dataset;
+use nephele_geometry::camera::{Camera, CameraError};
+use nephele_imaging::image::srgb_to_linear;
 use nephele_kernels::inolf::cubes::{DensityCubes, MarchHit};
 use nephele_kernels::inolf::encoding::Corners;
 use nephele_kernels::inolf::kernel::{HIT_OPACITY, RAY_NEAR};
-use nephele_kernels::inolf::model::{DIFFUSE_OUT, InolfModel, ModelError, SPECULAR_OUT, head_gradients, specular_activation, specular_activation_derivative};
-use nephele_geometry::camera::{Camera, CameraError};
-use crate::dataset::Dataset;
-use nephele_imaging::image::srgb_to_linear;
+use nephele_kernels::inolf::model::{
+    DIFFUSE_OUT, InolfModel, ModelError, SPECULAR_OUT, head_gradients, specular_activation,
+    specular_activation_derivative,
+};
 use nephele_nn::{Adam, AdamConfig, MlpWorkspace};
 
 /// One training view: its camera and the target per pixel (linear RGB premultiplied by
@@ -33,7 +36,8 @@ pub fn training_views(dataset: &Dataset) -> Result<Vec<TrainingView>, CameraErro
         .views
         .iter()
         .map(|v| {
-            let camera = Camera::from_fov_x(v.image.width(), v.image.height(), dataset.camera_angle_x, v.camera_to_world)?;
+            let camera =
+                Camera::from_fov_x(v.image.width(), v.image.height(), dataset.camera_angle_x, v.camera_to_world)?;
             let target = v
                 .image
                 .pixels()
@@ -56,11 +60,14 @@ pub fn collect_hit_points(cubes: &DensityCubes, views: &[TrainingView], stride: 
         .par_iter()
         .flat_map_iter(|v| {
             let (w, h) = (v.camera.width(), v.camera.height());
-            (0..h).step_by(stride as usize).flat_map(move |y| (0..w).step_by(stride as usize).map(move |x| (x, y))).filter_map(|(x, y)| {
-                let ray = v.camera.pixel_center_ray(x, y);
-                let hit = cubes.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
-                (hit.opacity >= HIT_OPACITY).then(|| ray.at(hit.t))
-            })
+            (0..h)
+                .step_by(stride as usize)
+                .flat_map(move |y| (0..w).step_by(stride as usize).map(move |x| (x, y)))
+                .filter_map(|(x, y)| {
+                    let ray = v.camera.pixel_center_ray(x, y);
+                    let hit = cubes.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+                    (hit.opacity >= HIT_OPACITY).then(|| ray.at(hit.t))
+                })
         })
         .collect()
 }
@@ -83,7 +90,15 @@ pub struct TrainOptions {
 
 impl Default for TrainOptions {
     fn default() -> Self {
-        TrainOptions { steps: 2000, batch: 4096, learning_rate: 1e-2, opacity_weight: 1.0, tile: 16, uniform_fraction: 0.25, seed: 1 }
+        TrainOptions {
+            steps: 2000,
+            batch: 4096,
+            learning_rate: 1e-2,
+            opacity_weight: 1.0,
+            tile: 16,
+            uniform_fraction: 0.25,
+            seed: 1,
+        }
     }
 }
 
@@ -147,10 +162,14 @@ impl ErrorMap {
 
     fn rebuild(&mut self) {
         let mut acc = 0.0;
-        self.cdf = self.error.iter().map(|&e| {
-            acc += f64::from(e.max(1e-6));
-            acc
-        }).collect();
+        self.cdf = self
+            .error
+            .iter()
+            .map(|&e| {
+                acc += f64::from(e.max(1e-6));
+                acc
+            })
+            .collect();
     }
 
     fn draw(&self, rng: &mut Rng, uniform: bool) -> (usize, u32, u32, u32) {
@@ -179,7 +198,9 @@ pub fn train(
     }
     let mut rng = Rng(options.seed);
     let mut map = ErrorMap::new(views, options.tile);
-    let adam = |lr: f32, decay: f32, len: usize| Adam::new(AdamConfig { learning_rate: lr, weight_decay: decay, ..AdamConfig::default() }, len);
+    let adam = |lr: f32, decay: f32, len: usize| {
+        Adam::new(AdamConfig { learning_rate: lr, weight_decay: decay, ..AdamConfig::default() }, len)
+    };
     let lr = options.learning_rate;
     let mut opt_grid = adam(lr, 0.0, model.grid.num_params());
     let mut opt_diffuse = adam(lr, 1e-6, model.diffuse.num_params());
@@ -199,20 +220,26 @@ pub fn train(
     for step in 0..options.steps {
         // Learning-rate schedule: full rate, then x0.3 after half, x0.1 after 80 %.
         let frac = step as f32 / options.steps.max(1) as f32;
-        let rate = lr * if frac < 0.5 { 1.0 } else if frac < 0.8 { 0.3 } else { 0.1 };
+        let rate = lr
+            * if frac < 0.5 {
+                1.0
+            } else if frac < 0.8 {
+                0.3
+            } else {
+                0.1
+            };
         for o in [&mut opt_grid, &mut opt_diffuse, &mut opt_psh, &mut opt_specular] {
             o.set_learning_rate(rate);
         }
         if step % 16 == 0 {
             map.rebuild();
         }
-        let draws: Vec<(usize, u32, u32, u32)> =
-            (0..options.batch)
-                .map(|_| {
-                    let uniform = rng.unit() < f64::from(options.uniform_fraction);
-                    map.draw(&mut rng, uniform)
-                })
-                .collect();
+        let draws: Vec<(usize, u32, u32, u32)> = (0..options.batch)
+            .map(|_| {
+                let uniform = rng.unit() < f64::from(options.uniform_fraction);
+                map.draw(&mut rng, uniform)
+            })
+            .collect();
         let marched: Vec<(MarchHit, Vec3, Vec3)> = draws
             .par_iter()
             .map(|&(_, view, x, y)| {
@@ -236,10 +263,13 @@ pub fn train(
             continue;
         }
         let n = kept.len();
-        let points: Vec<[f32; 3]> = kept.iter().map(|&i| {
-            let (h, o, d) = marched[i];
-            model.grid_input(o + d * h.t)
-        }).collect();
+        let points: Vec<[f32; 3]> = kept
+            .iter()
+            .map(|&i| {
+                let (h, o, d) = marched[i];
+                model.grid_input(o + d * h.t)
+            })
+            .collect();
         let mut enc = vec![0.0; n * e_dim];
         model.grid.encode_batch(&points, &mut enc)?;
         let out_d = model.diffuse.forward(&enc, &mut ws_d)?.to_vec();
@@ -261,14 +291,20 @@ pub fn train(
             let (tile, view, x, y) = draws[i];
             let v = &views[view as usize];
             let target = v.target[(y * v.camera.width() + x) as usize];
-            let g = head_gradients(&out_d[k * DIFFUSE_OUT..(k + 1) * DIFFUSE_OUT], &out_s[k * SPECULAR_OUT..(k + 1) * SPECULAR_OUT], target, options.opacity_weight);
+            let g = head_gradients(
+                &out_d[k * DIFFUSE_OUT..(k + 1) * DIFFUSE_OUT],
+                &out_s[k * SPECULAR_OUT..(k + 1) * SPECULAR_OUT],
+                target,
+                options.opacity_weight,
+            );
             loss_sum += f64::from(g.loss);
             map.error[tile] = 0.9 * map.error[tile] + 0.1 * g.loss;
             for j in 0..DIFFUSE_OUT {
                 d_out_d[k * DIFFUSE_OUT + j] = g.d_diffuse[j] * scale;
             }
             for j in 0..SPECULAR_OUT {
-                d_out_s[k * SPECULAR_OUT + j] = g.d_specular[j] * scale * specular_activation_derivative(out_s[k * SPECULAR_OUT + j]);
+                d_out_s[k * SPECULAR_OUT + j] =
+                    g.d_specular[j] * scale * specular_activation_derivative(out_s[k * SPECULAR_OUT + j]);
             }
         }
         let mut d_s_input = vec![0.0; n * s_in];

@@ -5,11 +5,11 @@ use glam::Vec3;
 use proptest::prelude::*;
 
 use super::*;
-use nephele_kernels::ngp::{FieldConfig, FieldScratch, NgpKernel, OccupancyGrid, RadianceField, RayResult, save_field};
 use nephele_geometry::camera::Camera;
 use nephele_imaging::image::RgbaImage;
-use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
 use nephele_imaging::metrics;
+use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
+use nephele_kernels::ngp::{FieldConfig, FieldScratch, NgpKernel, OccupancyGrid, RadianceField, RayResult, save_field};
 use nephele_nn::HashGridConfig;
 
 const RADIUS: f32 = 0.5;
@@ -92,7 +92,8 @@ fn training_on_a_sphere_lowers_the_loss_and_beats_a_constant() {
     // The best constant colour (the mean of the truth over white).
     let over = truth.composite_over(white);
     let n = over.pixels().len() as f32;
-    let mean = over.pixels().iter().fold([0.0f32; 3], |acc, p| [acc[0] + p[0] / n, acc[1] + p[1] / n, acc[2] + p[2] / n]);
+    let mean =
+        over.pixels().iter().fold([0.0f32; 3], |acc, p| [acc[0] + p[0] / n, acc[1] + p[1] / n, acc[2] + p[2] / n]);
     let constant = RgbaImage::from_fn(size, size, |_, _| [mean[0], mean[1], mean[2], 1.0]);
     let baseline = metrics::psnr(&constant, &truth, white).expect("psnr");
     eprintln!("sphere: loss {early} -> {late}, held-out PSNR {psnr:.2} dB vs best constant {baseline:.2} dB");
@@ -183,7 +184,12 @@ fn hard_rays_stay_finite_and_bounded() {
     let camera = Camera::look_at(8, 8, 1.0, Vec3::ZERO, Vec3::X, Vec3::Z).expect("camera");
     let (out, _) = kernel.render_pixels(&camera, &all_pixels(&camera)).expect("render");
     for i in 0..out.len() {
-        assert!(out.opacity[i] > 0.9 && out.depth[i] > 0.0 && out.depth[i] < 0.5, "{i}: {} {}", out.opacity[i], out.depth[i]);
+        assert!(
+            out.opacity[i] > 0.9 && out.depth[i] > 0.0 && out.depth[i] < 0.5,
+            "{i}: {} {}",
+            out.opacity[i],
+            out.depth[i]
+        );
         assert!(out.color[i].iter().all(|c| c.is_finite() && *c >= 0.0 && *c <= out.opacity[i] + 1e-5));
     }
     assert!(kernel.render_pixels(&camera, &[64]).is_err());
@@ -250,7 +256,8 @@ fn hit_points_agree_with_density_cubes(kernel: &NgpKernel, camera: &Camera) {
     use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes};
     let field = kernel.field();
     let options = CubeOptions { resolution: 16, cube_res: 6, ..CubeOptions::default() };
-    let cubes = DensityCubes::build(field.bounds(), &options, field_density_for_cubes(field, 1.0), &|_| {}).expect("cubes");
+    let cubes =
+        DensityCubes::build(field.bounds(), &options, field_density_for_cubes(field, 1.0), &|_| {}).expect("cubes");
     let cell = cubes.cubes().cell();
     let rays: Vec<(Vec3, Vec3)> = all_pixels(camera)
         .iter()
@@ -278,7 +285,10 @@ fn hit_points_agree_with_density_cubes(kernel: &NgpKernel, camera: &Camera) {
     );
     assert!(compared > 50, "only {compared} pixels where both see the sphere");
     assert!(fraction >= 0.95, "{:.1} % of hit points within one cube cell", 100.0 * fraction);
-    assert!(worst_peak <= 2.0 * cell && worst_mean <= 2.0 * cell, "worst {worst_peak} / {worst_mean} against a cube cell of {cell}");
+    assert!(
+        worst_peak <= 2.0 * cell && worst_mean <= 2.0 * cell,
+        "worst {worst_peak} / {worst_mean} against a cube cell of {cell}"
+    );
 }
 
 /// The density network alone ("i-NOLF base"'s hit point) gives the full render's opacity,

@@ -19,14 +19,16 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-use nephele_geometry::camera::Camera;
 use crate::dataset::Dataset;
+use nephele_geometry::camera::Camera;
 use nephele_imaging::image::RgbaImage;
 use nephele_nn::{Adam, AdamConfig, MlpWorkspace, sh_coefficient_count, sh_encode};
 use nephele_pathtracer::sampling::Rng;
 
 use nephele_kernels::ngp::NgpError;
-use nephele_kernels::ngp::field::{EARLY_STOP_TRANSMITTANCE, FieldConfig, FieldScratch, RadianceField, density_activation};
+use nephele_kernels::ngp::field::{
+    EARLY_STOP_TRANSMITTANCE, FieldConfig, FieldScratch, RadianceField, density_activation,
+};
 use nephele_kernels::ngp::march::Marcher;
 use nephele_kernels::ngp::occupancy::{CoverageMask, OccupancyGrid, visual_hull};
 
@@ -185,8 +187,9 @@ impl Trainer {
     pub fn from_dataset(field_config: FieldConfig, config: TrainConfig, dataset: &Dataset) -> Result<Self, NgpError> {
         let mut views = Vec::with_capacity(dataset.views.len());
         for v in &dataset.views {
-            let camera = Camera::from_fov_x(v.image.width(), v.image.height(), dataset.camera_angle_x, v.camera_to_world)
-                .map_err(|e| NgpError::Invalid(format!("view {}: {e}", v.name)))?;
+            let camera =
+                Camera::from_fov_x(v.image.width(), v.image.height(), dataset.camera_angle_x, v.camera_to_world)
+                    .map_err(|e| NgpError::Invalid(format!("view {}: {e}", v.name)))?;
             views.push((camera, &v.image));
         }
         Self::new(field_config, config, &views)
@@ -194,7 +197,11 @@ impl Trainer {
 
     /// Prepares training on posed images: fits the box (and, with `carve`, the visual hull)
     /// and initialises the field.
-    pub fn new(field_config: FieldConfig, config: TrainConfig, views: &[(Camera, &RgbaImage)]) -> Result<Self, NgpError> {
+    pub fn new(
+        field_config: FieldConfig,
+        config: TrainConfig,
+        views: &[(Camera, &RgbaImage)],
+    ) -> Result<Self, NgpError> {
         field_config.validate()?;
         if views.is_empty() {
             return Err(NgpError::Invalid("no training views".into()));
@@ -219,7 +226,8 @@ impl Trainer {
         let mut hull = OccupancyGrid::filled(res, true);
         if config.carve {
             let masks: Vec<CoverageMask> = views.par_iter().map(|(c, img)| CoverageMask::new(*c, img, 0.0)).collect();
-            let first = visual_hull(min, Vec3::splat(size), res, &masks).ok_or_else(|| NgpError::Invalid("bad occupancy resolution".into()))?;
+            let first = visual_hull(min, Vec3::splat(size), res, &masks)
+                .ok_or_else(|| NgpError::Invalid("bad occupancy resolution".into()))?;
             let (lo, hi) = first
                 .occupied_bounds()
                 .ok_or_else(|| NgpError::Invalid("the training images show no matter (visual hull empty)".into()))?;
@@ -228,7 +236,8 @@ impl Trainer {
             let side = (hi - lo).max_element() + 4.0 * size / res as f32;
             min = 0.5 * (lo + hi) - Vec3::splat(0.5 * side);
             size = side;
-            hull = visual_hull(min, Vec3::splat(size), res, &masks).ok_or_else(|| NgpError::Invalid("bad occupancy resolution".into()))?;
+            hull = visual_hull(min, Vec3::splat(size), res, &masks)
+                .ok_or_else(|| NgpError::Invalid("bad occupancy resolution".into()))?;
             if hull.occupied_count() == 0 {
                 return Err(NgpError::Invalid("the training images show no matter (visual hull empty)".into()));
             }
@@ -253,7 +262,10 @@ impl Trainer {
             .collect();
         let mlp_adam = AdamConfig { learning_rate: config.learning_rate, weight_decay: 1e-6, ..AdamConfig::default() };
         Ok(Trainer {
-            adam_grid: Adam::new(AdamConfig { learning_rate: config.learning_rate, ..AdamConfig::default() }, field.grid.num_params()),
+            adam_grid: Adam::new(
+                AdamConfig { learning_rate: config.learning_rate, ..AdamConfig::default() },
+                field.grid.num_params(),
+            ),
             adam_density: Adam::new(mlp_adam, field.density.num_params()),
             adam_color: Adam::new(mlp_adam, field.color.num_params()),
             grad_grid: vec![0.0; field.grid.num_params()],
@@ -564,7 +576,11 @@ fn train_ray(field: &RadianceField, ray: &RayTask, n_rays: usize, b: &mut RayBuf
         }
     }
     b.d_color_in.resize(k * width, 0.0);
-    if field.color.backward(&b.color_in, &mut b.color_ws, &b.d_color_out, &mut out.grad_color, Some(&mut b.d_color_in)).is_err() {
+    if field
+        .color
+        .backward(&b.color_in, &mut b.color_ws, &b.d_color_out, &mut out.grad_color, Some(&mut b.d_color_in))
+        .is_err()
+    {
         return;
     }
     // Gradient at the density network's outputs: the colour network's input gradient on the
@@ -589,7 +605,11 @@ fn train_ray(field: &RadianceField, ray: &RayTask, n_rays: usize, b: &mut RayBuf
         b.d_chunk_out.resize(rows * geo, 0.0);
         b.d_chunk_in.resize(rows * enc_dim, 0.0);
         let input = &b.encoded[start * enc_dim..(start + rows) * enc_dim];
-        if field.density.backward(input, &mut b.density_ws[c], &b.d_chunk_out, &mut out.grad_density, Some(&mut b.d_chunk_in)).is_err() {
+        if field
+            .density
+            .backward(input, &mut b.density_ws[c], &b.d_chunk_out, &mut out.grad_density, Some(&mut b.d_chunk_in))
+            .is_err()
+        {
             return;
         }
         b.d_encoding[start * enc_dim..(start + used) * enc_dim].copy_from_slice(&b.d_chunk_in[..used * enc_dim]);
@@ -623,7 +643,12 @@ mod tests {
         for p in field.grid.params_mut() {
             *p = 0.5 * (rng.next_f32() - 0.5);
         }
-        let ray = RayTask { origin: Vec3::new(-3.0, 0.1, 0.2), dir: Vec3::new(1.0, 0.1, -0.05).normalize(), offset: 0.3, target: [0.3, 0.1, 0.2, 0.8] };
+        let ray = RayTask {
+            origin: Vec3::new(-3.0, 0.1, 0.2),
+            dir: Vec3::new(1.0, 0.1, -0.05).normalize(),
+            offset: 0.3,
+            target: [0.3, 0.1, 0.2, 0.8],
+        };
         let (loss, out) = ray_loss(&field, &ray);
         assert!(loss > 0.0 && out.samples > 20, "{loss} {}", out.samples);
         let mut grad_grid = vec![0.0; field.grid.num_params()];
