@@ -66,10 +66,10 @@ impl Supervisor {
     /// those still alive after `grace`. Returns the children that had to be killed.
     pub fn shutdown(&mut self, grace: Duration) -> Vec<String> {
         for supervised in self.children.iter_mut().rev() {
-            if matches!(supervised.child.try_wait(), Ok(None)) {
-                if let Ok(pid) = i32::try_from(supervised.child.id()) {
-                    let _ = kill(Pid::from_raw(pid), Signal::SIGTERM);
-                }
+            if matches!(supervised.child.try_wait(), Ok(None))
+                && let Ok(pid) = i32::try_from(supervised.child.id())
+            {
+                let _ = kill(Pid::from_raw(pid), Signal::SIGTERM);
             }
         }
         let deadline = Instant::now() + grace;

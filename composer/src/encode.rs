@@ -52,7 +52,7 @@ pub enum EncodeError {
 /// Checks that OpenH264 can encode `width x height` in 4:2:0.
 pub fn check_resolution(width: u32, height: u32) -> Result<(), EncodeError> {
     let fail = |reason: String| Err(EncodeError::Resolution { width, height, reason });
-    if width % 2 != 0 || height % 2 != 0 {
+    if !width.is_multiple_of(2) || !height.is_multiple_of(2) {
         return fail("width and height must be even for 4:2:0 chroma".into());
     }
     if width < MIN_SIDE || height < MIN_SIDE {

@@ -8,6 +8,9 @@
 //! ([`pose`]). [`service`] is the thin network shell (HTTP signalling, the worker-results
 //! listener of [`wire`]) around these pure cores.
 
+// Tests may unwrap and spell out their reference tuples.
+#![cfg_attr(test, allow(clippy::unwrap_used, clippy::type_complexity, clippy::needless_range_loop))]
+
 pub mod client;
 pub mod encode;
 pub mod fusion;

@@ -845,7 +845,7 @@ mod tests {
         // A 45-view quilt: a 7x7 grid within 3840x2160.
         let l = layout_for(420, 560, 45).unwrap();
         assert_eq!((l.columns(), l.rows()), (7, 7));
-        assert!(crate::encode::check_resolution(l.width(), l.height()).is_ok() && l.view_width() % 2 == 0);
+        assert!(crate::encode::check_resolution(l.width(), l.height()).is_ok() && l.view_width().is_multiple_of(2));
         assert!(layout_for(0, 10, 1).is_err());
     }
 }

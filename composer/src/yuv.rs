@@ -69,6 +69,7 @@ pub fn linear_to_srgb(x: f32) -> f32 {
 }
 
 #[inline]
+#[allow(clippy::manual_clamp)] // `clamp` would keep NaN; this sends it to 0
 fn srgb_lookup(table: &SrgbTable, x: f32) -> f32 {
     // `max` then `min` also send NaN to 0 (f32::max returns the non-NaN operand).
     let x = x.max(0.0).min(1.0) * TABLE_SIZE as f32;
@@ -100,6 +101,7 @@ fn ypbpr(r: f32, g: f32, b: f32) -> (f32, f32, f32) {
 
 /// Rounds to the nearest 8-bit code (ties to even), clamped to 0..=255.
 #[inline]
+#[allow(clippy::manual_clamp)] // `clamp` would keep NaN; this sends it to 0
 fn code(v: f32) -> u8 {
     (v.max(0.0).min(255.0) + MAGIC).to_bits().wrapping_sub(MAGIC.to_bits()) as u8
 }

@@ -51,8 +51,11 @@ pub struct AssetFormat {
     /// The file's first eight bytes, where the format has a magic number.
     pub magic: Option<[u8; 8]>,
     /// Opens a file of this format.
-    pub load: fn(&Path, &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError>,
+    pub load: LoadFn,
 }
+
+/// How a format opens a file.
+pub type LoadFn = fn(&Path, &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError>;
 
 /// Every format this build can load.
 pub const FORMATS: &[AssetFormat] = &[

@@ -124,7 +124,7 @@ impl LoadConfig {
         if self.users == 0 || self.users > 1000 {
             return bad(format!("users must be 1 to 1000, got {}", self.users));
         }
-        if self.width < 16 || self.height < 16 || self.width % 2 != 0 || self.height % 2 != 0 {
+        if self.width < 16 || self.height < 16 || !self.width.is_multiple_of(2) || !self.height.is_multiple_of(2) {
             return bad(format!("view size {}x{} must be even and at least 16x16", self.width, self.height));
         }
         if let Some(ipd) = self.stereo_ipd
@@ -135,7 +135,7 @@ impl LoadConfig {
         if self.pose_interval < Duration::from_millis(1) || self.ping_interval < Duration::from_millis(10) {
             return bad("pose interval must be at least 1 ms and ping interval at least 10 ms".into());
         }
-        if !(self.target_fps > 0.0 && self.target_fps <= 240.0) || !self.orbit_speed.is_finite() {
+        if !(self.target_fps > 0.0 && self.target_fps <= 240.0 && self.orbit_speed.is_finite()) {
             return bad(format!("target fps {} must be in (0, 240] and the orbit speed finite", self.target_fps));
         }
         Ok(())

@@ -106,6 +106,9 @@ pub struct RenderOutput {
     pub stats: RenderStats,
 }
 
+/// One pixel of [`Renderer::render_pixel_list`]: colour premultiplied by alpha, alpha, view depth.
+pub type ListedPixel = (Vec3, f32, f32);
+
 /// A scene prepared for rendering.
 #[derive(Debug)]
 pub struct Renderer {
@@ -235,7 +238,7 @@ impl Renderer {
         camera: &Camera,
         options: &RenderOptions,
         pixels: &[u32],
-    ) -> Result<(Vec<(Vec3, f32, f32)>, RenderStats), RenderError> {
+    ) -> Result<(Vec<ListedPixel>, RenderStats), RenderError> {
         options.validate()?;
         let width = camera.width();
         let last = u64::from(width) * u64::from(camera.height()) - 1;
@@ -449,10 +452,10 @@ impl Renderer {
                     let light_pdf = p_pick / area * dist2 / cos_light;
                     let shadow = Ray { origin: origin_for(wi), direction: wi };
                     let reach = (q - shadow.origin).length() * (1.0 - 1e-4);
-                    if !self.bvh.occluded(&shadow, 0.0, reach, &mut stats.traversal) {
-                        if let Material::Emissive { radiance } = self.material_of(tri) {
-                            total += f * radiance * cos_surface / light_pdf * power_heuristic(light_pdf, bsdf_pdf);
-                        }
+                    if !self.bvh.occluded(&shadow, 0.0, reach, &mut stats.traversal)
+                        && let Material::Emissive { radiance } = self.material_of(tri)
+                    {
+                        total += f * radiance * cos_surface / light_pdf * power_heuristic(light_pdf, bsdf_pdf);
                     }
                 }
             }

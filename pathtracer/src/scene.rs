@@ -47,10 +47,10 @@ impl Mesh {
     /// Checks indices, normal count and finiteness.
     pub fn validate(&self) -> Result<(), SceneError> {
         let vertices = self.positions.len();
-        if let Some(n) = &self.normals {
-            if n.len() != vertices {
-                return Err(SceneError::NormalCount { normals: n.len(), vertices });
-            }
+        if let Some(n) = &self.normals
+            && n.len() != vertices
+        {
+            return Err(SceneError::NormalCount { normals: n.len(), vertices });
         }
         if let Some(i) = self.positions.iter().position(|p| !p.is_finite()) {
             return Err(SceneError::NonFinitePosition(i));
@@ -73,7 +73,7 @@ impl Mesh {
             normals: self
                 .normals
                 .as_ref()
-                .map(|ns| ns.iter().map(|&n| Vec3::from(normal_matrix * n).normalize_or_zero()).collect()),
+                .map(|ns| ns.iter().map(|&n| (normal_matrix * n).normalize_or_zero()).collect()),
             indices: self.indices.clone(),
         }
     }

@@ -2,6 +2,8 @@
 //! HTTP on loopback, receives decodable H.264, gets clear errors for bad offers, and the
 //! process stops cleanly on Ctrl-C (SIGINT).
 
+#![allow(clippy::unwrap_used)] // a test may unwrap
+
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};

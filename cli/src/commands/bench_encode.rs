@@ -80,7 +80,7 @@ fn scene_frame(
                 let (x, y) = ((p % w + shift) as f32, (p / w) as f32);
                 let smooth = 0.25 + 0.15 * (x * 0.02).sin() * (y * 0.015).cos() + 0.1 * ((x + y) * 0.005).sin();
                 // Sharp-edged texture (16-pixel tiles) so that motion search has edges to follow.
-                let tile = if ((x as u32 / 16) + (y as u32 / 16)) % 2 == 0 { 0.12 } else { 0.0 };
+                let tile = if ((x as u32 / 16) + (y as u32 / 16)).is_multiple_of(2) { 0.12 } else { 0.0 };
                 // A little high-frequency noise, like a Monte Carlo or neural background.
                 let hash = (p.wrapping_add(frame as u32 * 7919)).wrapping_mul(2_654_435_761) >> 24;
                 let noise = (hash as f32 / 255.0 - 0.5) * 0.04;
