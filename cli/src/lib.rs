@@ -1,5 +1,7 @@
 //! The `nephele` command: one entry point for every tool of the project.
 //!
+//! The CLI parses arguments and calls the libraries; it may depend on every crate.
+//!
 //! A library with one entry point, [`main`], so that two binaries run the same command:
 //! `nephele` (this package's `src/main.rs`) and the copy the cross-process tests build
 //! beside themselves (`tests/src/bin/`), which cargo compiles with the tests' own profile
@@ -9,21 +11,32 @@ mod commands;
 mod progress;
 mod supervise;
 
-/// The system allocator with a peak counter (two atomic updates per allocation): `nephele
-/// bench inolf` resets it before a frame and reads the frame's extra runtime memory after.
+/// With the `heap-peak` feature only: the system allocator with a peak counter (two atomic
+/// updates per allocation). `nephele bench inolf` resets it before a frame and reads the
+/// frame's extra runtime memory after. Services run without it.
+#[cfg(feature = "heap-peak")]
 #[global_allocator]
 static ALLOCATOR: &peakmem_alloc::PeakMemAlloc<std::alloc::System> = &peakmem_alloc::INSTRUMENTED_SYSTEM;
 
-/// Restarts the peak count of heap bytes (net of frees) from now.
+/// Restarts the peak count of heap bytes (net of frees) from now (no-op without `heap-peak`).
 pub(crate) fn reset_heap_peak() {
-    use peakmem_alloc::PeakMemAllocTrait;
-    ALLOCATOR.reset_peak_memory();
+    #[cfg(feature = "heap-peak")]
+    {
+        use peakmem_alloc::PeakMemAllocTrait;
+        ALLOCATOR.reset_peak_memory();
+    }
 }
 
-/// Most heap bytes in use at once (net of frees) since [`reset_heap_peak`].
-pub(crate) fn heap_peak() -> usize {
-    use peakmem_alloc::PeakMemAllocTrait;
-    ALLOCATOR.get_peak_memory()
+/// Most heap bytes in use at once (net of frees) since [`reset_heap_peak`]; `None` when this
+/// build has no counting allocator (the `heap-peak` feature).
+pub(crate) fn heap_peak() -> Option<usize> {
+    #[cfg(feature = "heap-peak")]
+    {
+        use peakmem_alloc::PeakMemAllocTrait;
+        Some(ALLOCATOR.get_peak_memory())
+    }
+    #[cfg(not(feature = "heap-peak"))]
+    None
 }
 
 use anyhow::Result;

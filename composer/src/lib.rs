@@ -1,5 +1,8 @@
 //! `nephele-composer`: frame assembly, depth fusion, H.264 encoding and WebRTC streaming.
 //!
+//! Depends on `nephele-proto` and `nephele-geometry` only; never on kernels or another
+//! service.
+//!
 //! The composer is the last stage of a frame (DESIGN.md, "What the service does", step 5):
 //! workers send per-pixel results of object batches straight here; [`fusion`] gathers and
 //! composites them by depth, [`yuv`] converts the fused linear picture to BT.709 YUV 4:2:0,

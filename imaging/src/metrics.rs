@@ -14,7 +14,7 @@
 //!   Images must be at least 11x11, as scikit-image requires.
 //!
 //! The reference numbers of the tests come from scikit-image itself, through
-//! `core-render/tests/data/metrics_reference.py`.
+//! `imaging/tests/data/metrics_reference.py`.
 
 use std::path::{Path, PathBuf};
 
@@ -382,7 +382,7 @@ mod tests {
     use super::*;
 
     // Reference values from scikit-image 0.26.0 / numpy 2.4.6, printed by
-    // `core-render/tests/data/metrics_reference.py`: (PSNR, SSIM) of `level_b` (or `level_c`
+    // `imaging/tests/data/metrics_reference.py`: (PSNR, SSIM) of `level_b` (or `level_c`
     // for MILD) against `level_a`, computed with `peak_signal_noise_ratio(data_range=1)` and
     // `structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
     // data_range=1.0, channel_axis=-1)`.

@@ -2,6 +2,9 @@
 //! catalog, and the live loop that drives the pure scheduler core (`nephele-scheduler`) over
 //! the workers' and the composer's TCP links.
 //!
+//! Depends on `nephele-proto`, `nephele-scheduler`, `nephele-geometry` and `nephele-pathtracer`
+//! (the scene catalog's object bounds); never on kernels, trainers or another service.
+//!
 //! * [`http`]: the HTTP API and the [`http::FarmBackend`] trait the farm implements.
 //! * [`sessions`]: the HTTP session table (ids, tokens, validated requests).
 //! * [`scenes`]: the scene catalog (objects placed in the world, first views).

@@ -1,6 +1,9 @@
 //! Neural building blocks for the learned kernels: the multiresolution hash-grid encoding,
 //! small fully-connected networks, input encodings and the Adam optimiser.
 //!
+//! `nephele-nn` depends on `nephele-geometry` only (its SplitMix64 seeds the weights); no
+//! kernel, asset format or trainer lives here: those compose these blocks.
+//!
 //! # Why hand-written fused passes
 //!
 //! The networks here are tiny (width 64 or less, one or two hidden layers) and are evaluated

@@ -1,5 +1,8 @@
 //! The master's scheduler core: NEPHELE Algorithm 1 as a pure, deterministic state machine.
 //!
+//! `nephele-scheduler` depends on `nephele-geometry` only (cameras, bounds): no image, mesh,
+//! network or thread-pool crate, as `cargo tree -p nephele-scheduler` shows.
+//!
 //! Nothing in this crate does I/O, reads a clock, spawns a thread or draws a random number:
 //! time is an explicit [`Time`] passed with every event, so the same code runs inside the live
 //! master (which feeds it wall-clock time) and inside the discrete-event simulator

@@ -1,5 +1,7 @@
 //! `nephele-sim`: a deterministic discrete-event simulator of the render farm.
 //!
+//! Depends on `nephele-scheduler` and `nephele-geometry`; never on a service or a kernel.
+//!
 //! Simulated workers (throughput, jitter, failures, stragglers) and users (arrival,
 //! departure, target FPS, objects, a camera path) drive the very scheduler core the live
 //! master runs ([`nephele_scheduler::Scheduler`]), under NEPHELE's policy or a baseline behind

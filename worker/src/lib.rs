@@ -1,5 +1,8 @@
 //! `nephele-worker`: the render worker process (`nephele worker`).
 //!
+//! Depends on `nephele-proto`, `nephele-geometry`, `nephele-kernels` and `nephele-pathtracer`
+//! (built-in scenes); never on a trainer (`nephele-train`) or another service.
+//!
 //! A worker connects to the master, says hello, registers (name, threads, kernel kinds and
 //! the throughput a short calibration render measured), then serves [`nephele_proto::RayBatch`]es:
 //! it loads the batch's asset on demand ([`assets`]), renders the pixel set with the asset's

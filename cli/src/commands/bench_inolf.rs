@@ -517,12 +517,12 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
         ms: f64,
         rays_per_s: f64,
         queries_per_ray: f64,
-        runtime_bytes: usize,
+        runtime_bytes: Option<usize>,
     }
     let mut rows = Vec::new();
     for variant in &variants {
         let (mut seconds, mut rays, mut queries, mut psnr, mut ssim, mut runtime_bytes) =
-            (0.0f64, 0u64, 0u64, 0.0f64, 0.0f64, 0usize);
+            (0.0f64, 0u64, 0u64, 0.0f64, 0.0f64, None::<usize>);
         for v in views {
             let (w, h) = (v.image.width(), v.image.height());
             let camera = Camera::from_fov_x(w, h, data.camera_angle_x, v.camera_to_world)?;
@@ -556,7 +556,8 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     let mib = |b: f64| b / 1048576.0;
     println!("{} held-out views of {w}x{h}, {} threads", views.len(), rayon::current_num_threads());
     println!(
-        "model MiB: the parts the kernel reads; runtime MiB: most extra heap in use at once during a frame (outputs included)"
+        "model MiB: the parts the kernel reads; runtime MiB: most extra heap in use at once during a frame (outputs included{})",
+        if crate::heap_peak().is_some() { "" } else { "; '-': measured only by a build with --features heap-peak" }
     );
     println!(
         "{:<58} {:>8} {:>7} {:>10} {:>12} {:>10} {:>12} {:>11} {:>9}",
@@ -564,12 +565,12 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     );
     for (variant, r) in variants.iter().zip(&rows) {
         println!(
-            "{:<58} {:>8.2} {:>7.4} {:>10.2} {:>12.2} {:>10.1} {:>12.0} {:>11.2} {:>8.1}x",
+            "{:<58} {:>8.2} {:>7.4} {:>10.2} {:>12} {:>10.1} {:>12.0} {:>11.2} {:>8.1}x",
             variant.name,
             r.psnr,
             r.ssim,
             mib(variant.model_bytes as f64),
-            mib(r.runtime_bytes as f64),
+            r.runtime_bytes.map_or("-".to_string(), |b| format!("{:.2}", mib(b as f64))),
             r.ms,
             r.rays_per_s,
             r.queries_per_ray,

@@ -1,4 +1,4 @@
-//! One module per subcommand; each parses its own arguments and calls into `nephele-render`.
+//! One module per subcommand; each parses its own arguments and calls into the libraries.
 
 pub mod bake;
 pub mod bench;

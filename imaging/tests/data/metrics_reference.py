@@ -1,11 +1,11 @@
 #!/usr/bin/env python3
-"""Reference PSNR/SSIM numbers for the tests of `nephele-render`'s `metrics` module.
+"""Reference PSNR/SSIM numbers for the tests of `nephele-imaging`'s `metrics` module.
 
 Run with scikit-image and numpy installed (`pip install scikit-image numpy`):
 
-    python3 core-render/tests/data/metrics_reference.py
+    python3 imaging/tests/data/metrics_reference.py
 
-It prints the constants pasted into `core-render/src/metrics.rs` (`mod tests`). The Rust test
+It prints the constants pasted into `imaging/src/metrics.rs` (`mod tests`). The Rust test
 regenerates exactly the same input images from the same integer formulas (see `test_level` and
 `reference_case` there): every pixel value is an 8-bit level `k / 255` computed with integer
 arithmetic only, then rounded to float32 as the Rust `RgbaImage` stores it, so both sides see

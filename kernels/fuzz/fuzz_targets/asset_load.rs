@@ -1,7 +1,7 @@
 //! Fuzzes the `.nolf` asset loader: arbitrary bytes must give `Ok` or a typed error, never a
 //! panic, an abort or an allocation out of proportion to the input.
 //!
-//! Run: `cd core-render/fuzz && cargo fuzz run asset_load` (cargo-fuzz needs a nightly
+//! Run: `cd kernels/fuzz && cargo fuzz run asset_load` (cargo-fuzz needs a nightly
 //! compiler; `RUSTC_BOOTSTRAP=1 cargo fuzz run asset_load` works with a stable one).
 //! Half of the inputs get their checksums repaired first, so that mutations reach the
 //! section parsers instead of stopping at the CRC check.
