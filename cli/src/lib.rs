@@ -11,34 +11,6 @@ mod commands;
 mod progress;
 mod supervise;
 
-/// With the `heap-peak` feature only: the system allocator with a peak counter (two atomic
-/// updates per allocation). `nephele bench inolf` resets it before a frame and reads the
-/// frame's extra runtime memory after. Services run without it.
-#[cfg(feature = "heap-peak")]
-#[global_allocator]
-static ALLOCATOR: &peakmem_alloc::PeakMemAlloc<std::alloc::System> = &peakmem_alloc::INSTRUMENTED_SYSTEM;
-
-/// Restarts the peak count of heap bytes (net of frees) from now (no-op without `heap-peak`).
-pub(crate) fn reset_heap_peak() {
-    #[cfg(feature = "heap-peak")]
-    {
-        use peakmem_alloc::PeakMemAllocTrait;
-        ALLOCATOR.reset_peak_memory();
-    }
-}
-
-/// Most heap bytes in use at once (net of frees) since [`reset_heap_peak`]; `None` when this
-/// build has no counting allocator (the `heap-peak` feature).
-pub(crate) fn heap_peak() -> Option<usize> {
-    #[cfg(feature = "heap-peak")]
-    {
-        use peakmem_alloc::PeakMemAllocTrait;
-        Some(ALLOCATOR.get_peak_memory())
-    }
-    #[cfg(not(feature = "heap-peak"))]
-    None
-}
-
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 use tracing_subscriber::EnvFilter;
@@ -84,7 +56,7 @@ enum Command {
     Render(commands::render::Args),
     /// Print performance figures (see BENCHMARKS.md).
     #[command(subcommand)]
-    Bench(commands::bench::Command),
+    Bench(nephele_bench::Command),
     /// Run a composer: depth fusion, H.264 encoding and WebRTC streaming to viewers.
     Composer(commands::composer::Args),
     /// Run a render worker: connect to a master and render the ray batches it sends.
@@ -142,7 +114,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Pathtrace(args) => commands::pathtrace::run(args, &progress),
         Command::Dataset(cmd) => commands::dataset::run(cmd, &progress),
         Command::Eval(args) => commands::eval::run(args),
-        Command::Bench(cmd) => commands::bench::run(cmd, &progress),
+        Command::Bench(cmd) => nephele_bench::run(cmd, &progress),
         Command::Composer(args) => commands::composer::run(args),
         Command::Worker(args) => commands::worker::run(args, cli.threads),
         Command::Simulate(args) => commands::simulate::run(args, &progress),

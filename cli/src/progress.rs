@@ -26,3 +26,9 @@ impl Progress {
         bar
     }
 }
+
+impl nephele_bench::Progress for Progress {
+    fn bar(&self, total: u64, message: &str, unit: &str) -> ProgressBar {
+        Progress::bar(self, total, message, unit)
+    }
+}

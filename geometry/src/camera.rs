@@ -40,6 +40,21 @@ const MAX_NORMALISED_EXTENT: f32 = 1e12;
 /// Points with a view-space z at or above this are treated as not in front of the camera.
 const NEAR_PLANE_Z: f32 = -1e-6;
 
+/// Parses an image size `WxH` (e.g. `800x800`) as the command line takes it: both sides
+/// at least 1 and at most 16384.
+pub fn parse_size(text: &str) -> Result<(u32, u32), String> {
+    let (w, h) = text.split_once(['x', 'X']).ok_or_else(|| format!("expected WIDTHxHEIGHT, got '{text}'"))?;
+    let w: u32 = w.trim().parse().map_err(|_| format!("bad width in '{text}'"))?;
+    let h: u32 = h.trim().parse().map_err(|_| format!("bad height in '{text}'"))?;
+    if w == 0 || h == 0 {
+        return Err(format!("image size must be positive, got '{text}'"));
+    }
+    if w > 16384 || h > 16384 {
+        return Err(format!("image size '{text}' exceeds 16384 on a side"));
+    }
+    Ok((w, h))
+}
+
 /// A ray `origin + t * direction`, `direction` of unit length.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Ray {

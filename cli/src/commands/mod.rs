@@ -1,11 +1,6 @@
 //! One module per subcommand; each parses its own arguments and calls into the libraries.
 
 pub mod bake;
-pub mod bench;
-pub mod bench_encode;
-pub mod bench_inolf;
-pub mod bench_scheduler;
-pub mod bench_wire;
 pub mod composer;
 pub mod dataset;
 pub mod eval;
@@ -20,22 +15,10 @@ pub mod train;
 pub mod up;
 pub mod worker;
 
-use anyhow::{Context, Result, bail};
+use anyhow::Result;
 use glam::Vec3;
 
-/// Parses `WxH` (e.g. `800x800`).
-pub fn parse_size(text: &str) -> Result<(u32, u32), String> {
-    let (w, h) = text.split_once(['x', 'X']).ok_or_else(|| format!("expected WIDTHxHEIGHT, got '{text}'"))?;
-    let w: u32 = w.trim().parse().map_err(|_| format!("bad width in '{text}'"))?;
-    let h: u32 = h.trim().parse().map_err(|_| format!("bad height in '{text}'"))?;
-    if w == 0 || h == 0 {
-        return Err(format!("image size must be positive, got '{text}'"));
-    }
-    if w > 16384 || h > 16384 {
-        return Err(format!("image size '{text}' exceeds 16384 on a side"));
-    }
-    Ok((w, h))
-}
+pub use nephele_geometry::camera::parse_size;
 
 /// Parses `x,y,z` into a finite vector.
 pub fn parse_vec3(text: &str) -> Result<Vec3, String> {
@@ -70,18 +53,7 @@ pub fn parse_background(text: &str) -> Result<[f32; 3], String> {
 
 /// Loads a built-in scene by name, or a glTF file (path ending in .gltf/.glb).
 pub fn load_scene(name_or_path: &str) -> Result<nephele_pathtracer::scenes::BuiltinScene> {
-    use nephele_pathtracer::scenes;
-    let lower = name_or_path.to_ascii_lowercase();
-    if lower.ends_with(".gltf") || lower.ends_with(".glb") {
-        let path = std::path::Path::new(name_or_path);
-        let scene = nephele_pathtracer::gltf_import::import_gltf(path)
-            .with_context(|| format!("importing {}", path.display()))?;
-        return scenes::BuiltinScene::from_imported(scene).context("framing the imported scene");
-    }
-    match scenes::builtin(name_or_path) {
-        Ok(scene) => Ok(scene),
-        Err(e) => bail!("{e}"),
-    }
+    Ok(nephele_pathtracer::scenes::load(name_or_path)?)
 }
 
 #[cfg(test)]

@@ -128,6 +128,9 @@ pub enum SceneLookupError {
     /// A generator refused its (fixed) arguments: a bug, reported rather than panicking.
     #[error("built-in scene {name:?} could not be built: {reason}")]
     Build { name: &'static str, reason: String },
+    /// [`load`] could not import a glTF file.
+    #[error("importing {path}: {reason}")]
+    Import { path: String, reason: String },
     /// [`BuiltinScene::from_imported`] could not frame the scene.
     #[error("cannot frame the scene: {reason}")]
     Unframeable { reason: String },
@@ -185,6 +188,19 @@ const NAMES: [&str; CATALOGUE.len()] = {
 /// The names [`builtin`] accepts.
 pub fn names() -> &'static [&'static str] {
     &NAMES
+}
+
+/// A built-in scene by name, or a glTF file (a path ending in `.gltf` / `.glb`) framed as
+/// one: what every command that takes `--scene` accepts.
+pub fn load(name_or_path: &str) -> Result<BuiltinScene, SceneLookupError> {
+    let lower = name_or_path.to_ascii_lowercase();
+    if lower.ends_with(".gltf") || lower.ends_with(".glb") {
+        let path = std::path::Path::new(name_or_path);
+        let scene = crate::gltf_import::import_gltf(path)
+            .map_err(|e| SceneLookupError::Import { path: path.display().to_string(), reason: e.to_string() })?;
+        return BuiltinScene::from_imported(scene);
+    }
+    builtin(name_or_path)
 }
 
 /// Builds the built-in scene called `name` (see [`names`]).

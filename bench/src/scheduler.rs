@@ -10,7 +10,7 @@ use nephele_scheduler::{
     Action, ObjectId, ObjectInfo, Policy, Scheduler, SchedulerConfig, SessionSpec, Time, WorkerId,
 };
 
-use crate::progress::Progress;
+use crate::Progress;
 
 #[derive(Debug, clap::Args)]
 pub struct SchedulerArgs {
@@ -123,7 +123,7 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted.get(rank - 1).copied().unwrap_or(0.0)
 }
 
-pub fn run(args: SchedulerArgs, progress: &Progress) -> Result<()> {
+pub fn run(args: SchedulerArgs, progress: &dyn Progress) -> Result<()> {
     ensure!(
         args.rounds > 0 && args.workers > 0 && args.pending > 0,
         "--rounds, --workers and --pending must be positive"

@@ -17,7 +17,7 @@ use nephele_proto::{
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
-use crate::progress::Progress;
+use crate::Progress;
 
 #[derive(Debug, clap::Args)]
 pub struct WireArgs {
@@ -111,7 +111,7 @@ fn median_ns(repeats: usize, mut f: impl FnMut()) -> f64 {
     times[times.len() / 2]
 }
 
-pub fn run(args: WireArgs, progress: &Progress) -> Result<()> {
+pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
     ensure!(args.pixels > 0 && args.batches > 0, "--pixels and --batches must be positive");
     let cfg = FrameConfig::default();
     let n = args.pixels;

@@ -17,7 +17,7 @@ use nephele_pathtracer::scenes;
 use nephele_pathtracer::voxel::{VoxelBits, VoxelGrid, surface_bits};
 use serde_json::json;
 
-use crate::progress::Progress;
+use crate::Progress;
 
 #[derive(Debug, clap::Args)]
 pub struct PshArgs {
@@ -41,7 +41,7 @@ pub struct CubesArgs {
     #[arg(long, default_value_t = 8)]
     cube_res: u32,
     /// Image size of the marched view (the scene's default view).
-    #[arg(long, default_value = "400x400", value_parser = super::parse_size)]
+    #[arg(long, default_value = "400x400", value_parser = nephele_geometry::camera::parse_size)]
     size: (u32, u32),
     /// Scenes to run (default: all built-in scenes).
     #[arg(long, value_delimiter = ',')]
@@ -119,7 +119,7 @@ pub struct InolfArgs {
     /// Also time one large frame (3840x2160 is 4K) of the first view's camera moved to
     /// `--large-distance` (the object filling the screen), baseline against i-NOLF: the ray
     /// count of NEPHELE's 4K figure. The baseline takes minutes on a CPU.
-    #[arg(long, value_parser = super::parse_size, value_name = "WxH")]
+    #[arg(long, value_parser = nephele_geometry::camera::parse_size, value_name = "WxH")]
     large_frame: Option<(u32, u32)>,
     /// Multiple of the first view's distance for `--large-frame`.
     #[arg(long, default_value = "0.5", value_parser = parse_factor)]
@@ -150,7 +150,7 @@ fn scene_names(requested: &[String]) -> Vec<String> {
     if requested.is_empty() { scenes::names().iter().map(|s| s.to_string()).collect() } else { requested.to_vec() }
 }
 
-pub fn psh(args: PshArgs, progress: &Progress) -> Result<()> {
+pub fn psh(args: PshArgs, progress: &dyn Progress) -> Result<()> {
     println!(
         "perfect spatial hashing of surface voxels: paper settings (table factor 1.05, sigma 1/6) and i-NOLF's coherent settings (1.5, 1)"
     );
@@ -173,7 +173,7 @@ pub fn psh(args: PshArgs, progress: &Progress) -> Result<()> {
     let bar = progress.bar((names.len() * args.resolutions.len()) as u64, "psh", "builds");
     let mut rows = Vec::new();
     for name in &names {
-        let builtin = super::load_scene(name)?;
+        let builtin = nephele_pathtracer::scenes::load(name)?;
         let (lo, hi) = builtin.scene.bounds().context("scene has no geometry")?;
         for &res in &args.resolutions {
             let grid = VoxelGrid::around(lo, hi, res);
@@ -239,7 +239,7 @@ fn surface_density(bits: &VoxelBits) -> impl Fn(&[Vec3], &mut [f32]) + Sync + '_
 }
 
 fn scene_cubes(name: &str, resolution: u32, cube_res: u32) -> Result<(DensityCubes, scenes::BuiltinScene, f64)> {
-    let builtin = super::load_scene(name)?;
+    let builtin = nephele_pathtracer::scenes::load(name)?;
     let (lo, hi) = builtin.scene.bounds().context("scene has no geometry")?;
     let margin = Vec3::splat((hi - lo).max_element() * 0.01);
     let bounds = Bounds { min: lo - margin, max: hi + margin };
@@ -251,7 +251,7 @@ fn scene_cubes(name: &str, resolution: u32, cube_res: u32) -> Result<(DensityCub
     Ok((cubes, builtin, start.elapsed().as_secs_f64()))
 }
 
-pub fn cubes(args: CubesArgs, progress: &Progress) -> Result<()> {
+pub fn cubes(args: CubesArgs, progress: &dyn Progress) -> Result<()> {
     let (width, height) = args.size;
     println!(
         "density cubes {}^3 coarse x {}^3 samples (u8) over each scene's surface voxels; marching the default view at {width}x{height}, one thread",
@@ -340,7 +340,7 @@ fn dense_samples(cubes: &DensityCubes, o: Vec3, d: Vec3) -> f64 {
     f64::from((t1 - t0).max(0.0) / cubes.cubes().sample_step())
 }
 
-pub fn psh_cache(args: PshCacheArgs, progress: &Progress) -> Result<()> {
+pub fn psh_cache(args: PshCacheArgs, progress: &dyn Progress) -> Result<()> {
     let bar = progress.bar(3, "query stream", "steps");
     let (cubes, builtin, _) = scene_cubes(&args.scene, 48, 8)?;
     bar.inc(1);
@@ -460,7 +460,7 @@ fn moved_camera(
 /// i-NOLF against the i-NGP-style baseline on held-out views: PSNR/SSIM against the images
 /// (over white, as NeRF papers), time per frame, rays per second and memory, measured in
 /// one run; the ablation rows of NEPHELE table 5.
-pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
+pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
     use nephele_imaging::metrics::psnr_and_ssim;
     use nephele_kernels::inolf::kernel::{DiffuseSource, InolfKernel};
     use nephele_kernels::kernel::frame_to_image;
@@ -527,11 +527,11 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
             let (w, h) = (v.image.width(), v.image.height());
             let camera = Camera::from_fov_x(w, h, data.camera_angle_x, v.camera_to_world)?;
             let pixels = all_pixels(&camera);
-            crate::reset_heap_peak();
+            crate::heap::reset_peak();
             let start = Instant::now();
             let (out, stats) = variant.kernel.render_pixels(&camera, &pixels)?;
             seconds += start.elapsed().as_secs_f64();
-            runtime_bytes = runtime_bytes.max(crate::heap_peak());
+            runtime_bytes = runtime_bytes.max(crate::heap::peak());
             rays += stats.rays;
             queries += stats.queries;
             let image = frame_to_image(w, h, &out).context("frame")?;
@@ -557,7 +557,7 @@ pub fn inolf(args: InolfArgs, progress: &Progress) -> Result<()> {
     println!("{} held-out views of {w}x{h}, {} threads", views.len(), rayon::current_num_threads());
     println!(
         "model MiB: the parts the kernel reads; runtime MiB: most extra heap in use at once during a frame (outputs included{})",
-        if crate::heap_peak().is_some() { "" } else { "; '-': measured only by a build with --features heap-peak" }
+        if crate::heap::peak().is_some() { "" } else { "; '-': measured only by a build with --features heap-peak" }
     );
     println!(
         "{:<58} {:>8} {:>7} {:>10} {:>12} {:>10} {:>12} {:>11} {:>9}",

@@ -18,7 +18,7 @@ use nephele_geometry::camera::Camera;
 use openh264_decode::decode_psnr;
 use serde_json::json;
 
-use crate::progress::Progress;
+use crate::Progress;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -120,7 +120,7 @@ mod openh264_decode {
     }
 }
 
-pub fn run(args: Args, progress: &Progress) -> Result<()> {
+pub fn run(args: Args, progress: &dyn Progress) -> Result<()> {
     let effort = match args.effort.as_str() {
         "low" => Effort::Low,
         "medium" => Effort::Medium,

@@ -1,4 +1,13 @@
-//! `nephele bench`: the figures recorded in BENCHMARKS.md.
+//! `nephele-bench`: the figures recorded in BENCHMARKS.md (`nephele bench ...`).
+//!
+//! One module per family: [`encode`] (the composer's stages), [`wire`] (protocol cost and
+//! loopback throughput), [`scheduler`] (rounds of the scheduler core), [`inolf`] (PSH,
+//! density cubes, cache behaviour, i-NOLF against its baseline); the path tracer's
+//! throughput is here. Benchmarks print numbers; correctness is the tests' job.
+//!
+//! Depends on the libraries it measures; nothing depends on it but the CLI. The counting
+//! allocator behind `bench inolf`'s runtime-memory column is compiled in only with the
+//! `heap-peak` feature ([`heap`]).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -12,7 +21,17 @@ use nephele_pathtracer::scenes;
 use nephele_pathtracer::{RenderOptions, Renderer};
 use serde_json::json;
 
-use crate::progress::Progress;
+pub mod encode;
+pub mod heap;
+pub mod inolf;
+pub mod scheduler;
+pub mod wire;
+
+/// Where benchmarks draw their progress bars (the CLI's, hidden by `--quiet`).
+pub trait Progress {
+    /// A bar of `total` steps labelled `message`, counting `unit`s.
+    fn bar(&self, total: u64, message: &str, unit: &str) -> indicatif::ProgressBar;
+}
 
 #[derive(Debug, clap::Subcommand)]
 pub enum Command {
@@ -22,36 +41,36 @@ pub enum Command {
     Reference(ReferenceArgs),
     /// The composer's stages per frame at streaming sizes: depth fusion, colour conversion
     /// and H.264 encoding (frames/s, bitrate, PSNR of the decoded stream against its input).
-    Encode(super::bench_encode::Args),
+    Encode(crate::encode::Args),
     /// Protocol cost: encode/decode ns per pixel (packed against element-by-element), bytes
     /// on the wire per pixel, and loopback TCP throughput of batch results between two
     /// processes and between two tokio tasks (batches/s, GB/s of pixel results).
-    Wire(super::bench_wire::WireArgs),
+    Wire(crate::wire::WireArgs),
     /// The receiving end of `bench wire` (started by it).
     #[command(hide = true)]
-    WireSink(super::bench_wire::SinkArgs),
+    WireSink(crate::wire::SinkArgs),
     /// Scheduler core: microseconds per scheduling round at 10, 100 and 1000 users with
     /// 10,000 pending tasks (NEPHELE against FIFO in the same run).
-    Scheduler(super::bench_scheduler::SchedulerArgs),
+    Scheduler(crate::scheduler::SchedulerArgs),
     /// Perfect spatial hashing of each scene's surface voxels at 128^3, 256^3, 512^3: table
     /// sizes, build time, neighbour coherence, and a check of zero collisions.
-    Psh(super::bench_inolf::PshArgs),
+    Psh(crate::inolf::PshArgs),
     /// Density texture cubes over each scene: bytes against a dense grid, and the cost of
     /// marching the default view (cells, samples and nanoseconds per ray, rays that miss).
-    Cubes(super::bench_inolf::CubesArgs),
+    Cubes(crate::inolf::CubesArgs),
     /// One stream of encoding queries (hit points from random viewpoints) answered by the PSH
     /// encoding or the multiresolution hash grid; run it under
     /// `valgrind --tool=cachegrind` once per `--encoding` (and once with `none` to subtract).
-    PshCache(super::bench_inolf::PshCacheArgs),
+    PshCache(crate::inolf::PshCacheArgs),
     /// i-NOLF against the i-NGP-style baseline on held-out views of a dataset: quality,
     /// time per frame, rays per second and speed-up, measured in one run.
-    Inolf(super::bench_inolf::InolfArgs),
+    Inolf(crate::inolf::InolfArgs),
 }
 
 #[derive(Debug, clap::Args)]
 pub struct ReferenceArgs {
     /// Image size of the timed render.
-    #[arg(long, default_value = "128x128", value_parser = super::parse_size)]
+    #[arg(long, default_value = "128x128", value_parser = nephele_geometry::camera::parse_size)]
     size: (u32, u32),
     /// Samples per pixel of the timed render.
     #[arg(long, default_value_t = 16)]
@@ -67,21 +86,21 @@ pub struct ReferenceArgs {
     json: Option<PathBuf>,
 }
 
-pub fn run(command: Command, progress: &Progress) -> Result<()> {
+pub fn run(command: Command, progress: &dyn Progress) -> Result<()> {
     match command {
         Command::Reference(args) => reference(args, progress),
-        Command::Encode(args) => super::bench_encode::run(args, progress),
-        Command::Wire(args) => super::bench_wire::run(args, progress),
-        Command::WireSink(args) => super::bench_wire::sink(args),
-        Command::Scheduler(args) => super::bench_scheduler::run(args, progress),
-        Command::Psh(args) => super::bench_inolf::psh(args, progress),
-        Command::Cubes(args) => super::bench_inolf::cubes(args, progress),
-        Command::PshCache(args) => super::bench_inolf::psh_cache(args, progress),
-        Command::Inolf(args) => super::bench_inolf::inolf(args, progress),
+        Command::Encode(args) => crate::encode::run(args, progress),
+        Command::Wire(args) => crate::wire::run(args, progress),
+        Command::WireSink(args) => crate::wire::sink(args),
+        Command::Scheduler(args) => crate::scheduler::run(args, progress),
+        Command::Psh(args) => crate::inolf::psh(args, progress),
+        Command::Cubes(args) => crate::inolf::cubes(args, progress),
+        Command::PshCache(args) => crate::inolf::psh_cache(args, progress),
+        Command::Inolf(args) => crate::inolf::inolf(args, progress),
     }
 }
 
-fn reference(args: ReferenceArgs, progress: &Progress) -> Result<()> {
+fn reference(args: ReferenceArgs, progress: &dyn Progress) -> Result<()> {
     let names: Vec<String> = if args.scenes.is_empty() {
         scenes::names().iter().map(|s| s.to_string()).collect()
     } else {
@@ -100,7 +119,7 @@ fn reference(args: ReferenceArgs, progress: &Progress) -> Result<()> {
     );
     let mut rows = Vec::new();
     for name in &names {
-        let builtin = super::load_scene(name)?;
+        let builtin = nephele_pathtracer::scenes::load(name)?;
         let (eye, target, fov_y) = builtin.default_view();
         let background = builtin.default_background();
         let triangles = builtin.scene.triangle_count();
