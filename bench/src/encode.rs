@@ -68,8 +68,7 @@ fn scene_frame(
             Camera::look_at(w, h, 0.9, eye, glam::Vec3::ZERO, glam::Vec3::Z).ok()
         })
         .collect();
-    let (body, mut batches) = testpattern::frame(1, frame, layout, &cameras);
-    let mut plan = body.with_deadline(deadline);
+    let (mut plan, mut batches) = testpattern::frame(1, frame, layout, &cameras, deadline);
     let shift = frame as u32 * 3;
     for view in 0..layout.views() {
         for (band, y0) in (0..h).step_by(64).enumerate() {
@@ -91,7 +90,7 @@ fn scene_frame(
             }
             let key = BatchKey { object: 100, batch: u32::from(view) * 1000 + band as u32 };
             plan.batches.push(PlannedBatch { key, view, pixels: pixels.clone().into() });
-            batches.push(BatchResult { session: 1, frame, view, key, pixels, results: r });
+            batches.push(BatchResult::from_results(1, frame, view, key, pixels, r));
         }
     }
     (plan, batches)

@@ -197,19 +197,50 @@ pub struct FramePlan {
     pub batches: Vec<PlannedBatch>,
 }
 
-/// One batch of results from a worker.
+/// One batch of results from a worker: where it goes in the frame, and the worker's
+/// message itself, shared and never copied (fusion reads its arrays in place): `pixels`
+/// (indices `y * view_width + x` inside the view), `color`, `opacity`, `depth`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BatchResult {
     pub session: SessionId,
     pub frame: FrameId,
     pub view: u16,
     pub key: BatchKey,
-    /// Pixel indices `y * view_width + x` inside the view, one per result.
-    pub pixels: Vec<u32>,
-    pub results: PixelResults,
+    pub data: Arc<nephele_proto::BatchResult>,
 }
 
 impl BatchResult {
+    /// A batch made in this process (the test pattern, tests, benchmarks) from a kernel's
+    /// results: the proto message a worker would have sent, with zero ids.
+    pub fn from_results(
+        session: SessionId,
+        frame: FrameId,
+        view: u16,
+        key: BatchKey,
+        pixels: Vec<u32>,
+        results: PixelResults,
+    ) -> BatchResult {
+        let PixelResults { color, opacity, depth } = results;
+        let data = nephele_proto::BatchResult {
+            ids: nephele_proto::BatchIds::default(),
+            worker_id: 0,
+            width: 0,
+            height: 0,
+            pixels,
+            color,
+            opacity,
+            depth,
+            render_time_us: 0,
+            stats: nephele_proto::KernelStats::default(),
+        };
+        BatchResult { session, frame, view, key, data: Arc::new(data) }
+    }
+
+    /// Pixel indices inside the view, one per result.
+    pub fn pixels(&self) -> &[u32] {
+        &self.data.pixels
+    }
+
     /// Checks lengths, index ranges and values against `layout`. Colour must be finite and
     /// non-negative (linear radiance may exceed 1), opacity in `[0, 1]`, depth finite,
     /// non-negative, and positive where opacity is positive (the kernel contract).
@@ -217,8 +248,8 @@ impl BatchResult {
         let fail = |reason: String| {
             Err(FusionError::InvalidBatch { frame: self.frame, object: self.key.object, batch: self.key.batch, reason })
         };
-        let n = self.pixels.len();
-        let r = &self.results;
+        let n = self.data.pixels.len();
+        let r = &*self.data;
         if r.color.len() != n || r.opacity.len() != n || r.depth.len() != n {
             return fail(format!(
                 "{} pixels but {} colours, {} opacities, {} depths",
@@ -234,7 +265,7 @@ impl BatchResult {
         let count = layout.view_pixel_count() as u64;
         // Branch-free passes first (they vectorise); the slow loops below only run to name
         // the offending item of a batch already known to be bad.
-        let max_pixel = self.pixels.iter().fold(0u32, |m, &p| m.max(p));
+        let max_pixel = self.data.pixels.iter().fold(0u32, |m, &p| m.max(p));
         if n > 0 && u64::from(max_pixel) >= count {
             return fail(format!(
                 "pixel {max_pixel} outside the {}x{} view",
@@ -582,12 +613,12 @@ fn try_insert(pending: Option<&mut PendingFrame>, batch: BatchResult) -> Result<
     };
     batch.validate(&pending.plan.layout)?;
     let planned = &pending.plan.batches[slot];
-    if planned.view != batch.view || planned.pixels.len() != batch.pixels.len() {
+    if planned.view != batch.view || planned.pixels.len() != batch.data.pixels.len() {
         let reason = format!(
             "planned {} pixels of view {}, got {} pixels of view {}",
             planned.pixels.len(),
             planned.view,
-            batch.pixels.len(),
+            batch.data.pixels.len(),
             batch.view
         );
         return Err(FusionError::InvalidBatch { frame, object, batch: number, reason });
@@ -625,15 +656,15 @@ struct BatchView<'a> {
 impl BatchView<'_> {
     fn pixel_at(&self, i: usize) -> (u32, usize) {
         let item = self.order.as_ref().map_or(i, |o| o[i] as usize);
-        (self.batch.pixels[item], item)
+        (self.batch.data.pixels[item], item)
     }
 
     /// The items with a pixel in `[from, to)`, in ascending pixel order.
     fn items_in(&self, from: u32, to: u32) -> impl Iterator<Item = (u32, usize)> + '_ {
-        let n = self.batch.pixels.len();
+        let n = self.batch.data.pixels.len();
         let first = match &self.order {
-            None => self.batch.pixels.partition_point(|&p| p < from),
-            Some(o) => o.partition_point(|&i| self.batch.pixels[i as usize] < from),
+            None => self.batch.data.pixels.partition_point(|&p| p < from),
+            Some(o) => o.partition_point(|&i| self.batch.data.pixels[i as usize] < from),
         };
         (first..n).map(|i| self.pixel_at(i)).take_while(move |&(p, _)| p < to)
     }
@@ -672,7 +703,7 @@ fn fuse(pending: &PendingFrame, last: Option<&[[f32; 3]]>, band_pixels: usize) -
         .enumerate()
         .filter_map(|(slot, b)| b.as_ref().map(|b| (slot, b)))
         .map(|(slot, batch)| {
-            let pixels = &batch.pixels;
+            let pixels = &batch.data.pixels;
             let sorted = pixels.windows(2).all(|w| w[0] <= w[1]);
             let order = (!sorted).then(|| {
                 let mut order: Vec<u32> = (0..pixels.len() as u32).collect();
@@ -777,7 +808,7 @@ fn fuse_view_rows(
     ends.resize(span + 1, 0);
     let mut total = 0usize;
     for b in reaching() {
-        let r = &b.batch.results;
+        let r = &*b.batch.data;
         for (p, item) in b.items_in(from, to) {
             if contributes(r.opacity[item], &r.color[item]) {
                 ends[(p - from) as usize + 1] += 1;
@@ -795,7 +826,7 @@ fn fuse_view_rows(
     samples.clear();
     samples.resize(total, Sample::default());
     for b in reaching() {
-        let r = &b.batch.results;
+        let r = &*b.batch.data;
         for (p, item) in b.items_in(from, to) {
             let (alpha, color) = (r.opacity[item], r.color[item]);
             if contributes(alpha, &color) {
@@ -876,14 +907,7 @@ mod tests {
         pixels: &[u32],
         items: &[([f32; 3], f32, f32)],
     ) -> BatchResult {
-        BatchResult {
-            session: 1,
-            frame,
-            view,
-            key: BatchKey { object, batch },
-            pixels: pixels.to_vec(),
-            results: results(items),
-        }
+        BatchResult::from_results(1, frame, view, BatchKey { object, batch }, pixels.to_vec(), results(items))
     }
 
     fn plan(
@@ -1259,10 +1283,10 @@ mod tests {
             let slot_of = |r: &BatchResult| planned_batches.iter().position(|p| p.key == r.key).unwrap();
             let mut per_pixel: Vec<Vec<(f32, usize, [f32; 3], f32)>> = vec![Vec::new(); layout.pixel_count()];
             for r in &results {
-                for (i, &p) in r.pixels.iter().enumerate() {
-                    let (color, alpha) = (r.results.color[i], r.results.opacity[i]);
+                for (i, &p) in r.data.pixels.iter().enumerate() {
+                    let (color, alpha) = (r.data.color[i], r.data.opacity[i]);
                     if contributes(alpha, &color) {
-                        per_pixel[layout.packed_index(r.view, p)].push((r.results.depth[i], slot_of(r), color, alpha));
+                        per_pixel[layout.packed_index(r.view, p)].push((r.data.depth[i], slot_of(r), color, alpha));
                     }
                 }
             }

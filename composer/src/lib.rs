@@ -8,20 +8,25 @@
 //! composites them by depth, [`yuv`] converts the fused linear picture to BT.709 YUV 4:2:0,
 //! [`encode`] encodes it with OpenH264 in a low-latency IPPP configuration, and [`webrtc`]
 //! sends it on the viewer's video track while poses come back over an RTCDataChannel
-//! ([`pose`]). [`service`] is the thin network shell (HTTP signalling, the worker-results
-//! listener of [`wire`]) around these pure cores.
+//! ([`pose`]). [`service`] is the thin network shell around these pure cores, one file per
+//! concept: HTTP signalling (`signalling`), viewer sessions (`sessions`), the media path
+//! (`media`), the farm link and results listener (`farm`, proto only) and the test pattern
+//! ([`testpattern`]), over the state they share (`state`).
 
 // Tests may unwrap and spell out their reference tuples.
 #![cfg_attr(test, allow(clippy::unwrap_used, clippy::type_complexity, clippy::needless_range_loop))]
 
-pub mod client;
+mod config;
 pub mod encode;
+mod farm;
 pub mod fusion;
 pub mod latency;
-mod master_link;
+mod media;
 pub mod pose;
 pub mod service;
+mod sessions;
+mod signalling;
+mod state;
 pub mod testpattern;
 pub mod webrtc;
-pub mod wire;
 pub mod yuv;

@@ -1,12 +1,14 @@
 //! Helpers for the cross-process tests in `tests/tests/` (they run the real `nephele` binary)
 //! and the browser end-to-end tests: [`browser`] (headless Chromium over WebDriver),
 //! [`client`] (the client page's state), [`farm`] (an in-process farm with a real WebRTC peer),
-//! [`service`] (the whole service under `nephele up`).
+//! [`service`] (the whole service under `nephele up`), [`viewer`] (a headless WebRTC viewer
+//! that decodes the stream, on the composer's own stack).
 
 pub mod browser;
 pub mod client;
 pub mod farm;
 pub mod service;
+pub mod viewer;
 
 use std::path::PathBuf;
 use std::process::{Command, Output};

@@ -8,8 +8,8 @@ use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use nephele_composer::client::{Client, ClientOptions, http_request};
 use nephele_tests::nephele_bin;
+use nephele_tests::viewer::{Client, ClientOptions, http_request};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn composer_process_streams_to_a_client_and_stops_on_ctrl_c() {

@@ -7,9 +7,9 @@
 
 use std::time::{Duration, Instant};
 
-use nephele_composer::client::{Client, ClientOptions, http_request};
 use nephele_composer::pose::look_at_pose;
 use nephele_tests::service::{UpService, alive, children_of};
+use nephele_tests::viewer::{Client, ClientOptions, http_request};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {

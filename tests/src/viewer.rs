@@ -26,9 +26,9 @@ use webrtc::rtp_transceiver::rtp_codec::RTPCodecType;
 use webrtc::rtp_transceiver::rtp_transceiver_direction::RTCRtpTransceiverDirection;
 use webrtc::track::track_remote::TrackRemote;
 
-use crate::encode::{nal, nal_type, split_annex_b};
-use crate::pose::{Control, Pose};
-use crate::webrtc::{RtcConfig, build_api};
+use nephele_composer::encode::{nal, nal_type, split_annex_b};
+use nephele_composer::pose::{Control, Pose};
+use nephele_composer::webrtc::{RtcConfig, build_api};
 
 #[derive(Debug, Error)]
 pub enum ClientError {
@@ -41,7 +41,7 @@ pub enum ClientError {
     #[error("WebRTC: {0}")]
     Rtc(#[from] webrtc::Error),
     #[error(transparent)]
-    Config(#[from] crate::webrtc::RtcError),
+    Config(#[from] nephele_composer::webrtc::RtcError),
 }
 
 /// A decoded picture as the client saw it.
@@ -154,7 +154,7 @@ impl Client {
     pub async fn connect(http: SocketAddr, options: ClientOptions) -> Result<Client, ClientError> {
         let api = if options.mdns_candidates {
             let mut media = webrtc::api::media_engine::MediaEngine::default();
-            media.register_codec(crate::webrtc::h264_codec(), RTPCodecType::Video)?;
+            media.register_codec(nephele_composer::webrtc::h264_codec(), RTPCodecType::Video)?;
             let mut settings = SettingEngine::default();
             settings.set_ice_multicast_dns_mode(MulticastDnsMode::QueryAndGather);
             webrtc::api::APIBuilder::new().with_media_engine(media).with_setting_engine(settings).build()

@@ -8,7 +8,9 @@
 //!   composer sends each accepted data-channel pose as `ClientPose` and `CloseStream` when a
 //!   viewer vanishes. A lost link is re-established every second until shutdown.
 //! * **Results listener**: workers connect, say `Hello` (role worker) and send
-//!   `BatchResult`s, filed by `ids.task_id` until the master releases the task.
+//!   `BatchResult`s, filed by `ids.task_id` until the master releases the task. Without a
+//!   master, a peer with role tool may send the `FramePlan`s itself; the listener speaks
+//!   nothing but proto.
 //! * **Frames**: a plan's parts are fused by depth with the existing [`Compositor`]. Results
 //!   race the plan (the worker reports `BatchDone` to the master on another connection), so
 //!   a plan waits up to [`PLAN_GRACE`] (or its deadline) for tasks with no results yet; a part
@@ -17,59 +19,23 @@
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use futures_util::SinkExt;
-use nephele_geometry::PixelResults;
 use nephele_proto::stream::{framed, handshake, recv};
-use nephele_proto::{
-    ClientPose, CloseStream, ComposerRegister, FrameConfig, FramePlan, Message, Role, StreamOpened, WireCamera,
-};
-use tokio::net::TcpStream;
+use nephele_proto::{CloseStream, ComposerRegister, FrameConfig, FramePlan, Message, Role, StreamOpened};
+use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{mpsc, watch};
 
-use crate::fusion::{self, BatchKey, PlannedBatch, SessionId};
+use crate::fusion::{self, BatchKey, PlannedBatch};
 use crate::latency::FrameTiming;
-use crate::pose::Pose;
-use crate::service::{Shared, end_session, layout_for, lock, open_viewer};
+use crate::sessions::{end_session, layout_for, open_viewer};
+use crate::state::{Shared, lock};
 
 /// How long a frame plan waits for results that have not reached the composer yet.
 pub const PLAN_GRACE: Duration = Duration::from_millis(100);
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(5);
-
-/// Sends `message` to the master if a link is up (dropped otherwise).
-pub(crate) fn to_master(shared: &Shared, message: Message) {
-    if let Some(tx) = lock(&shared.to_master).as_ref() {
-        let _ = tx.send(message);
-    }
-}
-
-/// An accepted data-channel pose, as the master's `ClientPose`.
-pub(crate) fn forward_pose(shared: &Shared, session: SessionId, pose: &Pose) {
-    if shared.config.master.is_none() {
-        return;
-    }
-    let views = pose
-        .views
-        .iter()
-        .map(|v| WireCamera {
-            width: v.width,
-            height: v.height,
-            view: v.view.to_cols_array(),
-            projection: v.projection.to_cols_array(),
-        })
-        .collect();
-    lock(&shared.latency).pose_received(session, pose.seq, Instant::now());
-    to_master(
-        shared,
-        Message::ClientPose(ClientPose {
-            session_id: session,
-            sequence: pose.seq,
-            client_time_ms: pose.client_time_ms,
-            views,
-        }),
-    );
-}
 
 /// Keeps a link to the master up until `stop`.
 pub(crate) async fn run(shared: Arc<Shared>, master: String, results: SocketAddr, mut stop: watch::Receiver<bool>) {
@@ -135,22 +101,10 @@ fn handle(shared: &Arc<Shared>, message: Message) {
                 if let Err(e) = &answer {
                     tracing::info!(session = open.session_id, "stream refused: {e}");
                 }
-                to_master(&shared, Message::StreamOpened(StreamOpened { session_id: open.session_id, answer }));
+                shared.to_master(Message::StreamOpened(StreamOpened { session_id: open.session_id, answer }));
             });
         }
-        Message::FramePlan(plan) => {
-            let shared = Arc::clone(shared);
-            tokio::spawn(async move {
-                let start = Instant::now();
-                let grace_end = start + PLAN_GRACE.min(until_unix_us(plan.deadline_unix_us).unwrap_or(PLAN_GRACE));
-                while Instant::now() < grace_end && !all_present(&shared, &plan) {
-                    tokio::time::sleep(Duration::from_millis(2)).await;
-                }
-                if let Err(e) = fuse_plan(&shared, &plan, start) {
-                    tracing::debug!(session = plan.session_id, frame = plan.frame_id, "frame plan refused: {e}");
-                }
-            });
-        }
+        Message::FramePlan(plan) => accept_plan(shared, plan),
         Message::ReleaseTask(release) => {
             lock(&shared.task_results).remove(&release.task_id);
         }
@@ -162,6 +116,22 @@ fn handle(shared: &Arc<Shared>, message: Message) {
         }
         other => tracing::debug!("unexpected message from the master: {}", other.kind().name()),
     }
+}
+
+/// Fuses `plan` once its tasks' results are all here, or after [`PLAN_GRACE`] (or its
+/// deadline, if sooner) with what has arrived.
+fn accept_plan(shared: &Arc<Shared>, plan: FramePlan) {
+    let shared = Arc::clone(shared);
+    tokio::spawn(async move {
+        let start = Instant::now();
+        let grace_end = start + PLAN_GRACE.min(until_unix_us(plan.deadline_unix_us).unwrap_or(PLAN_GRACE));
+        while Instant::now() < grace_end && !all_present(&shared, &plan) {
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+        if let Err(e) = fuse_plan(&shared, &plan, start) {
+            tracing::debug!(session = plan.session_id, frame = plan.frame_id, "frame plan refused: {e}");
+        }
+    });
 }
 
 /// Resolves once `stop` is set (or its sender is gone). The guard `wait_for` returns is not
@@ -217,16 +187,8 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
                         planned.push(PlannedBatch { key, view, pixels: r.pixels.clone().into() });
                         covered.extend_from_slice(&r.pixels);
                         *render_us.entry(r.worker_id).or_default() += r.render_time_us;
-                        let results =
-                            PixelResults { color: r.color.clone(), opacity: r.opacity.clone(), depth: r.depth.clone() };
-                        arrived.push(fusion::BatchResult {
-                            session,
-                            frame,
-                            view,
-                            key,
-                            pixels: r.pixels.clone(),
-                            results,
-                        });
+                        // The worker's message itself: fusion reads its arrays in place.
+                        arrived.push(fusion::BatchResult { session, frame, view, key, data: Arc::clone(r) });
                     }
                     last.insert(key, covered.into());
                 }
@@ -274,7 +236,26 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
     Ok(())
 }
 
-/// A worker's connection to the results listener: `Hello`, then `BatchResult`s.
+/// The results listener: every connection speaks proto (see [`read_results`]).
+pub(crate) async fn accept_results(shared: Arc<Shared>, listener: TcpListener, mut stop: watch::Receiver<bool>) {
+    loop {
+        let connection_stop = stop.clone();
+        tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok((stream, peer)) => {
+                    shared.counters.worker_connections.fetch_add(1, Ordering::Relaxed);
+                    tokio::spawn(read_results(Arc::clone(&shared), stream, peer, connection_stop));
+                }
+                Err(e) => tracing::warn!("accepting a worker connection: {e}"),
+            },
+            _ = stop.wait_for(|s| *s) => return,
+        }
+    }
+}
+
+/// A connection to the results listener: `Hello`, then `BatchResult`s. A peer that says it
+/// is a tool (no master: tests, benchmarks, a farm of one's own) may also send the
+/// `FramePlan`s that the master would.
 pub(crate) async fn read_results(
     shared: Arc<Shared>,
     stream: TcpStream,
@@ -283,11 +264,14 @@ pub(crate) async fn read_results(
 ) {
     let _ = stream.set_nodelay(true);
     let mut conn = framed(stream, FrameConfig::default());
-    if let Err(e) = handshake(&mut conn, Role::Composer, &[Role::Worker, Role::Tool], HANDSHAKE_TIMEOUT).await {
-        shared.counters.wire_errors.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        tracing::debug!(%peer, "worker handshake: {e}");
-        return;
-    }
+    let peer_role = match handshake(&mut conn, Role::Composer, &[Role::Worker, Role::Tool], HANDSHAKE_TIMEOUT).await {
+        Ok(hello) => hello.role,
+        Err(e) => {
+            shared.counters.wire_errors.fetch_add(1, Ordering::Relaxed);
+            tracing::debug!(%peer, "worker handshake: {e}");
+            return;
+        }
+    };
     loop {
         let message = tokio::select! {
             m = recv(&mut conn) => m,
@@ -297,11 +281,17 @@ pub(crate) async fn read_results(
             Ok(Message::BatchResult(result)) => {
                 lock(&shared.task_results).entry(result.ids.task_id).or_default().push(Arc::new(result));
             }
+            Ok(Message::FramePlan(plan)) if peer_role == Role::Tool => accept_plan(&shared, plan),
             Ok(Message::Goodbye(_)) => break,
             Ok(other) => tracing::debug!(%peer, "unexpected message from a worker: {}", other.kind().name()),
+            Err(nephele_proto::ProtoError::Invalid(rejected)) => {
+                // A message that decoded but failed validation: skip it, keep the connection.
+                shared.counters.wire_errors.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(%peer, "malformed message from a worker: {rejected}");
+            }
             Err(e) => {
                 if !matches!(e, nephele_proto::ProtoError::Closed) {
-                    shared.counters.wire_errors.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    shared.counters.wire_errors.fetch_add(1, Ordering::Relaxed);
                     tracing::debug!(%peer, "worker connection: {e}");
                 }
                 break;
@@ -310,6 +300,3 @@ pub(crate) async fn read_results(
     }
     tracing::debug!(%peer, "worker connection closed");
 }
-
-/// Pixel sets of each (session, view, object) in the last frame that had them.
-pub(crate) type LastParts = HashMap<(SessionId, u32, u64), Arc<[u32]>>;

@@ -6,13 +6,13 @@
 
 use std::time::Duration;
 
+use futures_util::SinkExt;
 use glam::Vec3;
-use nephele_composer::client::{Client, ClientOptions, http_request};
-use nephele_composer::fusion::{BatchKey, BatchResult, FrameLayout, PlannedBatch};
 use nephele_composer::pose::{Control, Pose, look_at_pose};
 use nephele_composer::service::{Composer, ComposerConfig, FrameSource};
-use nephele_composer::wire::{self, PlanBody};
-use nephele_geometry::PixelResults;
+use nephele_proto::stream::{framed, handshake};
+use nephele_proto::{BatchIds, BatchResult, FrameConfig, FramePlan, KernelStats, Message, PlanPart, Role};
+use nephele_tests::viewer::{Client, ClientOptions, http_request};
 use tokio::io::AsyncWriteExt;
 use tokio::net::TcpStream;
 
@@ -139,47 +139,60 @@ async fn malformed_offers_get_a_clear_error() {
     composer.shutdown().await;
 }
 
+/// A farm of one's own on the results listener: a peer with role tool sends the frame plans
+/// a master would, and batch results as workers do, all in proto.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn worker_results_over_tcp_become_the_streamed_picture() {
     let composer = Composer::start(config(FrameSource::Workers)).await.unwrap();
     let mut client = connect(&composer, r#""width":64,"height":32"#).await;
-    let mut worker = TcpStream::connect(composer.results_addr()).await.unwrap();
-    let layout = FrameLayout::mono(64, 32).unwrap();
+    let results = || async {
+        let stream = TcpStream::connect(composer.results_addr()).await.unwrap();
+        let mut conn = framed(stream, FrameConfig::default());
+        handshake(&mut conn, Role::Tool, &[Role::Composer], WAIT).await.unwrap();
+        conn
+    };
+    let mut farm = results().await;
     let all: Vec<u32> = (0..64 * 32).collect();
-    // Two workers' batches per frame: left half white, right half black, on a black
-    // background; then the halves swap. Mean luma tells which frame arrived.
+    // Two workers' batches per frame: left half white, right half black, on the farm's
+    // black background; then the halves swap. Mean luma tells which frame arrived.
     let left: Vec<u32> = all.iter().copied().filter(|p| p % 64 < 32).collect();
     let right: Vec<u32> = all.iter().copied().filter(|p| p % 64 >= 32).collect();
     let session = client.session;
-    let batch = |frame: u64, object: u32, pixels: &[u32], value: f32| BatchResult {
-        session,
-        frame,
-        view: 0,
-        key: BatchKey { object, batch: 0 },
+    let batch = |frame: u64, task_id: u64, pixels: &[u32], value: f32, depth: f32| BatchResult {
+        ids: BatchIds { batch_id: task_id, task_id, session_id: session, frame_id: frame, view_index: 0 },
+        worker_id: 1,
+        width: 64,
+        height: 32,
         pixels: pixels.to_vec(),
-        results: PixelResults {
-            color: vec![[value; 3]; pixels.len()],
-            opacity: vec![1.0; pixels.len()],
-            depth: vec![1.0 + object as f32; pixels.len()],
-        },
+        color: vec![[value; 3]; pixels.len()],
+        opacity: vec![1.0; pixels.len()],
+        depth: vec![depth; pixels.len()],
+        render_time_us: 10,
+        stats: KernelStats::default(),
+    };
+    let plan = |frame: u64, parts: Vec<PlanPart>| FramePlan {
+        session_id: session,
+        frame_id: frame,
+        pose_sequence: 0,
+        client_time_ms: 0.0,
+        width: 64,
+        height: 32,
+        views: 1,
+        parts,
+        deadline_unix_us: None,
     };
     let mut means = Vec::new();
     for frame in 0..6u64 {
         let bright_left = frame < 3;
-        let plan = PlanBody {
-            session: client.session,
-            frame,
-            layout,
-            background: [0.0; 3],
-            batches: vec![
-                PlannedBatch { key: BatchKey { object: 0, batch: 0 }, view: 0, pixels: left.clone().into() },
-                PlannedBatch { key: BatchKey { object: 1, batch: 0 }, view: 0, pixels: right.clone().into() },
-            ],
-        };
-        worker.write_all(&wire::encode_plan(&plan, Duration::from_millis(200))).await.unwrap();
         let (l, r) = if bright_left { (1.0, 0.0) } else { (0.0, 1.0) };
-        worker.write_all(&wire::encode_result(&batch(frame, 1, &right, r))).await.unwrap();
-        worker.write_all(&wire::encode_result(&batch(frame, 0, &left, l))).await.unwrap();
+        let (left_task, right_task) = (2 * frame, 2 * frame + 1);
+        farm.send(&Message::BatchResult(batch(frame, right_task, &right, r, 2.0))).await.unwrap();
+        farm.send(&Message::BatchResult(batch(frame, left_task, &left, l, 1.0))).await.unwrap();
+        let parts = vec![
+            PlanPart { view: 0, task_id: left_task, object_id: 0 },
+            PlanPart { view: 0, task_id: right_task, object_id: 1 },
+        ];
+        farm.send(&Message::FramePlan(plan(frame, parts))).await.unwrap();
         let p = client.next_picture(WAIT, |_| true).await.unwrap();
         assert_eq!((p.width, p.height), (64, 32));
         means.push(p.mean_y);
@@ -189,15 +202,29 @@ async fn worker_results_over_tcp_become_the_streamed_picture() {
     for m in &means {
         assert!((*m - 125.5).abs() < 6.0, "{means:?}");
     }
-    // A malformed message is skipped without losing the connection.
-    worker.write_all(&[3, 0, 0, 0, 99, 1, 2]).await.unwrap();
-    let plan = PlanBody { session: client.session, frame: 10, layout, background: [1.0; 3], batches: vec![] };
-    worker.write_all(&wire::encode_plan(&plan, Duration::ZERO)).await.unwrap();
+    // Bytes that are no message (an unknown message type) end that connection, counted; the
+    // composer goes on serving: a new connection's plan still becomes a picture.
+    farm.get_mut().write_all(&[3, 0, 0, 0, 99, 1, 2]).await.unwrap();
+    let start = std::time::Instant::now();
+    while composer.wire_errors() == 0 && start.elapsed() < WAIT {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let mut farm = results().await;
+    farm.send(&Message::BatchResult(batch(10, 100, &all, 1.0, 1.0))).await.unwrap();
+    farm.send(&Message::FramePlan(plan(10, vec![PlanPart { view: 0, task_id: 100, object_id: 0 }]))).await.unwrap();
     let white = client.next_picture(WAIT, |p| p.mean_y > 200.0).await.unwrap();
     assert!(white.mean_y > 230.0, "{white:?}");
     assert_eq!(composer.wire_errors(), 1);
     let report = composer.sessions().remove(0);
     assert_eq!(report.fusion.frames_complete, 7, "{report:?}");
+    // Only a tool may plan frames: a worker's plan is ignored.
+    let stream = TcpStream::connect(composer.results_addr()).await.unwrap();
+    let mut worker = framed(stream, FrameConfig::default());
+    handshake(&mut worker, Role::Worker, &[Role::Composer], WAIT).await.unwrap();
+    worker.send(&Message::FramePlan(plan(11, vec![PlanPart { view: 0, task_id: 100, object_id: 0 }]))).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let report = composer.sessions().remove(0);
+    assert_eq!(report.fusion.frames_complete, 7, "a worker's plan was fused: {report:?}");
     client.close().await;
     composer.shutdown().await;
 }

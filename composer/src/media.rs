@@ -1,0 +1,160 @@
+//! The media path: fused frames go to their sessions' media threads, which convert to YUV,
+//! encode H.264 and send on the video track. A frame that arrives while the previous one is
+//! still being encoded is dropped (counted): the stream never queues up latency.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex as StdMutex, mpsc as std_mpsc};
+use std::time::{Duration, Instant};
+
+use tokio::sync::watch;
+
+use crate::encode::{EncoderSettings, EncoderStats, H264Encoder};
+use crate::fusion::FusedFrame;
+use crate::state::{MediaCounters, Shared, lock};
+use crate::webrtc::Viewer;
+use crate::yuv::Yuv420;
+
+/// The session's media path on its own thread: YUV conversion and encoding are CPU work
+/// that must not stall the async runtime.
+pub(crate) fn spawn_media_thread(
+    shared: &Arc<Shared>,
+    viewer: Arc<Viewer>,
+    frames: std_mpsc::Receiver<FusedFrame>,
+    keyframe: Arc<AtomicBool>,
+    media: Arc<StdMutex<(MediaCounters, EncoderStats)>>,
+) {
+    let runtime = shared.runtime.clone();
+    let shared = Arc::clone(shared);
+    let fps = shared.config.fps;
+    let bitrate = shared.config.bitrate_bps;
+    let session = viewer.session();
+    let spawned = std::thread::Builder::new().name(format!("media-{session}")).spawn(move || {
+        let frame_time = Duration::from_secs_f32(1.0 / fps);
+        let mut encoder: Option<H264Encoder> = None;
+        let mut yuv: Option<Yuv420> = None;
+        let started = Instant::now();
+        while let Ok(frame) = frames.recv() {
+            let (w, h) = (frame.layout.width(), frame.layout.height());
+            let t0 = Instant::now();
+            let picture = match yuv.take() {
+                Some(mut p) if p.width() == w && p.height() == h => p.fill_from_linear_rgb(&frame.rgb).map(|_| p),
+                _ => Yuv420::from_linear_rgb(w, h, &frame.rgb),
+            };
+            let picture = match picture {
+                Ok(p) => p,
+                Err(e) => {
+                    tracing::warn!(session, "colour conversion: {e}");
+                    lock(&media).0.encode_errors += 1;
+                    continue;
+                }
+            };
+            let t1 = Instant::now();
+            if encoder.as_ref().is_none_or(|e| e.settings().width != w || e.settings().height != h) {
+                let mut settings = EncoderSettings::low_latency(w, h);
+                settings.fps = fps;
+                if let Some(b) = bitrate {
+                    settings.bitrate_bps = b;
+                }
+                match H264Encoder::new(settings) {
+                    Ok(e) => encoder = Some(e),
+                    Err(e) => {
+                        tracing::warn!(session, "encoder for {w}x{h}: {e}");
+                        lock(&media).0.encode_errors += 1;
+                        yuv = Some(picture);
+                        continue;
+                    }
+                }
+            }
+            let Some(enc) = encoder.as_mut() else { continue };
+            if keyframe.swap(false, Ordering::SeqCst) {
+                enc.request_keyframe();
+                lock(&media).0.keyframes_requested += 1;
+            }
+            let encoded = enc.encode(&picture, started.elapsed().as_millis() as u64);
+            let t2 = Instant::now();
+            yuv = Some(picture);
+            let encoded = match encoded {
+                Ok(f) => f,
+                Err(e) => {
+                    tracing::warn!(session, "encoding: {e}");
+                    lock(&media).0.encode_errors += 1;
+                    continue;
+                }
+            };
+            let sent = runtime.block_on(viewer.send_frame(&encoded, frame_time));
+            let t3 = Instant::now();
+            let timing = {
+                let mut latency = lock(&shared.latency);
+                let timing = latency.take_frame(session, frame.frame).filter(|_| sent.is_ok());
+                if let Some(t) = &timing {
+                    latency.frame_sent(crate::latency::Stages::of(t, t0, t1, t2, t3));
+                }
+                timing
+            };
+            if let Some(timing) = timing {
+                // Tells the viewer which of its poses this frame shows (the client's and
+                // `nephele loadgen`'s pose-to-frame latency).
+                let note =
+                    serde_json::json!({ "type": "frame", "t": timing.client_time_ms, "seq": timing.pose_sequence });
+                let _ = runtime.block_on(viewer.send_text(note.to_string()));
+            }
+            let mut m = lock(&media);
+            m.1 = enc.stats();
+            let c = &mut m.0;
+            c.last_yuv_ms = (t1 - t0).as_secs_f64() * 1e3;
+            c.last_encode_ms = (t2 - t1).as_secs_f64() * 1e3;
+            c.last_send_ms = (t3 - t2).as_secs_f64() * 1e3;
+            match sent {
+                Ok(()) => {
+                    c.frames_sent += 1;
+                    c.bytes_sent += encoded.data.len() as u64;
+                }
+                Err(e) => {
+                    c.send_errors += 1;
+                    tracing::debug!(session, "sending a frame: {e}");
+                }
+            }
+        }
+        tracing::debug!(session, "media thread ends");
+    });
+    if let Err(e) = spawned {
+        tracing::error!(session, "cannot start the media thread: {e}");
+    }
+}
+
+/// Hands fused frames to their sessions' media threads, never blocking.
+pub(crate) fn dispatch(shared: &Shared, frames: Vec<FusedFrame>) {
+    if frames.is_empty() {
+        return;
+    }
+    let sessions = lock(&shared.sessions);
+    for frame in frames {
+        let Some(entry) = sessions.get(&frame.session) else { continue };
+        let mut m = lock(&entry.media);
+        m.0.frames_in += 1;
+        match entry.frames.try_send(frame) {
+            Ok(()) => {}
+            Err(std_mpsc::TrySendError::Full(_)) => m.0.frames_dropped_busy += 1,
+            Err(std_mpsc::TrySendError::Disconnected(_)) => {}
+        }
+    }
+}
+
+pub(crate) async fn fusion_loop(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
+    loop {
+        let next = lock(&shared.compositor).next_deadline();
+        let sleep = async {
+            match next {
+                Some(deadline) => tokio::time::sleep_until(tokio::time::Instant::from_std(deadline)).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            _ = shared.wake.notified() => {}
+            _ = sleep => {}
+            _ = stop.wait_for(|s| *s) => return,
+        }
+        let frames = lock(&shared.compositor).poll(Instant::now());
+        dispatch(&shared, frames);
+    }
+}

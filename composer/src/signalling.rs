@@ -1,0 +1,114 @@
+//! Signalling over HTTP (axum): `POST /v1/sessions` takes `{"sdp": OFFER}` (optionally
+//! `"session"`, `"width"`, `"height"`, `"views"`) and answers `201 {"session", "token",
+//! "type": "answer", "sdp"}`; a malformed offer is `400 {"error"}`. `DELETE
+//! /v1/sessions/{id}` with `Authorization: Bearer TOKEN` ends a session; `GET /v1/sessions`
+//! reports every session's counters; `GET /v1/health`. With a master, viewers arrive through
+//! the master's `OpenStream` instead ([`crate::farm`]).
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use serde::{Deserialize, Serialize};
+
+use crate::fusion::SessionId;
+use crate::sessions::{end_session, layout_for, open_viewer};
+use crate::state::{Shared, lock, reports};
+
+/// The HTTP routes over `shared`.
+pub(crate) fn router(shared: Arc<Shared>) -> Router {
+    Router::new()
+        .route("/v1/health", get(|| async { "ok" }))
+        .route("/v1/sessions", post(create_session).get(list_sessions))
+        .route("/v1/sessions/{id}", axum::routing::delete(delete_session))
+        .with_state(shared)
+}
+
+#[derive(Debug, Deserialize)]
+struct OfferRequest {
+    sdp: String,
+    #[serde(rename = "type")]
+    kind: Option<String>,
+    session: Option<SessionId>,
+    width: Option<u32>,
+    height: Option<u32>,
+    views: Option<u16>,
+}
+
+#[derive(Debug, Serialize)]
+struct AnswerResponse {
+    session: SessionId,
+    token: String,
+    #[serde(rename = "type")]
+    kind: &'static str,
+    sdp: String,
+}
+
+fn error(status: StatusCode, message: impl std::fmt::Display) -> Response {
+    (status, Json(serde_json::json!({ "error": message.to_string() }))).into_response()
+}
+
+async fn create_session(State(shared): State<Arc<Shared>>, body: axum::body::Bytes) -> Response {
+    let request: OfferRequest = match serde_json::from_slice(&body) {
+        Ok(r) => r,
+        Err(e) => return error(StatusCode::BAD_REQUEST, format!("expected JSON {{\"sdp\": OFFER}}: {e}")),
+    };
+    if let Some(kind) = &request.kind
+        && kind != "offer"
+    {
+        return error(StatusCode::BAD_REQUEST, format!("expected an SDP offer, got type '{kind}'"));
+    }
+    let (dw, dh) = shared.config.default_view;
+    let layout = match layout_for(request.width.unwrap_or(dw), request.height.unwrap_or(dh), request.views.unwrap_or(1))
+    {
+        Ok(l) => l,
+        Err(e) => return error(StatusCode::BAD_REQUEST, format!("bad view size: {e}")),
+    };
+    let id = request.session.unwrap_or_else(|| shared.next_session.fetch_add(1, Ordering::Relaxed));
+    match open_viewer(&shared, id, request.sdp, layout).await {
+        Ok((token, sdp)) => {
+            (StatusCode::CREATED, Json(AnswerResponse { session: id, token, kind: "answer", sdp })).into_response()
+        }
+        Err((status, message)) => {
+            let mut r = error(status, message);
+            if status == StatusCode::SERVICE_UNAVAILABLE {
+                r.headers_mut().insert("retry-after", axum::http::HeaderValue::from_static("5"));
+            }
+            r
+        }
+    }
+}
+
+async fn list_sessions(State(shared): State<Arc<Shared>>) -> Response {
+    let body = serde_json::json!({
+        "sessions": reports(&shared),
+        "wire_errors": shared.counters.wire_errors.load(Ordering::Relaxed),
+        "worker_connections": shared.counters.worker_connections.load(Ordering::Relaxed),
+        "unknown_session_batches": lock(&shared.compositor).unknown_session_batches(),
+        // Pose received to frame sent and its stages, over the last frames of all sessions
+        // (farm mode only: standalone frames have no pose of the farm behind them).
+        "latency_ms": lock(&shared.latency).report(),
+    });
+    Json(body).into_response()
+}
+
+async fn delete_session(State(shared): State<Arc<Shared>>, Path(id): Path<SessionId>, headers: HeaderMap) -> Response {
+    let token = headers
+        .get("authorization")
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .map(str::trim);
+    let known = lock(&shared.sessions).get(&id).map(|e| e.token.clone());
+    match known {
+        None => error(StatusCode::NOT_FOUND, format!("no session {id}")),
+        Some(t) if Some(t.as_str()) != token => error(StatusCode::UNAUTHORIZED, "missing or wrong session token"),
+        Some(_) => {
+            end_session(&shared, id).await;
+            StatusCode::NO_CONTENT.into_response()
+        }
+    }
+}

@@ -1,0 +1,133 @@
+//! What every part of the composer shares: the configuration, the compositor, the viewer
+//! sessions, the farm's results and the counters, behind short-held locks.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, AtomicU64};
+use std::sync::{Arc, Mutex as StdMutex, mpsc as std_mpsc};
+use std::time::Instant;
+
+use serde::Serialize;
+use tokio::sync::{Notify, broadcast, mpsc};
+
+use crate::config::ComposerConfig;
+use crate::encode::EncoderStats;
+use crate::fusion::{Compositor, FrameLayout, FusedFrame, SessionCounters, SessionId};
+use crate::pose::{Pose, PoseCounters, PoseInbox};
+use crate::webrtc::{RtcStack, Viewer, ViewerEvent};
+
+/// Counters of one session's media path.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct MediaCounters {
+    pub frames_in: u64,
+    pub frames_sent: u64,
+    /// Fused frames dropped because the media thread was still busy with the previous one.
+    pub frames_dropped_busy: u64,
+    pub encode_errors: u64,
+    pub send_errors: u64,
+    pub keyframes_requested: u64,
+    /// Time of the last frame: colour conversion, encoding, sending (ms).
+    pub last_yuv_ms: f64,
+    pub last_encode_ms: f64,
+    pub last_send_ms: f64,
+    pub bytes_sent: u64,
+}
+
+/// What `GET /v1/sessions` reports per session.
+#[derive(Debug, Clone, Serialize)]
+pub struct SessionReport {
+    pub session: SessionId,
+    pub connected: bool,
+    pub width: u32,
+    pub height: u32,
+    pub views: u16,
+    pub age_s: f64,
+    pub fusion: SessionCounters,
+    pub poses: PoseCounters,
+    pub media: MediaCounters,
+    pub encoder: EncoderStats,
+    pub control_malformed: u64,
+}
+
+/// Service-wide counters.
+#[derive(Debug, Default)]
+pub(crate) struct GlobalCounters {
+    pub(crate) wire_errors: AtomicU64,
+    pub(crate) worker_connections: AtomicU64,
+}
+
+pub(crate) struct SessionEntry {
+    pub(crate) token: String,
+    pub(crate) viewer: Arc<Viewer>,
+    pub(crate) layout: FrameLayout,
+    pub(crate) frames: std_mpsc::SyncSender<FusedFrame>,
+    pub(crate) keyframe: Arc<AtomicBool>,
+    pub(crate) inbox: PoseInbox,
+    pub(crate) last_pose: Option<Arc<Pose>>,
+    pub(crate) media: Arc<StdMutex<(MediaCounters, EncoderStats)>>,
+    pub(crate) control_malformed: u64,
+    pub(crate) created: Instant,
+    pub(crate) next_frame: u64,
+}
+
+pub(crate) struct Shared {
+    pub(crate) config: ComposerConfig,
+    pub(crate) rtc: RtcStack,
+    pub(crate) compositor: StdMutex<Compositor>,
+    pub(crate) sessions: StdMutex<HashMap<SessionId, SessionEntry>>,
+    pub(crate) next_session: AtomicU64,
+    pub(crate) wake: Notify,
+    pub(crate) events: mpsc::Sender<ViewerEvent>,
+    pub(crate) poses: broadcast::Sender<(SessionId, Arc<Pose>)>,
+    pub(crate) counters: GlobalCounters,
+    pub(crate) runtime: tokio::runtime::Handle,
+    /// Messages for the master, while a master link is up.
+    pub(crate) to_master: StdMutex<Option<mpsc::UnboundedSender<nephele_proto::Message>>>,
+    /// Worker results of the farm's tasks, by task id, until the master releases the task.
+    pub(crate) task_results: StdMutex<HashMap<u64, Vec<Arc<nephele_proto::BatchResult>>>>,
+    pub(crate) last_parts: StdMutex<LastParts>,
+    /// Poses received, frames planned and the stages of frames sent (farm mode).
+    pub(crate) latency: StdMutex<crate::latency::LatencyTracker>,
+}
+
+/// Pixel sets of each (session, view, object) in the last frame that had them.
+pub(crate) type LastParts = HashMap<(SessionId, u32, u64), Arc<[u32]>>;
+
+impl Shared {
+    /// Sends `message` to the master if a link is up (dropped otherwise).
+    pub(crate) fn to_master(&self, message: nephele_proto::Message) {
+        if let Some(tx) = lock(&self.to_master).as_ref() {
+            let _ = tx.send(message);
+        }
+    }
+}
+
+pub(crate) fn lock<T>(m: &StdMutex<T>) -> std::sync::MutexGuard<'_, T> {
+    // A panic while holding one of these locks leaves plain data behind; keep serving.
+    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+pub(crate) fn reports(shared: &Shared) -> Vec<SessionReport> {
+    let compositor = lock(&shared.compositor);
+    let sessions = lock(&shared.sessions);
+    let mut out: Vec<SessionReport> = sessions
+        .iter()
+        .map(|(&id, e)| {
+            let (media, encoder) = *lock(&e.media);
+            SessionReport {
+                session: id,
+                connected: e.viewer.is_connected(),
+                width: e.layout.width(),
+                height: e.layout.height(),
+                views: e.layout.views(),
+                age_s: e.created.elapsed().as_secs_f64(),
+                fusion: compositor.counters(id).unwrap_or_default(),
+                poses: e.inbox.counters(),
+                media,
+                encoder,
+                control_malformed: e.control_malformed,
+            }
+        })
+        .collect();
+    out.sort_by_key(|r| r.session);
+    out
+}
