@@ -3,11 +3,10 @@
 //! SIGTERM, or when any of them exits.
 
 use std::process::{Child, Command, ExitStatus, Stdio};
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
+use nephele_shutdown::Shutdown;
 use nix::sys::signal::{Signal, kill};
 use nix::unistd::Pid;
 
@@ -52,8 +51,8 @@ impl Supervisor {
     }
 
     /// Blocks until `stop` is set (Ctrl-C) or a child exits; returns the child that exited.
-    pub fn watch(&mut self, stop: &AtomicBool) -> Result<Option<(String, ExitStatus)>> {
-        while !stop.load(Ordering::SeqCst) {
+    pub fn watch(&mut self, stop: &Shutdown) -> Result<Option<(String, ExitStatus)>> {
+        while !stop.is_triggered() {
             if let Some(exited) = self.exited()? {
                 return Ok(Some(exited));
             }
@@ -105,15 +104,6 @@ impl Drop for Supervisor {
     }
 }
 
-/// A flag set by Ctrl-C (SIGINT) or SIGTERM.
-pub fn stop_flag() -> Result<Arc<AtomicBool>> {
-    let flag = Arc::new(AtomicBool::new(false));
-    signal_hook::flag::register(signal_hook::consts::SIGINT, flag.clone()).context("installing the Ctrl-C handler")?;
-    signal_hook::flag::register(signal_hook::consts::SIGTERM, flag.clone())
-        .context("installing the SIGTERM handler")?;
-    Ok(flag)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -142,7 +132,7 @@ mod tests {
         let mut quick = Command::new("sh");
         quick.args(["-c", "exit 3"]);
         supervisor.spawn("quick", quick).expect("sh");
-        let stop = AtomicBool::new(false);
+        let stop = Shutdown::new();
         let (name, status) = supervisor.watch(&stop).expect("watch").expect("an exit");
         assert_eq!((name.as_str(), status.code()), ("quick", Some(3)));
     }

@@ -25,8 +25,9 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use futures_util::SinkExt;
 use nephele_proto::stream::{framed, handshake, recv};
 use nephele_proto::{CloseStream, ComposerRegister, FrameConfig, FramePlan, Message, Role, StreamOpened};
+use nephele_shutdown::Shutdown;
 use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::{mpsc, watch};
+use tokio::sync::mpsc;
 
 use crate::fusion::{self, BatchKey, PlannedBatch};
 use crate::latency::FrameTiming;
@@ -38,26 +39,21 @@ pub const PLAN_GRACE: Duration = Duration::from_millis(100);
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(5);
 
 /// Keeps a link to the master up until `stop`.
-pub(crate) async fn run(shared: Arc<Shared>, master: String, results: SocketAddr, mut stop: watch::Receiver<bool>) {
+pub(crate) async fn run(shared: Arc<Shared>, master: String, results: SocketAddr, stop: Shutdown) {
     loop {
-        match link(&shared, &master, results, &mut stop).await {
+        match link(&shared, &master, results, &stop).await {
             Ok(()) => return,
             Err(e) => tracing::warn!(%master, "master link: {e}; reconnecting"),
         }
         *lock(&shared.to_master) = None;
         tokio::select! {
             _ = tokio::time::sleep(Duration::from_secs(1)) => {}
-            _ = stop.wait_for(|s| *s) => return,
+            _ = stop.wait() => return,
         }
     }
 }
 
-async fn link(
-    shared: &Arc<Shared>,
-    master: &str,
-    results: SocketAddr,
-    stop: &mut watch::Receiver<bool>,
-) -> Result<(), String> {
+async fn link(shared: &Arc<Shared>, master: &str, results: SocketAddr, stop: &Shutdown) -> Result<(), String> {
     let stream = TcpStream::connect(master).await.map_err(|e| format!("connecting: {e}"))?;
     let _ = stream.set_nodelay(true);
     let mut conn = framed(stream, FrameConfig::default());
@@ -81,7 +77,7 @@ async fn link(
                 Err(e) => return Err(e.to_string()),
             },
             Some(out) = rx.recv() => conn.send(&out).await.map_err(|e| e.to_string())?,
-            _ = stopped(stop) => return Ok(()),
+            _ = stop.wait() => return Ok(()),
         }
     }
 }
@@ -132,12 +128,6 @@ fn accept_plan(shared: &Arc<Shared>, plan: FramePlan) {
             tracing::debug!(session = plan.session_id, frame = plan.frame_id, "frame plan refused: {e}");
         }
     });
-}
-
-/// Resolves once `stop` is set (or its sender is gone). The guard `wait_for` returns is not
-/// `Send`; it is dropped here so that callers can `select!` on this across awaits.
-async fn stopped(stop: &mut watch::Receiver<bool>) {
-    let _ = stop.wait_for(|s| *s).await;
 }
 
 /// Time left until a deadline on the master's clock (microseconds since the Unix epoch).
@@ -237,7 +227,7 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
 }
 
 /// The results listener: every connection speaks proto (see [`read_results`]).
-pub(crate) async fn accept_results(shared: Arc<Shared>, listener: TcpListener, mut stop: watch::Receiver<bool>) {
+pub(crate) async fn accept_results(shared: Arc<Shared>, listener: TcpListener, stop: Shutdown) {
     loop {
         let connection_stop = stop.clone();
         tokio::select! {
@@ -248,7 +238,7 @@ pub(crate) async fn accept_results(shared: Arc<Shared>, listener: TcpListener, m
                 }
                 Err(e) => tracing::warn!("accepting a worker connection: {e}"),
             },
-            _ = stop.wait_for(|s| *s) => return,
+            _ = stop.wait() => return,
         }
     }
 }
@@ -256,12 +246,7 @@ pub(crate) async fn accept_results(shared: Arc<Shared>, listener: TcpListener, m
 /// A connection to the results listener: `Hello`, then `BatchResult`s. A peer that says it
 /// is a tool (no master: tests, benchmarks, a farm of one's own) may also send the
 /// `FramePlan`s that the master would.
-pub(crate) async fn read_results(
-    shared: Arc<Shared>,
-    stream: TcpStream,
-    peer: SocketAddr,
-    mut stop: watch::Receiver<bool>,
-) {
+pub(crate) async fn read_results(shared: Arc<Shared>, stream: TcpStream, peer: SocketAddr, stop: Shutdown) {
     let _ = stream.set_nodelay(true);
     let mut conn = framed(stream, FrameConfig::default());
     let peer_role = match handshake(&mut conn, Role::Composer, &[Role::Worker, Role::Tool], HANDSHAKE_TIMEOUT).await {
@@ -275,7 +260,7 @@ pub(crate) async fn read_results(
     loop {
         let message = tokio::select! {
             m = recv(&mut conn) => m,
-            _ = stop.wait_for(|s| *s) => return,
+            _ = stop.wait() => return,
         };
         match message {
             Ok(Message::BatchResult(result)) => {

@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, mpsc as std_mpsc};
 use std::time::{Duration, Instant};
 
-use tokio::sync::watch;
+use nephele_shutdown::Shutdown;
 
 use crate::encode::{EncoderSettings, EncoderStats, H264Encoder};
 use crate::fusion::FusedFrame;
@@ -140,7 +140,7 @@ pub(crate) fn dispatch(shared: &Shared, frames: Vec<FusedFrame>) {
     }
 }
 
-pub(crate) async fn fusion_loop(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
+pub(crate) async fn fusion_loop(shared: Arc<Shared>, stop: Shutdown) {
     loop {
         let next = lock(&shared.compositor).next_deadline();
         let sleep = async {
@@ -152,7 +152,7 @@ pub(crate) async fn fusion_loop(shared: Arc<Shared>, mut stop: watch::Receiver<b
         tokio::select! {
             _ = shared.wake.notified() => {}
             _ = sleep => {}
-            _ = stop.wait_for(|s| *s) => return,
+            _ = stop.wait() => return,
         }
         let frames = lock(&shared.compositor).poll(Instant::now());
         dispatch(&shared, frames);

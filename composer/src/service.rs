@@ -15,9 +15,10 @@ use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex as StdMutex};
 
+use nephele_shutdown::Shutdown;
 use thiserror::Error;
 use tokio::net::TcpListener;
-use tokio::sync::{Notify, broadcast, mpsc, watch};
+use tokio::sync::{Notify, broadcast, mpsc};
 use tokio::task::JoinHandle;
 
 pub use crate::config::{ComposerConfig, FrameSource};
@@ -42,7 +43,7 @@ pub struct Composer {
     shared: Arc<Shared>,
     http_addr: SocketAddr,
     results_addr: SocketAddr,
-    stop: watch::Sender<bool>,
+    stop: Shutdown,
     tasks: Vec<JoinHandle<()>>,
 }
 
@@ -98,26 +99,26 @@ impl Composer {
             last_parts: StdMutex::new(HashMap::new()),
             latency: StdMutex::new(crate::latency::LatencyTracker::default()),
         });
-        let (stop, stop_rx) = watch::channel(false);
+        let stop = Shutdown::new();
         let mut tasks = Vec::new();
         let router = crate::signalling::router(Arc::clone(&shared));
-        let mut http_stop = stop_rx.clone();
+        let http_stop = stop.clone();
         tasks.push(tokio::spawn(async move {
             let shutdown = async move {
-                let _ = http_stop.wait_for(|s| *s).await;
+                let _ = http_stop.wait().await;
             };
             if let Err(e) = axum::serve(http, router).with_graceful_shutdown(shutdown).await {
                 tracing::error!("HTTP server: {e}");
             }
         }));
-        tasks.push(tokio::spawn(crate::farm::accept_results(Arc::clone(&shared), results, stop_rx.clone())));
-        tasks.push(tokio::spawn(crate::media::fusion_loop(Arc::clone(&shared), stop_rx.clone())));
-        tasks.push(tokio::spawn(event_loop(Arc::clone(&shared), events_rx, stop_rx.clone())));
+        tasks.push(tokio::spawn(crate::farm::accept_results(Arc::clone(&shared), results, stop.clone())));
+        tasks.push(tokio::spawn(crate::media::fusion_loop(Arc::clone(&shared), stop.clone())));
+        tasks.push(tokio::spawn(event_loop(Arc::clone(&shared), events_rx, stop.clone())));
         if let Some(master) = shared.config.master.clone() {
-            tasks.push(tokio::spawn(crate::farm::run(Arc::clone(&shared), master, results_addr, stop_rx.clone())));
+            tasks.push(tokio::spawn(crate::farm::run(Arc::clone(&shared), master, results_addr, stop.clone())));
         }
         if shared.config.source == FrameSource::TestPattern {
-            tasks.push(tokio::spawn(crate::testpattern::test_pattern_loop(Arc::clone(&shared), stop_rx)));
+            tasks.push(tokio::spawn(crate::testpattern::test_pattern_loop(Arc::clone(&shared), stop.clone())));
         }
         tracing::info!(%http_addr, %results_addr, source = ?shared.config.source, "composer listening");
         Ok(Composer { shared, http_addr, results_addr, stop, tasks })
@@ -147,7 +148,7 @@ impl Composer {
 
     /// Stops listening, closes every peer connection and waits for the tasks.
     pub async fn shutdown(self) {
-        let _ = self.stop.send(true);
+        self.stop.trigger();
         let ids: Vec<SessionId> = lock(&self.shared.sessions).keys().copied().collect();
         for id in ids {
             end_session(&self.shared, id).await;

@@ -8,7 +8,8 @@ use std::time::Instant;
 
 use axum::http::StatusCode;
 use nephele_proto::{ClientPose, Message, WireCamera};
-use tokio::sync::{mpsc, watch};
+use nephele_shutdown::Shutdown;
+use tokio::sync::mpsc;
 
 use crate::encode::{EncoderStats, MAX_LONG_SIDE, MAX_SHORT_SIDE, MIN_SIDE};
 use crate::fusion::{FrameLayout, SessionId};
@@ -97,15 +98,11 @@ pub(crate) async fn end_session(shared: &Shared, id: SessionId) {
     }
 }
 
-pub(crate) async fn event_loop(
-    shared: Arc<Shared>,
-    mut events: mpsc::Receiver<ViewerEvent>,
-    mut stop: watch::Receiver<bool>,
-) {
+pub(crate) async fn event_loop(shared: Arc<Shared>, mut events: mpsc::Receiver<ViewerEvent>, stop: Shutdown) {
     loop {
         let event = tokio::select! {
             e = events.recv() => match e { Some(e) => e, None => return },
-            _ = stop.wait_for(|s| *s) => return,
+            _ = stop.wait() => return,
         };
         match event {
             ViewerEvent::Connected(id) | ViewerEvent::KeyframeRequest(id) => {

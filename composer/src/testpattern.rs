@@ -10,7 +10,7 @@ use nephele_geometry::camera::Camera;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use tokio::sync::watch;
+use nephele_shutdown::Shutdown;
 
 use crate::fusion::{BatchKey, BatchResult, FrameLayout, FramePlan, PlannedBatch, SessionId};
 use crate::pose::Pose;
@@ -101,13 +101,13 @@ pub(crate) fn cameras_for(layout: FrameLayout, pose: Option<&Pose>) -> Vec<Camer
     })
 }
 
-pub(crate) async fn test_pattern_loop(shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
+pub(crate) async fn test_pattern_loop(shared: Arc<Shared>, stop: Shutdown) {
     let mut tick = tokio::time::interval(Duration::from_secs_f32(1.0 / shared.config.fps));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
         tokio::select! {
             _ = tick.tick() => {}
-            _ = stop.wait_for(|s| *s) => return,
+            _ = stop.wait() => return,
         }
         let work: Vec<(SessionId, u64, FrameLayout, Option<Arc<Pose>>)> = {
             let mut sessions = lock(&shared.sessions);

@@ -6,6 +6,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use nephele_composer::service::{Composer, ComposerConfig, FrameSource};
 use nephele_composer::webrtc::{IceServer, MdnsMode, RtcConfig};
+use nephele_shutdown::Shutdown;
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
 pub enum Source {
@@ -108,6 +109,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     let runtime =
         tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the async runtime")?;
+    let shutdown = Shutdown::on_signals().context("installing the Ctrl-C and SIGTERM handlers")?;
     runtime.block_on(async move {
         let composer = Composer::start(config).await?;
         println!(
@@ -115,12 +117,7 @@ pub fn run(args: Args) -> Result<()> {
             composer.http_addr(),
             composer.results_addr()
         );
-        let mut term =
-            tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).context("waiting for SIGTERM")?;
-        tokio::select! {
-            r = tokio::signal::ctrl_c() => r.context("waiting for Ctrl-C")?,
-            _ = term.recv() => {}
-        }
+        shutdown.wait().await;
         println!("composer: stopping");
         composer.shutdown().await;
         anyhow::Ok(())

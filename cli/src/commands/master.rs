@@ -8,9 +8,8 @@ use nephele_master::farm::{FarmConfig, live_scheduler_config};
 use nephele_master::service::{Master, MasterConfig};
 use nephele_proto::FrameConfig;
 use nephele_scheduler::Policy;
+use nephele_shutdown::Shutdown;
 use serde_json::json;
-
-use super::worker::Signals;
 
 /// Runs the master: the HTTP API and web client (`--http`), and the farm listener
 /// (`--farm-listen`) where `nephele worker` processes and the composer connect.
@@ -114,6 +113,7 @@ pub fn run(args: Args) -> Result<()> {
         .enable_all()
         .build()
         .context("starting the async runtime")?;
+    let shutdown = Shutdown::on_signals().context("installing the Ctrl-C and SIGTERM handlers")?;
     let result = runtime.block_on(async move {
         let master = Master::bind(config).await?;
         let mut out = std::io::stdout().lock();
@@ -121,21 +121,7 @@ pub fn run(args: Args) -> Result<()> {
         out.flush()?;
         drop(out);
         tracing::info!("web client at http://{}/", master.http_addr());
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let mut signals = Signals::new()?;
-        tokio::spawn(async move {
-            signals.next().await;
-            let _ = tx.send(());
-            signals.next().await;
-            tracing::warn!("second signal: exiting now");
-            std::process::exit(130);
-        });
-        master
-            .run(async move {
-                let _ = rx.await;
-            })
-            .await
-            .map_err(anyhow::Error::from)
+        master.run(async move { shutdown.wait().await }).await.map_err(anyhow::Error::from)
     });
     runtime.shutdown_timeout(Duration::from_secs(1));
     result

@@ -4,14 +4,14 @@ use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::PathBuf;
 use std::process::Command;
-use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
 use super::first_start::{BakeQuality, default_asset_dir, ensure_baked};
 use crate::progress::Progress;
-use crate::supervise::{Supervisor, stop_flag};
+use crate::supervise::Supervisor;
+use nephele_shutdown::Shutdown;
 
 /// Runs the service locally: one `nephele master`, one `nephele composer --master ...` and
 /// `--workers` × `nephele worker --master ...`, on free loopback ports (the master's HTTP
@@ -117,7 +117,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
             None => println!("using the baked '{}': {}", object.name, object.path.display()),
         }
     }
-    let stop = stop_flag()?;
+    let stop = Shutdown::on_signals().context("installing the Ctrl-C and SIGTERM handlers")?;
     let exe = std::env::current_exe().context("locating the nephele executable")?;
     let farm = free_port()?;
     let (composer_http, composer_results) = (free_port()?, free_port()?);
@@ -153,7 +153,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     // Wait until the farm is whole (workers calibrate before they register).
     let started = Instant::now();
     loop {
-        if stop.load(Ordering::SeqCst) {
+        if stop.is_triggered() {
             supervisor.shutdown(Duration::from_secs(10));
             return Ok(());
         }

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use nephele_proto::FrameConfig;
+use nephele_shutdown::Shutdown;
 use nephele_worker::{AssetOptions, DirAssetLoader, WorkerConfig};
 
 /// Connects to a master, registers, and renders the ray batches it sends, sending each result
@@ -74,48 +75,12 @@ pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
         .enable_all()
         .build()
         .context("starting the async runtime")?;
+    let shutdown = Shutdown::on_signals().context("installing the Ctrl-C and SIGTERM handlers")?;
     let result = runtime.block_on(async move {
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let mut signals = Signals::new()?;
-        tokio::spawn(async move {
-            signals.next().await;
-            let _ = tx.send(());
-            signals.next().await;
-            tracing::warn!("second signal: exiting now");
-            std::process::exit(130);
-        });
-        let shutdown = async move {
-            let _ = rx.await;
-        };
+        let shutdown = async move { shutdown.wait().await };
         nephele_worker::run(config, Arc::new(loader), shutdown).await.map_err(anyhow::Error::from)
     });
     // Renders that outlived the drain timeout must not hold the exit.
     runtime.shutdown_timeout(Duration::from_secs(1));
     result
-}
-
-/// SIGTERM and Ctrl-C.
-pub(crate) struct Signals {
-    #[cfg(unix)]
-    term: tokio::signal::unix::Signal,
-}
-
-impl Signals {
-    pub(crate) fn new() -> Result<Signals> {
-        Ok(Signals {
-            #[cfg(unix)]
-            term: tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-                .context("installing the SIGTERM handler")?,
-        })
-    }
-
-    pub(crate) async fn next(&mut self) {
-        #[cfg(unix)]
-        tokio::select! {
-            _ = self.term.recv() => tracing::info!("SIGTERM received"),
-            _ = tokio::signal::ctrl_c() => tracing::info!("Ctrl-C received"),
-        }
-        #[cfg(not(unix))]
-        let _ = tokio::signal::ctrl_c().await;
-    }
 }
