@@ -35,7 +35,7 @@ pub type FrameId = u64;
 /// Largest view side the compositor accepts, in pixels.
 pub const MAX_VIEW_SIDE: u32 = 8192;
 /// Largest number of views in one frame (a 45-view quilt fits with room to spare).
-pub const MAX_VIEWS: u16 = 128;
+pub const MAX_VIEWS: u16 = nephele_geometry::camera::MAX_VIEWS as u16;
 /// Largest packed frame, in pixels (a 8K frame).
 pub const MAX_FRAME_PIXELS: u64 = 7680 * 4320;
 

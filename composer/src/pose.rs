@@ -47,7 +47,7 @@ pub const POSE_VIEW_BYTES: usize = 64 + 64;
 /// Display modes: 0 flat, 1 immersive VR, 2 quilt.
 pub const MAX_POSE_MODE: u8 = 2;
 /// Most views in one pose.
-pub const MAX_POSE_VIEWS: u16 = 64;
+pub const MAX_POSE_VIEWS: u16 = nephele_geometry::camera::MAX_VIEWS as u16;
 /// Largest frame side a pose may ask for.
 pub const MAX_POSE_SIDE: u32 = 3840;
 

@@ -27,8 +27,10 @@ use std::f32::consts::PI;
 pub const MAX_IMAGE_SIDE: u32 = 65536;
 /// Largest accepted interpupillary distance, in metres.
 pub const MAX_IPD: f32 = 1.0;
-/// Largest accepted number of views in a [`quilt_rig`].
-pub const MAX_VIEWS: usize = 1024;
+/// Most views one frame may have (1 flat screen, 2 stereo, 45 for a light-field quilt): the
+/// one limit that [`quilt_rig`], the wire, the pose format, the scheduler, the master and the
+/// composer all enforce.
+pub const MAX_VIEWS: usize = 64;
 /// Tolerance on the dot products of the rotation columns of a rigid matrix.
 const ORTHONORMAL_TOLERANCE: f32 = 1e-3;
 /// Tolerance on the last row of a rigid matrix being `(0, 0, 0, 1)`.
@@ -738,7 +740,7 @@ mod tests {
         }
         assert!(stereo_pair(&center, 0.0).is_ok());
         assert_rejects!(quilt_rig(&center, 0, 0.5, 2.0), E::InvalidViewCount(0));
-        assert_rejects!(quilt_rig(&center, 1025, 0.5, 2.0), E::InvalidViewCount(_));
+        assert_rejects!(quilt_rig(&center, MAX_VIEWS + 1, 0.5, 2.0), E::InvalidViewCount(_));
         for cone in [-0.1, PI, f32::NAN] {
             assert_rejects!(quilt_rig(&center, 45, cone, 2.0), E::InvalidViewCone(_));
         }

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// Most views one session may ask for (a 45-view quilt fits).
-pub const MAX_VIEWS: u32 = 64;
+pub const MAX_VIEWS: u32 = nephele_geometry::camera::MAX_VIEWS as u32;
 /// Smallest and largest size of one view, in pixels (H.264 needs even sizes; the encoder's
 /// level limits cap the total).
 pub const MIN_VIEW_SIDE: u32 = 16;

@@ -1,5 +1,6 @@
 //! `nephele-proto`: every message that crosses a Nephele process boundary (master, workers,
-//! composer), with its framing, versioning and validation. Depends on nothing of ours.
+//! composer), with its framing, versioning and validation. Depends on `nephele-geometry` only
+//! (the limits every process shares, such as `MAX_VIEWS`).
 //!
 //! * [`messages`]: the message types ([`Message`] and one struct per kind).
 //! * [`codec`]: a frame's payload, a tag byte and a postcard body with packed pixel arrays

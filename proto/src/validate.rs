@@ -8,7 +8,8 @@ use crate::messages::{
     LoadReport, Message, OpenStream, RayBatch, Register, Registered, StreamOpened, WireCamera,
 };
 
-/// Largest image side (as `nephele_geometry::camera`).
+/// Largest image side on the wire (a camera itself accepts up to
+/// `nephele_geometry::camera::MAX_IMAGE_SIDE`).
 pub const MAX_IMAGE_SIDE: u32 = 16384;
 /// Most pixels in one batch: 2 Mi pixels, a 48 MiB result, under the default frame limit.
 pub const MAX_BATCH_PIXELS: usize = 1 << 21;
@@ -32,7 +33,7 @@ pub const LOAD_REPORT_INTERVAL_MS: (u32, u32) = (10, 60_000);
 /// Longest SDP offer or answer: 64 KiB (a browser's offer is a few kilobytes).
 pub const MAX_SDP_LEN: usize = 64 * 1024;
 /// Most views of one session (a 45-view quilt fits).
-pub const MAX_VIEWS: u32 = 64;
+pub const MAX_VIEWS: u32 = nephele_geometry::camera::MAX_VIEWS as u32;
 /// Longest session name (the HTTP API's public session id).
 pub const MAX_SESSION_NAME_LEN: usize = 64;
 /// Highest target frame rate of a stream.

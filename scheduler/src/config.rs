@@ -173,7 +173,7 @@ impl SchedulerConfig {
             max_attempts: 4,
             object_switch_cost: Duration::from_micros(500),
             max_view_pixels: 8192 * 8192,
-            max_views: 64,
+            max_views: nephele_geometry::camera::MAX_VIEWS,
         }
     }
 
