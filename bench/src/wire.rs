@@ -12,7 +12,7 @@ use anyhow::{Context, Result, bail, ensure};
 use nephele_proto::stream::{framed, handshake};
 use nephele_proto::{
     BatchIds, BatchResult, FrameConfig, FrameReader, FrameWriter, Goodbye, KernelStats, Message, RayBatch, Role,
-    WireCamera, decode_frame, encode_frame,
+    ViewProjection, decode_frame, encode_frame,
 };
 use serde::{Deserialize, Serialize};
 use serde_json::json;
@@ -148,7 +148,12 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
     let batch = Message::RayBatch(RayBatch {
         ids: result.ids,
         asset_id: "lego".into(),
-        camera: WireCamera { width: 4096, height: 4096, view: identity(), projection: identity() },
+        camera: ViewProjection {
+            width: 4096,
+            height: 4096,
+            view: glam::Mat4::IDENTITY,
+            projection: glam::Mat4::IDENTITY,
+        },
         pixels: result.pixels.clone(),
         deadline_unix_us: Some(0),
         composer: "127.0.0.1:9000".into(),
@@ -214,10 +219,6 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
-}
-
-fn identity() -> [f32; 16] {
-    glam::Mat4::IDENTITY.to_cols_array()
 }
 
 #[derive(Debug)]

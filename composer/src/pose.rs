@@ -36,6 +36,7 @@
 use std::time::{Duration, Instant};
 
 use glam::Mat4;
+use nephele_geometry::ViewProjection;
 use nephele_geometry::camera::Camera;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -71,23 +72,6 @@ pub enum PoseError {
     BadView { view: u16, reason: String },
 }
 
-/// One eye (or one view of a quilt).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ViewPose {
-    pub width: u32,
-    pub height: u32,
-    pub view: Mat4,
-    pub projection: Mat4,
-}
-
-impl ViewPose {
-    /// The camera this view describes.
-    pub fn camera(&self) -> Result<Camera, PoseError> {
-        Camera::from_view_projection(self.width, self.height, self.view, self.projection)
-            .map_err(|e| PoseError::BadView { view: 0, reason: e.to_string() })
-    }
-}
-
 /// A decoded, validated pose.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Pose {
@@ -95,7 +79,8 @@ pub struct Pose {
     /// 0 flat screen, 1 immersive VR, 2 quilt (the client's display mode).
     pub mode: u8,
     pub client_time_ms: f64,
-    pub views: Vec<ViewPose>,
+    /// One per eye (or view of a quilt).
+    pub views: Vec<ViewProjection>,
 }
 
 impl Pose {
@@ -173,11 +158,8 @@ impl Pose {
             if !view.is_finite() || !projection.is_finite() {
                 return Err(bad("matrix with NaN or infinity".into()));
             }
-            let pose = ViewPose { width, height, view, projection };
-            pose.camera().map_err(|e| match e {
-                PoseError::BadView { reason, .. } => bad(reason),
-                other => other,
-            })?;
+            let pose = ViewProjection { width, height, view, projection };
+            pose.camera().map_err(|e| bad(e.to_string()))?;
             views.push(pose);
         }
         Ok(Pose { seq, mode, client_time_ms, views })
@@ -307,8 +289,7 @@ pub fn look_at_pose(
 ) -> Result<Pose, PoseError> {
     let camera = Camera::look_at(width, height, fov_y, eye, target, glam::Vec3::Z)
         .map_err(|e| PoseError::BadView { view: 0, reason: e.to_string() })?;
-    let view =
-        ViewPose { width, height, view: camera.world_to_camera(), projection: camera.projection_matrix(0.05, 100.0) };
+    let view = ViewProjection::of_camera(&camera, 0.05, 100.0);
     Ok(Pose { seq, mode: 0, client_time_ms: f64::from(seq) * 20.0, views: vec![view] })
 }
 

@@ -7,7 +7,7 @@ use std::sync::{Arc, Mutex as StdMutex, mpsc as std_mpsc};
 use std::time::Instant;
 
 use axum::http::StatusCode;
-use nephele_proto::{ClientPose, Message, WireCamera};
+use nephele_proto::{ClientPose, Message};
 use nephele_shutdown::Shutdown;
 use tokio::sync::mpsc;
 
@@ -166,16 +166,7 @@ pub(crate) fn forward_pose(shared: &Shared, session: SessionId, pose: &Pose) {
     if shared.config.master.is_none() {
         return;
     }
-    let views = pose
-        .views
-        .iter()
-        .map(|v| WireCamera {
-            width: v.width,
-            height: v.height,
-            view: v.view.to_cols_array(),
-            projection: v.projection.to_cols_array(),
-        })
-        .collect();
+    let views = pose.views.clone();
     lock(&shared.latency).pose_received(session, pose.seq, Instant::now());
     shared.to_master(Message::ClientPose(ClientPose {
         session_id: session,

@@ -2,8 +2,9 @@
 //! conventions every other crate follows. It owns the one camera type of the whole system:
 //! the wire, the scheduler, the kernels and the composer all speak [`camera::Camera`].
 //!
-//! Depends on nothing of ours and on no image, mesh or thread-pool crate, so that the
-//! protocol, the pure scheduler, the composer and loadgen can use it cheaply.
+//! Depends on nothing of ours and on no image, mesh or thread-pool crate (glam, serde and
+//! thiserror only), so that the protocol, the pure scheduler, the composer and loadgen can use
+//! it cheaply.
 //!
 //! # Conventions (stated once, converted at the edges)
 //!
@@ -24,8 +25,10 @@ pub mod bounds;
 pub mod camera;
 pub mod pixels;
 pub mod rng;
+pub mod view;
 
 pub use bounds::Bounds;
 pub use camera::{Camera, CameraError, Ray};
 pub use pixels::{PixelOutOfImage, PixelResults, all_pixels, validate_pixels};
 pub use rng::SplitMix64;
+pub use view::ViewProjection;

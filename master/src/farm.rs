@@ -29,11 +29,11 @@ use glam::{Mat4, Vec3};
 use nephele_geometry::camera::Camera;
 use nephele_proto::{
     BatchIds, Cancel, CancelTarget, ClientPose, CloseStream, ComposerRegister, ErrorCode, FramePlan, LoadReport,
-    Message, OpenStream, PlanPart, RayBatch, Register, ReleaseTask, StreamOpened, WireCamera,
+    Message, OpenStream, PlanPart, RayBatch, Register, ReleaseTask, StreamOpened, ViewProjection,
 };
 use nephele_scheduler::{
     Action, Admission as SchedAdmission, BatchId, BatchSpec, FrameId, FramePart, ObjectId, ObjectInfo, SchedError,
-    Scheduler, SchedulerConfig, SessionId, SessionSpec, Time, ViewMatrices, WorkerId,
+    Scheduler, SchedulerConfig, SessionId, SessionSpec, Time, WorkerId,
 };
 use serde_json::{Value, json};
 use tokio::sync::{mpsc, oneshot};
@@ -93,14 +93,9 @@ pub fn live_scheduler_config() -> SchedulerConfig {
 /// as `camera` sees it: the worker renders the asset in its own coordinates, so the view
 /// matrix becomes object-to-camera (`world_to_camera * translate(translation)`). View-space
 /// depth is unchanged. The projection carries the camera's intrinsics.
-pub fn wire_camera(camera: &Camera, translation: Vec3) -> WireCamera {
-    let view = camera.world_to_camera() * Mat4::from_translation(translation);
-    WireCamera {
-        width: camera.width(),
-        height: camera.height(),
-        view: view.to_cols_array(),
-        projection: camera.projection_matrix(WIRE_NEAR, WIRE_FAR).to_cols_array(),
-    }
+pub fn wire_camera(camera: &Camera, translation: Vec3) -> ViewProjection {
+    let world = ViewProjection::of_camera(camera, WIRE_NEAR, WIRE_FAR);
+    ViewProjection { view: world.view * Mat4::from_translation(translation), ..world }
 }
 
 /// A command for a connection task.
@@ -732,17 +727,7 @@ impl Actor {
             tracing::debug!(session = %s.name, views = pose.views.len(), "pose of the wrong view count or size; dropped");
             return;
         }
-        let views: Vec<ViewMatrices> = pose
-            .views
-            .iter()
-            .map(|v| ViewMatrices {
-                width: v.width,
-                height: v.height,
-                view: Mat4::from_cols_array(&v.view),
-                projection: Mat4::from_cols_array(&v.projection),
-            })
-            .collect();
-        match self.scheduler.pose_matrices(sid, &views, now) {
+        match self.scheduler.pose_matrices(sid, &pose.views, now) {
             Ok(()) => {
                 s.poses_received += 1;
                 if s.poses.len() == POSE_MEMORY {
@@ -1093,13 +1078,7 @@ mod tests {
             Camera::look_at(64, 48, 0.8, Vec3::new(1.0, -6.0, 2.0), Vec3::new(0.5, 0.5, 0.0), Vec3::Z).expect("camera");
         let translation = Vec3::new(-1.4, 2.7, 0.3);
         let wire = wire_camera(&camera, translation);
-        let object_camera = Camera::from_view_projection(
-            wire.width,
-            wire.height,
-            Mat4::from_cols_array(&wire.view),
-            Mat4::from_cols_array(&wire.projection),
-        )
-        .expect("a valid camera");
+        let object_camera = wire.camera().expect("a valid camera");
         for local in [Vec3::ZERO, Vec3::new(0.3, -0.2, 0.5), Vec3::new(-0.6, 0.4, -0.1)] {
             let world = local + translation;
             let (a, b) = (camera.project(world).expect("in view"), object_camera.project(local).expect("in view"));
@@ -1107,7 +1086,7 @@ mod tests {
             assert!((camera.view_depth(world) - object_camera.view_depth(local)).abs() < 1e-4);
         }
         // At the origin the view matrix passes through unchanged.
-        assert_eq!(wire_camera(&camera, Vec3::ZERO).view, camera.world_to_camera().to_cols_array());
+        assert_eq!(wire_camera(&camera, Vec3::ZERO).view, camera.world_to_camera());
     }
 
     /// The actor end to end over in-memory links: a worker and a composer join, a session
@@ -1150,12 +1129,7 @@ mod tests {
         let camera =
             Camera::look_at(64, 48, v.fov_y_deg.to_radians(), Vec3::from(v.eye), Vec3::from(v.target), Vec3::Z)
                 .expect("camera");
-        let pose = WireCamera {
-            width: 64,
-            height: 48,
-            view: camera.world_to_camera().to_cols_array(),
-            projection: camera.projection_matrix(0.05, 100.0).to_cols_array(),
-        };
+        let pose = ViewProjection::of_camera(&camera, 0.05, 100.0);
         let client_pose =
             ClientPose { session_id: open.session_id, sequence: 7, client_time_ms: 140.0, views: vec![pose] };
         assert!(farm.send(Event::ComposerMessage(cid, Message::ClientPose(client_pose))));
@@ -1174,7 +1148,7 @@ mod tests {
                     // The batch's camera sees the object (in its own frame) where the pose sees
                     // its placement.
                     let wire = batch.camera;
-                    let local = Camera::from_view_projection(64, 48, Mat4::from_cols_array(&wire.view), Mat4::from_cols_array(&wire.projection)).expect("camera");
+                    let local = wire.camera().expect("camera");
                     let center = object.bounds.center();
                     if let (Some(a), Some(b)) = (camera.project(center), local.project(center - object.translation)) {
                         assert!((a - b).length() < 1e-2, "{} {a} {b}", object.asset);

@@ -26,6 +26,8 @@
 
 use std::fmt;
 
+/// The one view type, from the browser to the kernels (`nephele_geometry::view`).
+pub use nephele_geometry::ViewProjection;
 use serde::{Deserialize, Serialize};
 
 use crate::PROTOCOL_VERSION;
@@ -150,18 +152,6 @@ pub struct BatchIds {
     pub view_index: u32,
 }
 
-/// A camera as WebXR gives it, with no dependency on the render crate: image size and
-/// column-major 4x4 matrices. `view` is world-to-camera (`XRView.transform.inverse.matrix`),
-/// `projection` OpenGL clip conventions. The worker converts it with
-/// `nephele_geometry::camera::Camera::from_view_projection`.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct WireCamera {
-    pub width: u32,
-    pub height: u32,
-    pub view: [f32; 16],
-    pub projection: [f32; 16],
-}
-
 /// Work: render `pixels` of `camera`'s image of asset `asset_id`, send the result to
 /// `composer`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -169,7 +159,7 @@ pub struct RayBatch {
     pub ids: BatchIds,
     /// Object/asset to render: `[A-Za-z0-9._-]`, no `..`, 1 to 128 bytes.
     pub asset_id: String,
-    pub camera: WireCamera,
+    pub camera: ViewProjection,
     /// Pixel indices `y * width + x`, each `< width * height`; packed little-endian u32 on
     /// the wire.
     #[serde(with = "packed")]
@@ -334,7 +324,7 @@ pub struct ClientPose {
     /// The client's clock (`performance.now()`, ms), echoed back for pose-to-frame latency.
     pub client_time_ms: f64,
     /// 1 to [`crate::validate::MAX_VIEWS`] views.
-    pub views: Vec<WireCamera>,
+    pub views: Vec<ViewProjection>,
 }
 
 /// One object in one view of a frame, and the task whose results fill it.

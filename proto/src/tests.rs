@@ -3,6 +3,7 @@
 use std::io::{Cursor, Read};
 
 use bytes::BytesMut;
+use glam::Mat4;
 use proptest::prelude::*;
 use tokio_util::codec::{Decoder, Encoder};
 
@@ -36,13 +37,19 @@ fn finite() -> impl Strategy<Value = f32> {
     -1e6f32..1e6f32
 }
 
-fn camera() -> impl Strategy<Value = WireCamera> {
-    (1u32..300, 1u32..300, prop::array::uniform16(finite()), prop::array::uniform16(finite()))
-        .prop_map(|(width, height, view, projection)| WireCamera { width, height, view, projection })
+fn camera() -> impl Strategy<Value = ViewProjection> {
+    (1u32..300, 1u32..300, prop::array::uniform16(finite()), prop::array::uniform16(finite())).prop_map(
+        |(width, height, view, projection)| ViewProjection {
+            width,
+            height,
+            view: Mat4::from_cols_array(&view),
+            projection: Mat4::from_cols_array(&projection),
+        },
+    )
 }
 
 /// A camera and 1..200 pixel indices inside its image.
-fn camera_and_pixels() -> impl Strategy<Value = (WireCamera, Vec<u32>)> {
+fn camera_and_pixels() -> impl Strategy<Value = (ViewProjection, Vec<u32>)> {
     camera().prop_flat_map(|c| {
         let n = c.width * c.height;
         (Just(c), prop::collection::vec(0..n, 1..200))
@@ -230,7 +237,7 @@ fn cfg() -> FrameConfig {
     FrameConfig::default()
 }
 
-fn good_camera() -> WireCamera {
+fn good_camera() -> ViewProjection {
     let mut view = [0.0; 16];
     view[0] = 1.0;
     view[5] = 1.0;
@@ -243,7 +250,12 @@ fn good_camera() -> WireCamera {
     projection[10] = -1.0;
     projection[11] = -1.0;
     projection[14] = -0.2;
-    WireCamera { width: 64, height: 48, view, projection }
+    ViewProjection {
+        width: 64,
+        height: 48,
+        view: Mat4::from_cols_array(&view),
+        projection: Mat4::from_cols_array(&projection),
+    }
 }
 
 fn good_batch() -> RayBatch {
@@ -537,9 +549,9 @@ fn nan_and_infinite_cameras_are_rejected_with_the_batch_ids() {
     for (slot, value) in [(3usize, f32::NAN), (14, f32::INFINITY), (20, f32::NEG_INFINITY), (31, f32::NAN)] {
         let mut batch = good_batch();
         if slot < 16 {
-            batch.camera.view[slot] = value;
+            batch.camera.view.as_mut()[slot] = value;
         } else {
-            batch.camera.projection[slot - 16] = value;
+            batch.camera.projection.as_mut()[slot - 16] = value;
         }
         let mut via_api = Vec::new();
         encode_frame_unchecked(&Message::RayBatch(batch.clone()), &mut via_api, &cfg()).expect("unchecked");
@@ -734,13 +746,16 @@ fn composer_messages_round_trip_and_bad_fields_are_rejected() {
         (Message::ClientPose(ClientPose { client_time_ms: f64::NAN, ..pose.clone() }), "client_time_ms"),
         (
             Message::ClientPose(ClientPose {
-                views: vec![good_camera(), WireCamera { view: [f32::INFINITY; 16], ..good_camera() }],
+                views: vec![
+                    good_camera(),
+                    ViewProjection { view: Mat4::from_cols_array(&[f32::INFINITY; 16]), ..good_camera() },
+                ],
                 ..pose.clone()
             }),
             "camera view matrix",
         ),
         (
-            Message::ClientPose(ClientPose { views: vec![WireCamera { width: 0, ..good_camera() }], ..pose }),
+            Message::ClientPose(ClientPose { views: vec![ViewProjection { width: 0, ..good_camera() }], ..pose }),
             "image size",
         ),
         (
@@ -788,7 +803,7 @@ fn batch_ids_carry_the_task() {
 #[test]
 fn rejected_messages_leave_the_stream_in_sync() {
     let mut bad = good_batch();
-    bad.camera.view[0] = f32::NAN;
+    bad.camera.view.as_mut()[0] = f32::NAN;
     let mut bytes = unchecked(MessageKind::RayBatch, &bad);
     bytes.extend(frame_of(&Message::RayBatch(good_batch())));
     let mut reader = FrameReader::new(Cursor::new(&bytes), cfg());
@@ -900,7 +915,7 @@ fn write_fuzz_seeds() {
         }
     }
     let mut bad = good_batch();
-    bad.camera.view[0] = f32::NAN;
+    bad.camera.view.as_mut()[0] = f32::NAN;
     std::fs::write(dir.join("RayBatch-nan.bin"), unchecked(MessageKind::RayBatch, &bad)).expect("write");
     std::fs::write(dir.join("BatchResult-10.bin"), frame_of(&Message::BatchResult(good_result(10)))).expect("write");
     std::fs::write(dir.join("huge-length.bin"), u32::MAX.to_le_bytes()).expect("write");

@@ -5,7 +5,7 @@
 use crate::error::ValidationError;
 use crate::messages::{
     BatchDone, BatchFailed, BatchResult, ClientPose, CloseStream, ComposerRegister, ErrorMessage, FramePlan, Goodbye,
-    LoadReport, Message, OpenStream, RayBatch, Register, Registered, StreamOpened, WireCamera,
+    LoadReport, Message, OpenStream, RayBatch, Register, Registered, StreamOpened, ViewProjection,
 };
 
 /// Largest image side on the wire (a camera itself accepts up to
@@ -219,12 +219,12 @@ pub fn image_size(width: u32, height: u32) -> Result<(), ValidationError> {
 
 /// Size in range and both matrices finite. Whether the view is rigid and the projection a
 /// perspective one is the render crate's check (it has the tolerances).
-pub fn camera(c: &WireCamera) -> Result<(), ValidationError> {
+pub fn camera(c: &ViewProjection) -> Result<(), ValidationError> {
     image_size(c.width, c.height)?;
-    if !c.view.iter().all(|v| v.is_finite()) {
+    if !c.view.is_finite() {
         return Err(ValidationError::NonFinite { field: "camera view matrix" });
     }
-    if !c.projection.iter().all(|v| v.is_finite()) {
+    if !c.projection.is_finite() {
         return Err(ValidationError::NonFinite { field: "camera projection matrix" });
     }
     Ok(())

@@ -48,8 +48,8 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::time::Duration;
 
-use glam::Mat4;
 use nephele_geometry::Bounds;
+use nephele_geometry::ViewProjection;
 use nephele_geometry::camera::Camera;
 use serde::{Deserialize, Serialize};
 
@@ -76,16 +76,6 @@ pub struct ObjectInfo {
 pub struct SessionSpec {
     pub target_fps: f64,
     pub objects: Vec<ObjectId>,
-}
-
-/// One view of a pose as a WebXR client sends it: view matrix (world to eye), OpenGL
-/// projection matrix and the size of the image to render.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct ViewMatrices {
-    pub width: u32,
-    pub height: u32,
-    pub view: Mat4,
-    pub projection: Mat4,
 }
 
 /// Whether a new session may start now.
@@ -575,14 +565,11 @@ impl Scheduler {
 
     /// [`Scheduler::pose`] from the matrices a WebXR client sends; a NaN, singular or
     /// non-perspective matrix is an error naming the view.
-    pub fn pose_matrices(&mut self, id: SessionId, views: &[ViewMatrices], now: Time) -> Result<(), SchedError> {
+    pub fn pose_matrices(&mut self, id: SessionId, views: &[ViewProjection], now: Time) -> Result<(), SchedError> {
         let cameras = views
             .iter()
             .enumerate()
-            .map(|(i, v)| {
-                Camera::from_view_projection(v.width, v.height, v.view, v.projection)
-                    .map_err(|e| SchedError::InvalidPose(format!("view {i}: {e}")))
-            })
+            .map(|(i, v)| v.camera().map_err(|e| SchedError::InvalidPose(format!("view {i}: {e}"))))
             .collect::<Result<Vec<Camera>, SchedError>>()?;
         self.pose(id, &cameras, now)
     }

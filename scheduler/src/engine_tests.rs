@@ -1,5 +1,5 @@
 use super::*;
-use glam::Vec3;
+use glam::{Mat4, Vec3};
 use nephele_geometry::camera::stereo_pair;
 
 const OBJ: ObjectId = ObjectId(1);
@@ -429,11 +429,11 @@ fn bad_input_is_rejected_with_clear_errors() {
     let mut nan_view = good.world_to_camera();
     nan_view.w_axis.x = f32::NAN;
     let projection = good.projection_matrix(0.1, 100.0);
-    let bad = [ViewMatrices { width: 64, height: 64, view: nan_view, projection }];
+    let bad = [ViewProjection { width: 64, height: 64, view: nan_view, projection }];
     assert!(matches!(s.pose_matrices(id, &bad, ms(1)), Err(SchedError::InvalidPose(m)) if m.contains("view 0")));
-    let singular = [ViewMatrices { width: 64, height: 64, view: good.world_to_camera(), projection: Mat4::ZERO }];
+    let singular = [ViewProjection { width: 64, height: 64, view: good.world_to_camera(), projection: Mat4::ZERO }];
     assert!(matches!(s.pose_matrices(id, &singular, ms(1)), Err(SchedError::InvalidPose(_))));
-    let fine = [ViewMatrices { width: 64, height: 64, view: good.world_to_camera(), projection }];
+    let fine = [ViewProjection { width: 64, height: 64, view: good.world_to_camera(), projection }];
     assert!(s.pose_matrices(id, &fine, ms(1)).is_ok());
     assert!(matches!(s.pose(id, &[], ms(1)), Err(SchedError::InvalidPose(_))));
     assert!(matches!(s.pose(id, &vec![good; 65], ms(1)), Err(SchedError::InvalidPose(_))));

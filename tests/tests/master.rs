@@ -29,7 +29,7 @@ use nephele_pathtracer::Renderer;
 use nephele_pathtracer::scenes;
 use nephele_proto::{
     BatchResult, ClientPose, ComposerRegister, ErrorCode, FrameConfig, FramePlan, FrameReader, FrameWriter, Message,
-    Role, StreamOpened, WireCamera,
+    Role, StreamOpened, ViewProjection,
 };
 use nephele_tests::nephele_bin;
 use serde_json::{Value, json};
@@ -366,20 +366,15 @@ struct View {
 impl View {
     /// The default view of a built-in object scene, orbited about the vertical axis by
     /// `sequence` half degrees (a pose per sequence number, never the same twice).
-    fn pose(&self, sequence: u32) -> WireCamera {
+    fn pose(&self, sequence: u32) -> ViewProjection {
         let angle = (sequence as f32 * 0.5).to_radians();
         let eye = self.target + Mat4::from_rotation_z(angle).transform_vector3(self.eye - self.target);
         let camera = Camera::look_at(self.width, self.height, self.fov_y, eye, self.target, Vec3::Z).expect("camera");
-        WireCamera {
-            width: self.width,
-            height: self.height,
-            view: camera.world_to_camera().to_cols_array(),
-            projection: camera.projection_matrix(0.05, 100.0).to_cols_array(),
-        }
+        ViewProjection::of_camera(&camera, 0.05, 100.0)
     }
 }
 
-fn client_pose(session_id: u64, sequence: u32, camera: WireCamera) -> Message {
+fn client_pose(session_id: u64, sequence: u32, camera: ViewProjection) -> Message {
     Message::ClientPose(ClientPose {
         session_id,
         sequence,
@@ -404,18 +399,10 @@ impl Reference {
         Reference { kernel, cache: HashMap::new() }
     }
 
-    fn for_pose(&mut self, sequence: u32, pose: &WireCamera) -> &PixelResults {
+    fn for_pose(&mut self, sequence: u32, pose: &ViewProjection) -> &PixelResults {
         let kernel = &self.kernel;
         self.cache.entry(sequence).or_insert_with(|| {
-            let to_camera = |w: &WireCamera| {
-                Camera::from_view_projection(
-                    w.width,
-                    w.height,
-                    Mat4::from_cols_array(&w.view),
-                    Mat4::from_cols_array(&w.projection),
-                )
-                .expect("camera")
-            };
+            let to_camera = |w: &ViewProjection| w.camera().expect("camera");
             let scheduled = to_camera(pose);
             let worker = to_camera(&nephele_master::farm::wire_camera(&scheduled, Vec3::ZERO));
             kernel.render_pixels(&worker, &all_pixels(&worker)).expect("reference render").0

@@ -12,14 +12,14 @@ use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, channel};
 use std::thread;
 use std::time::{Duration, Instant};
 
-use glam::{Mat4, Vec3};
+use glam::Vec3;
 use nephele_geometry::camera::Camera;
 use nephele_kernels::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
 use nephele_pathtracer::Renderer;
 use nephele_pathtracer::scenes;
 use nephele_proto::{
     BatchIds, BatchResult, Cancel, CancelTarget, ErrorCode, FrameConfig, FrameReader, FrameWriter, Hello, Message,
-    RayBatch, Register, Registered, Rejected, Role, WireCamera, encode_frame_unchecked,
+    RayBatch, Register, Registered, Rejected, Role, ViewProjection, encode_frame_unchecked,
 };
 use nephele_tests::nephele_bin;
 
@@ -279,7 +279,7 @@ impl Assembly {
 // The frame and its reference
 
 struct Frame {
-    wire: WireCamera,
+    wire: ViewProjection,
     expected: PixelResults,
 }
 
@@ -289,20 +289,9 @@ fn frame(width: u32, height: u32, spp: u32, bounces: u32) -> Frame {
     let scene = scenes::builtin("diffuse").expect("scene");
     let (eye, target, fov_y) = scene.default_view();
     let look = Camera::look_at(width, height, fov_y, eye, target, Vec3::Z).expect("camera");
-    let wire = WireCamera {
-        width,
-        height,
-        view: look.world_to_camera().to_cols_array(),
-        projection: look.projection_matrix(0.05, 100.0).to_cols_array(),
-    };
+    let wire = ViewProjection::of_camera(&look, 0.05, 100.0);
     // Exactly the conversion the worker does.
-    let camera = Camera::from_view_projection(
-        width,
-        height,
-        Mat4::from_cols_array(&wire.view),
-        Mat4::from_cols_array(&wire.projection),
-    )
-    .expect("camera from view and projection");
+    let camera = wire.camera().expect("camera from view and projection");
     let kernel = PathTracedKernel::new(Renderer::new(scene.scene).expect("renderer"), spp, bounces).expect("kernel");
     let (expected, _) = kernel.render_pixels(&camera, &all_pixels(&camera)).expect("reference render");
     assert!(expected.opacity.iter().any(|&a| a > 0.0) && expected.opacity.contains(&0.0));
@@ -511,16 +500,11 @@ fn sigterm_finishes_in_flight_batches_hands_back_the_rest_and_exits_0() {
     assert!(done.is_subset(&delivered), "done {done:?}, delivered {delivered:?}");
 }
 
-fn frame_camera(width: u32, height: u32) -> WireCamera {
+fn frame_camera(width: u32, height: u32) -> ViewProjection {
     let scene = scenes::builtin("diffuse").expect("scene");
     let (eye, target, fov_y) = scene.default_view();
     let look = Camera::look_at(width, height, fov_y, eye, target, Vec3::Z).expect("camera");
-    WireCamera {
-        width,
-        height,
-        view: look.world_to_camera().to_cols_array(),
-        projection: look.projection_matrix(0.05, 100.0).to_cols_array(),
-    }
+    ViewProjection::of_camera(&look, 0.05, 100.0)
 }
 
 #[test]
@@ -551,14 +535,14 @@ fn bad_batches_are_answered_and_the_worker_carries_on() {
         b
     };
     let mut scaled = camera;
-    scaled.view[0] = 2.0; // finite, but not a rigid view: the camera conversion refuses it
+    scaled.view.as_mut()[0] = 2.0; // finite, but not a rigid view: the camera conversion refuses it
     let cases: Vec<(RayBatch, ErrorCode)> = vec![
         (with(1, &|b| b.asset_id = "../diffuse".into()), ErrorCode::InvalidField),
         (with(2, &|b| b.asset_id = "scenes/diffuse".into()), ErrorCode::InvalidField),
         (with(3, &|b| b.asset_id = "..".into()), ErrorCode::InvalidField),
         (with(4, &|b| b.asset_id = "no-such-asset".into()), ErrorCode::UnknownAsset),
-        (with(5, &|b| b.camera.view[5] = f32::NAN), ErrorCode::InvalidField),
-        (with(6, &|b| b.camera.projection[0] = f32::INFINITY), ErrorCode::InvalidField),
+        (with(5, &|b| b.camera.view.as_mut()[5] = f32::NAN), ErrorCode::InvalidField),
+        (with(6, &|b| b.camera.projection.as_mut()[0] = f32::INFINITY), ErrorCode::InvalidField),
         (with(7, &|b| b.pixels = vec![0, 64 * 48]), ErrorCode::InvalidField),
         (with(8, &|b| b.pixels = vec![]), ErrorCode::InvalidField),
         (with(9, &|b| b.camera = scaled), ErrorCode::InvalidField),

@@ -18,4 +18,4 @@ mod composer;
 mod service;
 
 pub use assets::{AssetError, AssetLoader, AssetOptions, DirAssetLoader};
-pub use service::{WorkerConfig, WorkerError, run, to_camera};
+pub use service::{WorkerConfig, WorkerError, run};

@@ -14,14 +14,14 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use futures_util::{SinkExt, StreamExt};
-use glam::{Mat4, Vec3};
-use nephele_geometry::camera::{Camera, CameraError};
+use glam::Vec3;
+use nephele_geometry::camera::Camera;
 use nephele_kernels::kernel::all_pixels;
 use nephele_proto::stream::{Connection, framed, handshake, recv};
 use nephele_proto::{
     BatchDone, BatchFailed, BatchIds, BatchResult, Cancel, CancelTarget, ErrorCode, ErrorMessage, FrameConfig, Goodbye,
-    KernelStats, LoadReport, Message, ProtoError, RayBatch, Register, Registered, Role, WireCamera, clip_text,
-    error_message, validate,
+    KernelStats, LoadReport, Message, ProtoError, RayBatch, Register, Registered, Role, clip_text, error_message,
+    validate,
 };
 use thiserror::Error;
 use tokio::net::TcpStream;
@@ -478,16 +478,6 @@ async fn flush(conn: &mut Connection<TcpStream>, outbox: &mut Vec<Message>) -> R
     conn.flush().await
 }
 
-/// Converts a wire camera (already checked finite and sized by the decoder).
-pub fn to_camera(camera: &WireCamera) -> Result<Camera, CameraError> {
-    Camera::from_view_projection(
-        camera.width,
-        camera.height,
-        Mat4::from_cols_array(&camera.view),
-        Mat4::from_cols_array(&camera.projection),
-    )
-}
-
 /// Loads, renders, checks and sends one batch; returns what to tell the master.
 async fn render_and_deliver(
     shared: &Arc<Shared>,
@@ -495,7 +485,7 @@ async fn render_and_deliver(
     cancelled: &AtomicBool,
 ) -> Result<BatchDone, (ErrorCode, String)> {
     let RayBatch { ids, asset_id, camera: wire, pixels, composer, .. } = batch;
-    let camera = to_camera(&wire).map_err(|e| (ErrorCode::InvalidField, format!("camera: {e}")))?;
+    let camera = wire.camera().map_err(|e| (ErrorCode::InvalidField, format!("camera: {e}")))?;
     let worker = shared.clone();
     let (pixels, rendered, render_time) = tokio::task::spawn_blocking(move || {
         let kernel = match worker.loader.load(&asset_id) {
