@@ -1,8 +1,9 @@
 //! `nephele-loadgen`: a headless Nephele client over the same WebRTC stack the service uses
 //! (webrtc-rs), for load tests and multi-host checks (`nephele loadgen`).
 //!
-//! Depends on no crate of ours: it speaks to the service as a browser does (HTTP, WebRTC),
-//! never through a service's library.
+//! Depends on `nephele-proto` (the pose message's one Rust encoder) and `nephele-geometry`
+//! only: it speaks to the service as a browser does (HTTP, WebRTC), never through a
+//! service's library.
 //!
 //! Each simulated user does what the browser client does (`client/PROTOCOL.md`): a peer
 //! connection with a receive-only video transceiver and an unordered `control` data channel,

@@ -2,16 +2,12 @@
 //! camera the load generator flies.
 
 use glam::{Mat4, Vec3};
+use nephele_geometry::ViewProjection;
+use nephele_proto::pose::Pose;
+pub use nephele_proto::pose::{MODE_FLAT, MODE_XR, POSE_HEADER_BYTES as HEADER_BYTES, POSE_VIEW_BYTES as VIEW_BYTES};
 
-pub const MAGIC: u8 = 0x50;
-pub const VERSION: u8 = 1;
-pub const MODE_FLAT: u8 = 0;
-/// Immersive VR: one view per eye, as a WebXR headset sends them.
-pub const MODE_XR: u8 = 1;
-pub const HEADER_BYTES: usize = 20;
-pub const VIEW_BYTES: usize = 128;
-
-/// Encodes one pose: `views` are (world-to-camera, projection) pairs, column-major.
+/// One pose message through the one Rust encoder (`nephele_proto::pose`): `views` are
+/// (world-to-camera, projection) pairs, each of `width x height`.
 pub fn encode(
     sequence: u32,
     client_time_ms: f64,
@@ -20,18 +16,9 @@ pub fn encode(
     mode: u8,
     views: &[(Mat4, Mat4)],
 ) -> Vec<u8> {
-    let mut out = Vec::with_capacity(HEADER_BYTES + VIEW_BYTES * views.len());
-    out.extend_from_slice(&[MAGIC, VERSION, views.len().min(255) as u8, mode]);
-    out.extend_from_slice(&sequence.to_le_bytes());
-    out.extend_from_slice(&client_time_ms.to_le_bytes());
-    out.extend_from_slice(&width.to_le_bytes());
-    out.extend_from_slice(&height.to_le_bytes());
-    for (view, projection) in views {
-        for x in view.to_cols_array().iter().chain(projection.to_cols_array().iter()) {
-            out.extend_from_slice(&x.to_le_bytes());
-        }
-    }
-    out
+    let (width, height) = (u32::from(width), u32::from(height));
+    let views = views.iter().map(|&(view, projection)| ViewProjection { width, height, view, projection }).collect();
+    Pose { seq: sequence, mode, client_time_ms, views }.encode()
 }
 
 /// A camera orbiting the scene target at a constant angular speed, as a user dragging would:

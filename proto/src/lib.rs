@@ -21,6 +21,7 @@ mod error;
 pub mod frame;
 pub mod messages;
 mod packed;
+pub mod pose;
 pub mod stream;
 pub mod validate;
 

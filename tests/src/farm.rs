@@ -47,68 +47,22 @@ pub fn grey_for_azimuth(azimuth: f64) -> f64 {
     255.0 * (0.15 + 0.7 * turn)
 }
 
-/// A pose message as `client/PROTOCOL.md` defines it, parsed.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Pose {
-    pub views: u8,
-    pub mode: u8,
-    pub sequence: u32,
-    pub client_time_ms: f64,
-    pub width: u16,
-    pub height: u16,
-    /// Per view: (view matrix, projection matrix), column-major.
-    pub matrices: Vec<([f32; 16], [f32; 16])>,
+/// The browser's pose messages, decoded by the composer's own decoder (`nephele_proto::pose`).
+pub use nephele_proto::pose::Pose;
+
+/// Camera position of view `v` in world coordinates: `-R^T t` of the world-to-camera matrix.
+pub fn eye(pose: &Pose, v: usize) -> [f64; 3] {
+    let m = pose.views[v].view.to_cols_array();
+    let t = [m[12], m[13], m[14]].map(f64::from);
+    std::array::from_fn(|i| {
+        -(f64::from(m[i * 4]) * t[0] + f64::from(m[i * 4 + 1]) * t[1] + f64::from(m[i * 4 + 2]) * t[2])
+    })
 }
 
-pub const POSE_MAGIC: u8 = 0x50;
-pub const POSE_HEADER_BYTES: usize = 20;
-pub const POSE_VIEW_BYTES: usize = 128;
-
-impl Pose {
-    /// Parses a binary pose; `None` for anything that is not exactly one (wrong magic,
-    /// version, length).
-    pub fn parse(data: &[u8]) -> Option<Pose> {
-        if data.len() < POSE_HEADER_BYTES || data[0] != POSE_MAGIC || data[1] != 1 {
-            return None;
-        }
-        let views = data[2];
-        if views == 0 || data.len() != POSE_HEADER_BYTES + POSE_VIEW_BYTES * usize::from(views) {
-            return None;
-        }
-        let u16_at = |o: usize| u16::from_le_bytes([data[o], data[o + 1]]);
-        let f32_at = |o: usize| f32::from_le_bytes([data[o], data[o + 1], data[o + 2], data[o + 3]]);
-        let matrix = |o: usize| std::array::from_fn::<f32, 16, _>(|i| f32_at(o + 4 * i));
-        let matrices = (0..usize::from(views))
-            .map(|v| {
-                let o = POSE_HEADER_BYTES + POSE_VIEW_BYTES * v;
-                (matrix(o), matrix(o + 64))
-            })
-            .collect();
-        Some(Pose {
-            views,
-            mode: data[3],
-            sequence: u32::from_le_bytes([data[4], data[5], data[6], data[7]]),
-            client_time_ms: f64::from_le_bytes(std::array::from_fn(|i| data[8 + i])),
-            width: u16_at(16),
-            height: u16_at(18),
-            matrices,
-        })
-    }
-
-    /// Camera position of view `v` in world coordinates: `-R^T t` of the world-to-camera matrix.
-    pub fn eye(&self, v: usize) -> [f64; 3] {
-        let m = &self.matrices[v].0;
-        let t = [m[12], m[13], m[14]].map(f64::from);
-        std::array::from_fn(|i| {
-            -(f64::from(m[i * 4]) * t[0] + f64::from(m[i * 4 + 1]) * t[1] + f64::from(m[i * 4 + 2]) * t[2])
-        })
-    }
-
-    /// Azimuth of view `v`'s camera around `target` (radians, from +X towards +Y).
-    pub fn azimuth(&self, v: usize, target: [f32; 3]) -> f64 {
-        let eye = self.eye(v);
-        (eye[1] - f64::from(target[1])).atan2(eye[0] - f64::from(target[0]))
-    }
+/// Azimuth of view `v`'s camera around `target` (radians, from +X towards +Y).
+pub fn azimuth(pose: &Pose, v: usize, target: [f32; 3]) -> f64 {
+    let eye = eye(pose, v);
+    (eye[1] - f64::from(target[1])).atan2(eye[0] - f64::from(target[0]))
 }
 
 /// An offer as the farm received it.
@@ -247,7 +201,7 @@ impl TestFarm {
         let state = self.shared.state();
         let peer = state.peers.get(session)?;
         let log = peer.log.lock().unwrap_or_else(|p| p.into_inner());
-        log.binary.iter().rev().find_map(|(_, data)| Pose::parse(data))
+        log.binary.iter().rev().find_map(|(_, data)| Pose::decode(data).ok())
     }
 
     pub fn is_connected(&self, session: &str) -> bool {
@@ -370,10 +324,11 @@ impl VideoLoop {
         while !self.stop.load(Ordering::SeqCst) {
             let pose = {
                 let log = self.log.lock().unwrap_or_else(|p| p.into_inner());
-                log.binary.iter().rev().find_map(|(_, d)| Pose::parse(d))
+                log.binary.iter().rev().find_map(|(_, d)| Pose::decode(d).ok())
             };
             if let Some(pose) = pose {
-                let (w, h) = (usize::from(pose.width) * usize::from(pose.views), usize::from(pose.height));
+                let (vw, vh) = pose.view_size();
+                let (w, h) = (vw as usize * pose.views.len(), vh as usize);
                 if encoder.as_ref().is_none_or(|(_, ew, eh)| (*ew, *eh) != (w, h)) {
                     encoder = match new_encoder() {
                         Ok(e) => Some((e, w, h)),
@@ -384,7 +339,7 @@ impl VideoLoop {
                     };
                 }
                 if let Some((enc, w, h)) = encoder.as_mut() {
-                    let grey = grey_for_azimuth(pose.azimuth(0, FIRST_VIEW.target));
+                    let grey = grey_for_azimuth(azimuth(&pose, 0, FIRST_VIEW.target));
                     // Limited-range luma (BT.601/709 video levels): what the browser shows as `grey`.
                     let luma = (16.0 + grey * 219.0 / 255.0).round() as u8;
                     let (w, h) = (*w, *h);
@@ -400,7 +355,7 @@ impl VideoLoop {
                                     let dc = self.channel.lock().unwrap_or_else(|p| p.into_inner()).clone();
                                     if let Some(dc) = dc {
                                         let note =
-                                            json!({ "type": "frame", "seq": pose.sequence, "t": pose.client_time_ms });
+                                            json!({ "type": "frame", "seq": pose.seq, "t": pose.client_time_ms });
                                         let _ = self.runtime.block_on(dc.send_text(note.to_string()));
                                     }
                                 }
@@ -500,36 +455,15 @@ impl FarmBackend for TestFarm {
 mod tests {
     use super::*;
 
-    fn pose_bytes(view: [f32; 16]) -> Vec<u8> {
-        let mut out = vec![POSE_MAGIC, 1, 1, 0];
-        out.extend_from_slice(&7u32.to_le_bytes());
-        out.extend_from_slice(&123.5f64.to_le_bytes());
-        out.extend_from_slice(&640u16.to_le_bytes());
-        out.extend_from_slice(&480u16.to_le_bytes());
-        for x in view.iter().chain([0.5f32; 16].iter()) {
-            out.extend_from_slice(&x.to_le_bytes());
-        }
-        out
-    }
-
     #[test]
-    fn poses_parse_and_give_the_camera_position() {
-        // A camera at (1, 2, 3) with identity rotation: view = translate(-eye).
-        let mut view = [0f32; 16];
-        for i in 0..4 {
-            view[i * 5] = 1.0;
-        }
-        view[12..15].copy_from_slice(&[-1.0, -2.0, -3.0]);
-        let data = pose_bytes(view);
-        assert_eq!(data.len(), 148);
-        let pose = Pose::parse(&data).expect("a pose");
-        assert_eq!((pose.views, pose.sequence, pose.client_time_ms, pose.width, pose.height), (1, 7, 123.5, 640, 480));
-        assert_eq!(pose.eye(0), [1.0, 2.0, 3.0]);
-        assert!((pose.azimuth(0, [0.0; 3]) - 2f64.atan2(1.0)).abs() < 1e-12);
-        assert_eq!(Pose::parse(&data[..147]), None);
-        let mut bad = data.clone();
-        bad[0] = 0x51;
-        assert_eq!(Pose::parse(&bad), None);
+    fn poses_give_the_camera_position_and_azimuth() {
+        let pose =
+            nephele_proto::pose::look_at_pose(7, 640, 480, 0.8, glam::Vec3::new(1.0, 2.0, 3.0), glam::Vec3::ZERO)
+                .expect("a pose");
+        let decoded = Pose::decode(&pose.encode()).expect("decodes");
+        let e = eye(&decoded, 0);
+        assert!((e[0] - 1.0).abs() < 1e-5 && (e[1] - 2.0).abs() < 1e-5 && (e[2] - 3.0).abs() < 1e-5, "{e:?}");
+        assert!((azimuth(&decoded, 0, [0.0; 3]) - 2f64.atan2(1.0)).abs() < 1e-5);
     }
 
     #[test]

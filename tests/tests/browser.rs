@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use nephele_tests::browser::Browser;
 use nephele_tests::client;
-use nephele_tests::farm::{FIRST_VIEW, Pose, TestFarm, grey_for_azimuth};
+use nephele_tests::farm::{FIRST_VIEW, Pose, TestFarm, eye, grey_for_azimuth};
 use nephele_tests::service::UpService;
 
 /// One browser at a time: two Chromiums decoding video on a 2-core box would make the timing
@@ -108,16 +108,17 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
     let mut last_sequence = None;
     for (_, data) in &window {
         assert_eq!((data.len(), data[0]), (20 + 128, 0x50), "pose message {data:?}");
-        let pose = Pose::parse(data).expect("a valid pose");
-        assert_eq!((pose.views, pose.mode, pose.width, pose.height), (1, 0, WIDTH, HEIGHT));
-        assert!(last_sequence.is_none_or(|s: u32| pose.sequence > s), "sequence numbers increase");
-        last_sequence = Some(pose.sequence);
+        let pose = Pose::decode(data).expect("a valid pose");
+        let size = (u32::from(WIDTH), u32::from(HEIGHT));
+        assert_eq!((pose.views.len(), pose.mode, pose.view_size()), (1, 0, size));
+        assert!(last_sequence.is_none_or(|s: u32| pose.seq > s), "sequence numbers increase");
+        last_sequence = Some(pose.seq);
     }
     let pose = farm.latest_pose(&first).expect("a pose");
     assert!(
-        close(pose.eye(0), FIRST_VIEW.eye.map(f64::from), 1e-4),
+        close(eye(&pose, 0), FIRST_VIEW.eye.map(f64::from), 1e-4),
         "first camera at {:?}, expected {:?}",
-        pose.eye(0),
+        eye(&pose, 0),
         FIRST_VIEW.eye
     );
 
@@ -126,7 +127,7 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
     let moved = Instant::now();
     let expected = orbit_eye(1.0, 0.3, 5.0);
     wait_for("poses from the new orbit", Duration::from_secs(2), || {
-        farm.latest_pose(&first).filter(|p| close(p.eye(0), expected, 1e-4)).map(|_| ())
+        farm.latest_pose(&first).filter(|p| close(eye(p, 0), expected, 1e-4)).map(|_| ())
     });
     let lag = moved.elapsed();
     assert!(lag < Duration::from_millis(500), "the pose followed setOrbit after {lag:?}");
