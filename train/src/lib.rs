@@ -1,6 +1,7 @@
 //! `nephele-train`: everything that learns or bakes, and the data it learns from.
 //!
 //! * [`dataset`]: NeRF-synthetic datasets (read, write, hold out views);
+//! * [`synth`]: datasets of a scene rendered by the reference path tracer;
 //! * [`ngp`]: training the i-NGP-style radiance field (the baseline, and the density field
 //!   i-NOLF caches);
 //! * [`inolf`]: training the i-NOLF heads and baking the asset.
@@ -11,3 +12,4 @@
 pub mod dataset;
 pub mod inolf;
 pub mod ngp;
+pub mod synth;

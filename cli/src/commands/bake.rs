@@ -1,27 +1,15 @@
-//! `nephele bake`: posed RGBA images in, an i-NOLF asset (`.nolf`) out.
-//!
-//! 1. the i-NGP-style radiance field of the scene (trained here, or loaded with `--field`);
-//! 2. its density cached as density texture cubes;
-//! 3. the hit points of every training ray -> the perfect spatial hash;
-//! 4. the i-NOLF heads trained on the same images (error-map ray sampling);
-//! 5. the diffuse branch baked into diffuse texture cubes; everything written to one file.
+//! `nephele bake`: posed RGBA images in, an i-NOLF asset (`.nolf`) out. The arguments
+//! become a [`BakeRecipe`]; the bake itself is the library's [`nephele_train::inolf::pipeline::bake`]
+//! (radiance field, density cubes, perfect spatial hash, heads, diffuse cubes).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use nephele_geometry::Bounds;
-use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes};
-use nephele_kernels::inolf::encoding::PshEncoding;
-use nephele_kernels::inolf::model::{HeadsShape, InolfModel};
-use nephele_kernels::inolf::psh::PshOptions;
-use nephele_kernels::ngp::{FieldConfig, RadianceField, load_field, save_field};
-use nephele_nn::HashGridConfig;
-use nephele_train::dataset;
-use nephele_train::inolf::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
-use nephele_train::inolf::train::{TrainOptions, collect_hit_points, train, training_views};
-use nephele_train::ngp::{TrainConfig, Trainer};
-use serde_json::json;
+use indicatif::ProgressBar;
+use nephele_kernels::ngp::{load_field, save_field};
+use nephele_train::dataset::{self, Dataset};
+use nephele_train::inolf::pipeline::{BakeProgress, BakeRecipe, bake};
 
 use crate::progress::Progress;
 
@@ -97,156 +85,107 @@ pub struct Args {
     seed: u64,
 }
 
+impl Args {
+    fn recipe(&self) -> BakeRecipe {
+        BakeRecipe {
+            field_steps: self.field_steps,
+            field_table_log2: self.field_table_log2,
+            field_levels: self.field_levels,
+            field_finest: self.field_finest,
+            field_samples: self.field_samples,
+            head_steps: self.steps,
+            batch: self.batch,
+            cubes: self.cubes,
+            cube_res: self.cube_res,
+            psh_res: self.psh_res,
+            psh_features: self.psh_features,
+            density_threshold: self.density_threshold,
+            keep_diffuse_network: self.keep_diffuse_network,
+            seed: self.seed,
+        }
+    }
+}
+
+/// The bake's stages as progress bars, their summaries printed.
+pub(crate) struct Bars<'a> {
+    progress: &'a Progress,
+    bar: Option<ProgressBar>,
+    stage: String,
+}
+
+impl<'a> Bars<'a> {
+    pub(crate) fn new(progress: &'a Progress) -> Self {
+        Bars { progress, bar: None, stage: String::new() }
+    }
+}
+
+impl BakeProgress for Bars<'_> {
+    fn stage(&mut self, name: &str, total: u64, unit: &str) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish_and_clear();
+        }
+        self.stage = name.to_string();
+        self.bar = Some(self.progress.bar(total, name, unit));
+    }
+
+    fn advance(&mut self, done: u64, total: u64, status: &str) {
+        if let Some(bar) = &self.bar {
+            bar.set_length(total);
+            bar.set_position(done);
+            bar.set_message(format!("{} ({status})", self.stage));
+        }
+    }
+
+    fn finished(&mut self, summary: String) {
+        if let Some(bar) = self.bar.take() {
+            bar.finish_and_clear();
+        }
+        println!("{summary}");
+    }
+}
+
 fn evenly(n: usize, keep: usize) -> Vec<usize> {
     if keep == 0 || keep >= n { (0..n).collect() } else { (0..keep).map(|i| i * n / keep).collect() }
 }
 
-pub fn run(args: Args, progress: &Progress) -> Result<()> {
-    let start = Instant::now();
-    let mut data = dataset::load_split(&args.dataset, &args.split, args.downscale)
-        .with_context(|| format!("loading the {} split of {}", args.split, args.dataset.display()))?;
-    let (kept, held) = dataset::split_holdout(std::mem::take(&mut data.views), args.holdout_every);
+/// Loads `split` of the dataset at `dir` as the bake trains on it: downscaled, every
+/// `holdout_every`th view held out, at most `max_views` evenly spaced views.
+pub(crate) fn training_data(
+    dir: &Path,
+    split: &str,
+    downscale: u32,
+    holdout_every: usize,
+    max_views: usize,
+) -> Result<Dataset> {
+    let mut data = dataset::load_split(dir, split, downscale)
+        .with_context(|| format!("loading the {split} split of {}", dir.display()))?;
+    let (kept, held) = dataset::split_holdout(std::mem::take(&mut data.views), holdout_every);
     if !held.is_empty() {
-        println!("bake: {} views held out (every {}th)", held.len(), args.holdout_every);
+        println!("bake: {} views held out (every {}th)", held.len(), holdout_every);
     }
     data.views = kept;
-    let keep = evenly(data.views.len(), args.max_views);
+    let keep = evenly(data.views.len(), max_views);
     data.views = keep.iter().map(|&i| data.views[i].clone()).collect();
     if data.views.is_empty() {
         bail!("the dataset has no views");
     }
+    Ok(data)
+}
+
+pub fn run(args: Args, progress: &Progress) -> Result<()> {
+    let start = Instant::now();
+    let data = training_data(&args.dataset, &args.split, args.downscale, args.holdout_every, args.max_views)?;
     let (w, h) = (data.views[0].image.width(), data.views[0].image.height());
     println!("bake: {} views of {w}x{h} from {}", data.views.len(), args.dataset.display());
-
-    // 1. Radiance field.
-    let t = Instant::now();
-    let field: RadianceField = match &args.field {
-        Some(path) => load_field(path).with_context(|| format!("loading {}", path.display()))?,
-        None => {
-            let config =
-                TrainConfig { seed: args.seed, samples_per_step: args.field_samples, ..TrainConfig::default() };
-            let field_config = FieldConfig {
-                grid: HashGridConfig::with_finest_resolution(
-                    args.field_levels,
-                    args.field_table_log2,
-                    16,
-                    args.field_finest,
-                ),
-                ..FieldConfig::default()
-            };
-            let mut trainer = Trainer::from_dataset(field_config, config, &data)?;
-            let bar = progress.bar(u64::from(args.field_steps), "radiance field", "steps");
-            let mut last = 0.0;
-            for step in 0..args.field_steps {
-                let stats = trainer.step(step as f32 / args.field_steps.max(1) as f32)?;
-                last = stats.loss;
-                bar.inc(1);
-                if step % 50 == 0 {
-                    bar.set_message(format!("radiance field (loss {:.5})", stats.loss));
-                }
-            }
-            bar.finish_and_clear();
-            println!(
-                "radiance field: {} steps, last loss {last:.5}, {:.0} s",
-                args.field_steps,
-                t.elapsed().as_secs_f64()
-            );
-            let field = trainer.into_field();
-            if let Some(path) = &args.save_field {
-                save_field(&field, path).with_context(|| format!("saving {}", path.display()))?;
-            }
-            field
-        }
+    let field = match &args.field {
+        Some(path) => Some(load_field(path).with_context(|| format!("loading {}", path.display()))?),
+        None => None,
     };
-    let fb = field.bounds();
-    let bounds = match field.occupancy().occupied_bounds() {
-        Some((lo, hi)) => {
-            let size = fb.size();
-            let margin = size * (2.0 / field.occupancy().resolution() as f32);
-            Bounds { min: (fb.min + lo * size - margin).max(fb.min), max: (fb.min + hi * size + margin).min(fb.max) }
-        }
-        None => fb,
-    };
-
-    // 2. Density cubes.
-    let t = Instant::now();
-    let cube_options = CubeOptions { resolution: args.cubes, cube_res: args.cube_res, ..CubeOptions::default() };
-    let bar = progress.bar(1, "density cubes", "cells");
-    let density = field_density_for_cubes(&field, args.density_threshold);
-    let cubes = DensityCubes::build(bounds, &cube_options, density, &|p| {
-        bar.set_length(p.total);
-        bar.set_position(p.done);
-        bar.set_message(format!("density cubes ({})", p.phase));
-    })?;
-    bar.finish_and_clear();
-    let fp = cubes.cubes().footprint();
-    println!(
-        "density cubes: {} of {} cells occupied ({:.2} %), {:.2} MiB against {:.2} MiB for a dense grid of the same resolution, {:.0} s",
-        fp.occupied_cells,
-        fp.cells,
-        100.0 * fp.occupied_cells as f64 / fp.cells as f64,
-        fp.bytes as f64 / 1048576.0,
-        fp.dense_bytes as f64 / 1048576.0,
-        t.elapsed().as_secs_f64()
-    );
-
-    // 3. Hit points and the perfect spatial hash.
-    let t = Instant::now();
-    let views = training_views(&data)?;
-    let hits = collect_hit_points(&cubes, &views, 1);
-    let cb = cubes.bounds();
-    let voxel = cb.size().max_element() / (args.psh_res - 1).max(1) as f32;
-    let psh = PshEncoding::from_points(&hits, cb.min, voxel, args.psh_res, args.psh_features, &PshOptions::coherent())?;
-    let (coherent, pairs) = psh.table.coherence();
-    println!(
-        "perfect spatial hash: {} hit points -> {} lattice points at {}^3, table {}^3 slots, offsets {}^3, coherence {:.3}, {:.1} s",
-        hits.len(),
-        psh.table.len(),
-        args.psh_res,
-        psh.table.table_side(),
-        psh.table.offset_side(),
-        coherent as f64 / pairs.max(1) as f64,
-        t.elapsed().as_secs_f64()
-    );
-
-    // 4. Heads.
-    let t = Instant::now();
-    let mut model = InolfModel::new(HeadsShape::default(), cb, psh, args.seed)?;
-    let options = TrainOptions { steps: args.steps, batch: args.batch, seed: args.seed, ..TrainOptions::default() };
-    let bar = progress.bar(u64::from(args.steps), "i-NOLF heads", "steps");
-    let report = train(&mut model, &cubes, &views, &options, &mut |step, loss| {
-        bar.set_position(u64::from(step));
-        if step % 50 == 0 {
-            bar.set_message(format!("i-NOLF heads (loss {loss:.5})"));
-        }
-    })?;
-    bar.finish_and_clear();
-    let psnr_train = -10.0 * (f64::from(report.smoothed_loss) / 4.0).log10();
-    println!(
-        "heads: {} steps, loss {:.6} (~{psnr_train:.1} dB on linear premultiplied RGBA of training rays), {:.0} % of drawn rays hit, {:.0} s",
-        report.steps,
-        report.smoothed_loss,
-        100.0 * report.rays_hit as f64 / report.rays.max(1) as f64,
-        t.elapsed().as_secs_f64()
-    );
-
-    // 5. Diffuse cubes and the asset.
-    let t = Instant::now();
-    let diffuse = bake_diffuse_cubes(&model, &cubes, &hits, 1, args.cube_res)?;
-    let dfp = diffuse.footprint();
-    println!(
-        "diffuse cubes: {} cells around the hit surfaces, {:.2} MiB against {:.2} MiB dense, {:.1} s",
-        dfp.occupied_cells,
-        dfp.bytes as f64 / 1048576.0,
-        dfp.dense_bytes as f64 / 1048576.0,
-        t.elapsed().as_secs_f64()
-    );
-    let bake = json!({
-        "dataset": args.dataset.display().to_string(), "views": data.views.len(), "size": [w, h],
-        "field_steps": if args.field.is_some() { 0 } else { args.field_steps }, "steps": args.steps,
-        "loss": report.smoothed_loss, "cubes": args.cubes, "cube_res": args.cube_res, "psh_res": args.psh_res,
-    });
-    let asset = to_asset(&model, cubes, Some(diffuse), args.keep_diffuse_network, bake)?;
+    let baked = bake(&data, &args.dataset.display().to_string(), &args.recipe(), field, &mut Bars::new(progress))?;
+    if let (true, Some(path)) = (baked.field_trained, &args.save_field) {
+        save_field(&baked.field, path).with_context(|| format!("saving {}", path.display()))?;
+    }
+    let asset = baked.asset;
     asset.save(&args.out).with_context(|| format!("writing {}", args.out.display()))?;
     let sizes = asset.sizes();
     println!("asset {}:", args.out.display());

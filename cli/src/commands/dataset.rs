@@ -1,15 +1,11 @@
 //! `nephele dataset`: render NeRF-synthetic datasets from built-in scenes, and inspect them.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use glam::{Mat4, Vec3};
-use nephele_geometry::camera::Camera;
-use nephele_pathtracer::integrator::Aov;
-use nephele_pathtracer::sampling::Rng;
-use nephele_pathtracer::scenes::{BuiltinScene, Framing};
-use nephele_pathtracer::{RenderOptions, Renderer};
-use nephele_train::dataset::{self, Frame, Transforms};
+use nephele_pathtracer::scenes::BuiltinScene;
+use nephele_train::dataset;
+use nephele_train::synth::{DatasetSpec, render_dataset};
 
 use crate::progress::Progress;
 
@@ -76,6 +72,22 @@ pub fn run(command: Command, progress: &Progress) -> Result<()> {
     }
 }
 
+impl RenderArgs {
+    pub(crate) fn spec(&self) -> DatasetSpec {
+        DatasetSpec {
+            views: self.views,
+            test_views: self.test_views,
+            width: self.size.0,
+            height: self.size.1,
+            spp: self.spp,
+            bounces: self.bounces,
+            seed: self.seed,
+            full_sphere: self.full_sphere,
+            depth: self.depth,
+        }
+    }
+}
+
 fn render(args: RenderArgs, progress: &Progress) -> Result<()> {
     anyhow::ensure!(args.views > 0, "--views must be at least 1");
     anyhow::ensure!(args.views + args.test_views <= 100_000, "at most 100000 views in all");
@@ -83,100 +95,33 @@ fn render(args: RenderArgs, progress: &Progress) -> Result<()> {
     {
         bail!("{} is not empty; pass --force to write into it", args.out.display());
     }
-    let builtin = super::load_scene(&args.scene)?;
-    let (width, height) = args.size;
-    let poses = view_poses(&builtin, args.views + args.test_views, !args.full_sphere, args.seed);
-    let fov_x = builtin.dataset_fov_x();
-    let options = RenderOptions {
-        samples_per_pixel: args.spp,
-        max_bounces: args.bounces,
-        seed: args.seed,
-        background: builtin.default_background(),
-    };
-    options.validate()?;
-    let renderer = Renderer::new(builtin.scene).context("preparing the scene")?;
-    let total_rows = (poses.len() as u64) * u64::from(height);
-    let bar = progress.bar(total_rows, &format!("{} dataset", args.scene), "rows");
-    let splits = [("train", &poses[..args.views]), ("test", &poses[args.views..])];
-    for (split, split_poses) in splits {
-        if split_poses.is_empty() {
-            continue;
-        }
-        let dir = args.out.join(split);
-        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-        let mut frames = Vec::with_capacity(split_poses.len());
-        for (i, &camera_to_world) in split_poses.iter().enumerate() {
-            let camera = Camera::from_fov_x(width, height, fov_x, camera_to_world).context("view camera")?;
-            // Every view gets its own noise: the seed mixes in the view's global index.
-            let view_seed = args
-                .seed
-                .wrapping_mul(0x9E37_79B9)
-                .wrapping_add(frames.len() as u64 + if split == "test" { 1 << 32 } else { 0 });
-            let out = renderer
-                .render(&camera, &RenderOptions { seed: view_seed, ..options }, &|rows| bar.inc(u64::from(rows)))?;
-            let name = format!("r_{i}");
-            let mut aovs = vec![Aov::Color];
-            if args.depth {
-                aovs.push(Aov::Depth);
-            }
-            super::pathtrace::write_outputs(&out, &aovs, false, &dir, "")?;
-            // write_outputs names files by output; rename to the dataset's names.
-            std::fs::rename(dir.join("color.png"), dir.join(format!("{name}.png")))?;
-            let depth_path = if args.depth {
-                std::fs::rename(dir.join("depth.exr"), dir.join(format!("{name}_depth.exr")))?;
-                Some(format!("./{split}/{name}_depth.exr"))
-            } else {
-                None
-            };
-            frames.push(Frame { file_path: format!("./{split}/{name}"), camera_to_world, rotation: None, depth_path });
-        }
-        let transforms = Transforms { camera_angle_x: fov_x, frames };
-        let path = args.out.join(format!("transforms_{split}.json"));
-        dataset::write_transforms(&path, &transforms).with_context(|| format!("writing {}", path.display()))?;
-    }
+    let scene = super::load_scene(&args.scene)?;
+    render_into(scene, &args.scene, &args.spec(), &args.out, progress)
+}
+
+/// Renders `spec` of `scene` into `out` with a progress bar, then says what it wrote.
+pub(crate) fn render_into(
+    scene: BuiltinScene,
+    name: &str,
+    spec: &DatasetSpec,
+    out: &Path,
+    progress: &Progress,
+) -> Result<()> {
+    let total_rows = (spec.views + spec.test_views) as u64 * u64::from(spec.height);
+    let bar = progress.bar(total_rows, &format!("{name} dataset"), "rows");
+    render_dataset(scene, spec, out, &|rows| bar.inc(u64::from(rows)))
+        .with_context(|| format!("rendering the dataset of '{name}' into {}", out.display()))?;
     bar.finish_and_clear();
     println!(
-        "wrote {} train and {} test views of '{}' at {width}x{height}, {} spp, to {}",
-        args.views,
-        args.test_views,
-        args.scene,
-        args.spp,
-        args.out.display()
+        "wrote {} train and {} test views of '{name}' at {}x{}, {} spp, to {}",
+        spec.views,
+        spec.test_views,
+        spec.width,
+        spec.height,
+        spec.spp,
+        out.display()
     );
     Ok(())
-}
-
-/// Camera-to-world matrices for `count` views of a scene, deterministic by seed.
-fn view_poses(builtin: &BuiltinScene, count: usize, allow_hemisphere: bool, seed: u64) -> Vec<Mat4> {
-    match builtin.framing {
-        Framing::Object { center, orbit_radius, hemisphere, .. } => {
-            dataset::sample_views_on_sphere(count, orbit_radius, center, hemisphere && allow_hemisphere, seed)
-        }
-        Framing::Interior { min, max, look_at, .. } => {
-            // Standpoints anywhere in the scene's camera box (already away from the walls),
-            // looking roughly at the room's point of interest with some spread so that
-            // every wall is seen.
-            let mut rng = Rng::new(seed, 0x1_0000);
-            (0..count)
-                .map(|_| {
-                    let r = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
-                    let eye = min + (max - min) * r;
-                    let spread = Vec3::new(rng.next_f32() - 0.5, rng.next_f32() - 0.5, 0.3 * (rng.next_f32() - 0.5))
-                        * (max - min);
-                    let target = look_at + spread;
-                    look_at_matrix(eye, if (target - eye).length() < 0.1 { look_at } else { target })
-                })
-                .collect()
-        }
-    }
-}
-
-/// Camera-to-world for a camera at `eye` looking at `target` with +Z up (OpenGL camera axes).
-fn look_at_matrix(eye: Vec3, target: Vec3) -> Mat4 {
-    let forward = (target - eye).normalize_or(Vec3::Y);
-    let right = forward.cross(Vec3::Z).normalize_or(Vec3::X);
-    let up = right.cross(forward);
-    Mat4::from_cols(right.extend(0.0), up.extend(0.0), (-forward).extend(0.0), eye.extend(1.0))
 }
 
 fn info(args: InfoArgs) -> Result<()> {

@@ -2,13 +2,9 @@
 //!
 //! No baked assets ship with Nephele (they are tens of MiB each). On first start, `up` bakes
 //! every built-in object of the scene it serves and keeps the assets in a cache folder, so
-//! later starts reuse them. Each object goes through exactly what a user would run by hand:
-//!
-//! ```text
-//! nephele dataset render --scene NAME --views V --test-views T --size SxS --spp P --out TMP
-//! nephele bake --dataset TMP --out DIR/NAME.nolf --downscale 1 --field-steps F --steps H ...
-//! ```
-//!
+//! later starts reuse them. Each object goes through the library calls that `nephele dataset
+//! render` and `nephele bake` make, with the recipe's typed values
+//! ([`nephele_train::synth::render_dataset`], [`nephele_train::inolf::pipeline::bake`]),
 //! then the asset is scored on the held-out views (PSNR against the path tracer's images)
 //! and moved into place. An asset is written as `NAME.nolf.part-PID` and renamed once complete,
 //! so an interrupted bake leaves no half asset behind, and objects already baked are kept.
@@ -19,11 +15,14 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use clap::Parser;
 use nephele_geometry::camera::Camera;
 use nephele_imaging::metrics::psnr_and_ssim;
 use nephele_kernels::inolf::kernel::InolfKernel;
 use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
+use nephele_train::inolf::pipeline::{BakeRecipe, bake};
+use nephele_train::synth::DatasetSpec;
+
+use super::bake::Bars;
 
 use crate::progress::Progress;
 
@@ -66,43 +65,36 @@ pub struct Recipe {
 }
 
 impl Recipe {
-    /// `nephele dataset render` of the built-in object `scene` into `out`.
-    pub fn dataset_words(&self, scene: &str, out: &Path) -> Vec<String> {
-        let mut words: Vec<String> = ["dataset", "--scene", scene].map(String::from).to_vec();
-        for (flag, value) in [
-            ("--views", self.views.to_string()),
-            ("--test-views", self.test_views.to_string()),
-            ("--size", format!("{0}x{0}", self.size)),
-            ("--spp", self.spp.to_string()),
-            ("--bounces", self.bounces.to_string()),
-            ("--out", out.to_string_lossy().into_owned()),
-        ] {
-            words.extend([flag.to_string(), value]);
+    /// The dataset of a built-in object: `views` + `test_views` views of `size` squared.
+    pub fn dataset_spec(&self) -> DatasetSpec {
+        DatasetSpec {
+            views: self.views,
+            test_views: self.test_views,
+            width: self.size,
+            height: self.size,
+            spp: self.spp,
+            bounces: self.bounces,
+            seed: 0,
+            full_sphere: false,
+            depth: false,
         }
-        words
     }
 
-    /// `nephele bake` of the dataset `dataset` into the asset `out`.
-    pub fn bake_words(&self, dataset: &Path, out: &Path) -> Vec<String> {
-        let mut words = vec!["bake".to_string()];
-        for (flag, value) in [
-            ("--dataset", dataset.to_string_lossy().into_owned()),
-            ("--out", out.to_string_lossy().into_owned()),
-            ("--downscale", "1".into()),
-            ("--field-steps", self.field_steps.to_string()),
-            ("--field-table-log2", self.field_table_log2.to_string()),
-            ("--field-levels", self.field_levels.to_string()),
-            ("--field-finest", self.field_finest.to_string()),
-            ("--field-samples", self.field_samples.to_string()),
-            ("--steps", self.head_steps.to_string()),
-            ("--batch", self.batch.to_string()),
-            ("--cubes", self.cubes.to_string()),
-            ("--cube-res", self.cube_res.to_string()),
-            ("--psh-res", self.psh_res.to_string()),
-        ] {
-            words.extend([flag.to_string(), value]);
+    /// The bake of that dataset (the rest as `nephele bake`'s defaults).
+    pub fn bake_recipe(&self) -> BakeRecipe {
+        BakeRecipe {
+            field_steps: self.field_steps,
+            field_table_log2: self.field_table_log2,
+            field_levels: self.field_levels,
+            field_finest: self.field_finest,
+            field_samples: self.field_samples,
+            head_steps: self.head_steps,
+            batch: self.batch,
+            cubes: self.cubes,
+            cube_res: self.cube_res,
+            psh_res: self.psh_res,
+            ..BakeRecipe::default()
         }
-        words
     }
 }
 
@@ -258,12 +250,14 @@ fn bake_object(dir: &Path, name: &str, recipe: &Recipe, progress: &Progress) -> 
         .tempdir_in(dir)
         .context("a scratch folder for the dataset")?;
     let data = work.path().join("dataset");
-    let render = DatasetCli::try_parse_from(recipe.dataset_words(name, &data))?;
-    super::dataset::run(super::dataset::Command::Render(render.args), progress)?;
+    let scene = nephele_pathtracer::scenes::builtin(name)?;
+    super::dataset::render_into(scene, name, &recipe.dataset_spec(), &data, progress)?;
     // Unique per process: two first starts sharing the cache folder do not write one file.
     let part = dir.join(format!("{name}.nolf.part-{}", std::process::id()));
-    let bake = BakeCli::try_parse_from(recipe.bake_words(&data, &part))?;
-    super::bake::run(bake.args, progress)?;
+    let views = super::bake::training_data(&data, "train", 1, 0, 0)?;
+    println!("bake: {} views of {1}x{1} from {2}", views.views.len(), recipe.size, data.display());
+    let baked = bake(&views, &data.display().to_string(), &recipe.bake_recipe(), None, &mut Bars::new(progress))?;
+    baked.asset.save(&part).with_context(|| format!("writing {}", part.display()))?;
 
     let psnr = score(&part, &data).context("scoring the asset on the held-out views")?;
     println!(
@@ -291,33 +285,19 @@ fn score(asset: &Path, dataset: &Path) -> Result<f64> {
     Ok(sum / data.views.len() as f64)
 }
 
-/// `nephele dataset render`'s arguments, parsed from the same words a user would type.
-#[derive(Debug, Parser)]
-struct DatasetCli {
-    #[command(flatten)]
-    args: super::dataset::RenderArgs,
-}
-
-/// `nephele bake`'s arguments, parsed from the same words a user would type.
-#[derive(Debug, Parser)]
-struct BakeCli {
-    #[command(flatten)]
-    args: super::bake::Args,
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn every_recipe_parses_as_the_commands_it_stands_for() {
+    fn every_recipe_is_a_dataset_and_a_bake() {
         for quality in [BakeQuality::Standard, BakeQuality::Quick] {
             let r = quality.recipe().expect("a recipe");
             assert!(r.size >= 16 && r.views > 0 && r.test_views > 0 && r.field_steps > 0 && r.head_steps > 0);
-            let render = DatasetCli::try_parse_from(r.dataset_words("diffuse", Path::new("ds"))).expect("dataset args");
-            assert_eq!(render.args.views, r.views);
-            let bake = BakeCli::try_parse_from(r.bake_words(Path::new("ds"), Path::new("a.nolf"))).expect("bake args");
-            assert_eq!((bake.args.steps, bake.args.psh_res), (r.head_steps, r.psh_res));
+            let spec = r.dataset_spec();
+            assert_eq!((spec.views, spec.test_views, spec.width, spec.height), (r.views, r.test_views, r.size, r.size));
+            let bake = r.bake_recipe();
+            assert_eq!((bake.head_steps, bake.psh_res, bake.cube_res), (r.head_steps, r.psh_res, r.cube_res));
         }
         assert!(BakeQuality::Off.recipe().is_none());
         assert_ne!(BakeQuality::Standard.folder(), BakeQuality::Quick.folder());

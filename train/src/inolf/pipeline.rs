@@ -1,0 +1,273 @@
+//! The whole bake (NEPHELE section 4) as one library call: posed RGBA images in, an i-NOLF
+//! [`Asset`] out. `nephele bake` and the first start of `nephele up` call [`bake`] with typed
+//! values; progress and the stage summaries go to a [`BakeProgress`] of the caller's.
+//!
+//! 1. the i-NGP-style radiance field of the scene (trained here, or given);
+//! 2. its density cached as density texture cubes;
+//! 3. the hit points of every training ray -> the perfect spatial hash;
+//! 4. the i-NOLF heads trained on the same images (error-map ray sampling);
+//! 5. the diffuse branch baked into diffuse texture cubes; everything in one asset.
+
+use std::time::Instant;
+
+use nephele_geometry::Bounds;
+use nephele_geometry::camera::CameraError;
+use nephele_kernels::inolf::asset::Asset;
+use nephele_kernels::inolf::cubes::{CubeError, CubeOptions, DensityCubes};
+use nephele_kernels::inolf::encoding::PshEncoding;
+use nephele_kernels::inolf::model::{HeadsShape, InolfModel, ModelError};
+use nephele_kernels::inolf::psh::{PshError, PshOptions};
+use nephele_kernels::ngp::{FieldConfig, NgpError, RadianceField};
+use nephele_nn::HashGridConfig;
+use serde_json::json;
+use thiserror::Error;
+
+use super::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
+use super::train::{TrainOptions, collect_hit_points, train, training_views};
+use crate::dataset::Dataset;
+use crate::ngp::{TrainConfig, Trainer};
+
+/// Everything a bake is asked to do. `Default` is `nephele bake`'s defaults.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BakeRecipe {
+    /// Training steps of the radiance field (when none is given).
+    pub field_steps: u32,
+    /// log2 of the radiance field's hash-table entries per level (i-NGP: 19).
+    pub field_table_log2: u32,
+    /// Hash-grid levels of the radiance field.
+    pub field_levels: u32,
+    /// Finest hash-grid resolution of the radiance field.
+    pub field_finest: u32,
+    /// Density samples per training step of the radiance field.
+    pub field_samples: usize,
+    /// Training steps of the i-NOLF heads.
+    pub head_steps: u32,
+    /// Rays per step of the heads.
+    pub batch: usize,
+    /// Coarse cells of the density cubes along the longest side.
+    pub cubes: u32,
+    /// Samples per cube side (density and diffuse cubes).
+    pub cube_res: u32,
+    /// Side of the PSH lattice over the object's box (NEPHELE: 128, 256 or 512).
+    pub psh_res: u32,
+    /// Learned features per PSH slot.
+    pub psh_features: u32,
+    /// Densities below this (per unit length) are cut to zero before caching.
+    pub density_threshold: f32,
+    /// Also keep the diffuse network in the asset (the "+ diffuse MLP" variant).
+    pub keep_diffuse_network: bool,
+    pub seed: u64,
+}
+
+impl Default for BakeRecipe {
+    fn default() -> Self {
+        BakeRecipe {
+            field_steps: 2000,
+            field_table_log2: 19,
+            field_levels: 16,
+            field_finest: 2048,
+            field_samples: 1 << 16,
+            head_steps: 3000,
+            batch: 4096,
+            cubes: 64,
+            cube_res: 8,
+            psh_res: 256,
+            psh_features: 8,
+            density_threshold: 1.0,
+            keep_diffuse_network: false,
+            seed: 1,
+        }
+    }
+}
+
+/// Where a bake reports: one stage at a time, with its steps, then a summary line (`Send`:
+/// the density cubes report from the thread pool).
+pub trait BakeProgress: Send {
+    /// A stage of `total` steps of `unit` begins.
+    fn stage(&mut self, name: &str, total: u64, unit: &str);
+    /// `done` of `total` steps of the current stage, with a short status.
+    fn advance(&mut self, done: u64, total: u64, status: &str);
+    /// The stage ended; `summary` is one line for the user.
+    fn finished(&mut self, summary: String);
+}
+
+/// A [`BakeProgress`] that reports nothing (tests, batch jobs).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Quiet;
+
+impl BakeProgress for Quiet {
+    fn stage(&mut self, _: &str, _: u64, _: &str) {}
+    fn advance(&mut self, _: u64, _: u64, _: &str) {}
+    fn finished(&mut self, _: String) {}
+}
+
+#[derive(Debug, Error)]
+pub enum BakeError {
+    #[error("the dataset has no views")]
+    NoViews,
+    #[error("radiance field: {0}")]
+    Field(#[from] NgpError),
+    #[error("density cubes: {0}")]
+    Cubes(#[from] CubeError),
+    #[error("training view: {0}")]
+    Camera(#[from] CameraError),
+    #[error("perfect spatial hash: {0}")]
+    Psh(#[from] PshError),
+    #[error("heads: {0}")]
+    Model(#[from] ModelError),
+}
+
+/// What a bake made.
+#[derive(Debug)]
+pub struct Baked {
+    pub asset: Asset,
+    /// The radiance field it cached (trained here, or the one given): save it to bake
+    /// again from the same field.
+    pub field: RadianceField,
+    /// Whether `field` was trained by this call.
+    pub field_trained: bool,
+}
+
+/// Bakes an i-NOLF asset of `data`'s views (all of them: hold views out before), from
+/// `field` when given, else from a radiance field trained here. `source` names the data in
+/// the asset's description of its bake.
+pub fn bake(
+    data: &Dataset,
+    source: &str,
+    recipe: &BakeRecipe,
+    field: Option<RadianceField>,
+    progress: &mut dyn BakeProgress,
+) -> Result<Baked, BakeError> {
+    let first = data.views.first().ok_or(BakeError::NoViews)?;
+    let (w, h) = (first.image.width(), first.image.height());
+
+    // 1. Radiance field.
+    let t = Instant::now();
+    let field_trained = field.is_none();
+    let field = match field {
+        Some(field) => field,
+        None => {
+            let config =
+                TrainConfig { seed: recipe.seed, samples_per_step: recipe.field_samples, ..TrainConfig::default() };
+            let field_config = FieldConfig {
+                grid: HashGridConfig::with_finest_resolution(
+                    recipe.field_levels,
+                    recipe.field_table_log2,
+                    16,
+                    recipe.field_finest,
+                ),
+                ..FieldConfig::default()
+            };
+            let mut trainer = Trainer::from_dataset(field_config, config, data)?;
+            let steps = u64::from(recipe.field_steps);
+            progress.stage("radiance field", steps, "steps");
+            let mut last = 0.0;
+            for step in 0..recipe.field_steps {
+                let stats = trainer.step(step as f32 / recipe.field_steps.max(1) as f32)?;
+                last = stats.loss;
+                if step % 50 == 0 {
+                    progress.advance(u64::from(step), steps, &format!("loss {:.5}", stats.loss));
+                }
+            }
+            progress.finished(format!(
+                "radiance field: {} steps, last loss {last:.5}, {:.0} s",
+                recipe.field_steps,
+                t.elapsed().as_secs_f64()
+            ));
+            trainer.into_field()
+        }
+    };
+    let fb = field.bounds();
+    let bounds = match field.occupancy().occupied_bounds() {
+        Some((lo, hi)) => {
+            let size = fb.size();
+            let margin = size * (2.0 / field.occupancy().resolution() as f32);
+            Bounds { min: (fb.min + lo * size - margin).max(fb.min), max: (fb.min + hi * size + margin).min(fb.max) }
+        }
+        None => fb,
+    };
+
+    // 2. Density cubes.
+    let t = Instant::now();
+    let cube_options = CubeOptions { resolution: recipe.cubes, cube_res: recipe.cube_res, ..CubeOptions::default() };
+    progress.stage("density cubes", 1, "cells");
+    let density = field_density_for_cubes(&field, recipe.density_threshold);
+    let cubes = {
+        let progress = std::sync::Mutex::new(&mut *progress);
+        DensityCubes::build(bounds, &cube_options, density, &|p| {
+            if let Ok(mut progress) = progress.lock() {
+                progress.advance(p.done, p.total, p.phase);
+            }
+        })?
+    };
+    let fp = cubes.cubes().footprint();
+    progress.finished(format!(
+        "density cubes: {} of {} cells occupied ({:.2} %), {:.2} MiB against {:.2} MiB for a dense grid of the same resolution, {:.0} s",
+        fp.occupied_cells,
+        fp.cells,
+        100.0 * fp.occupied_cells as f64 / fp.cells as f64,
+        fp.bytes as f64 / 1048576.0,
+        fp.dense_bytes as f64 / 1048576.0,
+        t.elapsed().as_secs_f64()
+    ));
+
+    // 3. Hit points and the perfect spatial hash.
+    let t = Instant::now();
+    let views = training_views(data)?;
+    let hits = collect_hit_points(&cubes, &views, 1);
+    let cb = cubes.bounds();
+    let voxel = cb.size().max_element() / (recipe.psh_res - 1).max(1) as f32;
+    let psh =
+        PshEncoding::from_points(&hits, cb.min, voxel, recipe.psh_res, recipe.psh_features, &PshOptions::coherent())?;
+    let (coherent, pairs) = psh.table.coherence();
+    progress.finished(format!(
+        "perfect spatial hash: {} hit points -> {} lattice points at {}^3, table {}^3 slots, offsets {}^3, coherence {:.3}, {:.1} s",
+        hits.len(),
+        psh.table.len(),
+        recipe.psh_res,
+        psh.table.table_side(),
+        psh.table.offset_side(),
+        coherent as f64 / pairs.max(1) as f64,
+        t.elapsed().as_secs_f64()
+    ));
+
+    // 4. Heads.
+    let t = Instant::now();
+    let mut model = InolfModel::new(HeadsShape::default(), cb, psh, recipe.seed)?;
+    let options =
+        TrainOptions { steps: recipe.head_steps, batch: recipe.batch, seed: recipe.seed, ..TrainOptions::default() };
+    let steps = u64::from(recipe.head_steps);
+    progress.stage("i-NOLF heads", steps, "steps");
+    let report = train(&mut model, &cubes, &views, &options, &mut |step, loss| {
+        if step % 50 == 0 {
+            progress.advance(u64::from(step), steps, &format!("loss {loss:.5}"));
+        }
+    })?;
+    let psnr_train = -10.0 * (f64::from(report.smoothed_loss) / 4.0).log10();
+    progress.finished(format!(
+        "heads: {} steps, loss {:.6} (~{psnr_train:.1} dB on linear premultiplied RGBA of training rays), {:.0} % of drawn rays hit, {:.0} s",
+        report.steps,
+        report.smoothed_loss,
+        100.0 * report.rays_hit as f64 / report.rays.max(1) as f64,
+        t.elapsed().as_secs_f64()
+    ));
+
+    // 5. Diffuse cubes and the asset.
+    let t = Instant::now();
+    let diffuse = bake_diffuse_cubes(&model, &cubes, &hits, 1, recipe.cube_res)?;
+    let dfp = diffuse.footprint();
+    progress.finished(format!(
+        "diffuse cubes: {} cells around the hit surfaces, {:.2} MiB against {:.2} MiB dense, {:.1} s",
+        dfp.occupied_cells,
+        dfp.bytes as f64 / 1048576.0,
+        dfp.dense_bytes as f64 / 1048576.0,
+        t.elapsed().as_secs_f64()
+    ));
+    let description = json!({
+        "dataset": source, "views": data.views.len(), "size": [w, h],
+        "field_steps": if field_trained { recipe.field_steps } else { 0 }, "steps": recipe.head_steps,
+        "loss": report.smoothed_loss, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "psh_res": recipe.psh_res,
+    });
+    let asset = to_asset(&model, cubes, Some(diffuse), recipe.keep_diffuse_network, description)?;
+    Ok(Baked { asset, field, field_trained })
+}
