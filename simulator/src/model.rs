@@ -1,8 +1,8 @@
 //! What a simulation is made of: objects, users with camera paths, workers, parameters.
 
 use glam::Vec3;
-use nephele_geometry::Bounds;
 use nephele_geometry::camera::{Camera, CameraError, quilt_rig, stereo_pair};
+use nephele_geometry::{Bounds, SplitMix64};
 
 /// Interpupillary distance of simulated headsets, metres.
 pub const IPD_M: f32 = 0.064;
@@ -198,21 +198,17 @@ pub struct Scenario {
     pub params: SimParams,
 }
 
-/// SplitMix64: a tiny, seedable, portable generator (the simulator's only randomness).
+/// The project's SplitMix64 under a seed of the simulator's own (its only randomness).
 #[derive(Debug, Clone)]
-pub struct Rng(u64);
+pub struct Rng(SplitMix64);
 
 impl Rng {
     pub fn new(seed: u64) -> Rng {
-        Rng(seed ^ 0x9E37_79B9_7F4A_7C15)
+        Rng(SplitMix64::new(seed ^ 0x9E37_79B9_7F4A_7C15))
     }
 
     pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
 
     /// Uniform in [0, 1).

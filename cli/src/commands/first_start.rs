@@ -38,30 +38,22 @@ pub enum BakeQuality {
     Off,
 }
 
-/// The settings of one quality: the arguments of `nephele dataset render` and `nephele bake`.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// The settings of one quality: the dataset rendered of each object, and its bake.
+#[derive(Debug, Clone, PartialEq)]
 pub struct Recipe {
+    /// Side of the square training and test views.
     pub size: u32,
     pub views: usize,
     pub test_views: usize,
     pub spp: u32,
     pub bounces: u32,
-    pub field_steps: u32,
-    pub field_table_log2: u32,
-    pub field_levels: u32,
-    pub field_finest: u32,
-    pub field_samples: usize,
-    pub head_steps: u32,
-    pub batch: usize,
-    pub cubes: u32,
-    /// Samples per cube side: 5 (4 steps per cell) is finer than a pixel of the training
-    /// views here, as good as 8 on held-out views, and marches 1.5x faster with half the
-    /// asset (BENCHMARKS.md, "First start").
-    pub cube_res: u32,
-    /// PSH lattice side: 128 for the built-in objects' 128x128 path-traced views, whose
-    /// 32-spp noise a larger lattice learns too (held-out PSNR +0.05 to +1.1 dB against
-    /// 256 on every object, half the asset; BENCHMARKS.md, "table 5 on the built-in objects").
-    pub psh_res: u32,
+    /// The bake; the rest of `nephele bake`'s defaults. `cube_res` 5 (4 steps per cell) is
+    /// finer than a pixel of the training views here, as good as 8 on held-out views, and
+    /// marches 1.5x faster with half the asset (BENCHMARKS.md, "First start"). `psh_res`
+    /// 128 for the built-in objects' 128x128 path-traced views, whose 32-spp noise a larger
+    /// lattice learns too (held-out PSNR +0.05 to +1.1 dB against 256 on every object, half
+    /// the asset; BENCHMARKS.md, "table 5 on the built-in objects").
+    pub bake: BakeRecipe,
 }
 
 impl Recipe {
@@ -79,23 +71,6 @@ impl Recipe {
             depth: false,
         }
     }
-
-    /// The bake of that dataset (the rest as `nephele bake`'s defaults).
-    pub fn bake_recipe(&self) -> BakeRecipe {
-        BakeRecipe {
-            field_steps: self.field_steps,
-            field_table_log2: self.field_table_log2,
-            field_levels: self.field_levels,
-            field_finest: self.field_finest,
-            field_samples: self.field_samples,
-            head_steps: self.head_steps,
-            batch: self.batch,
-            cubes: self.cubes,
-            cube_res: self.cube_res,
-            psh_res: self.psh_res,
-            ..BakeRecipe::default()
-        }
-    }
 }
 
 impl BakeQuality {
@@ -107,16 +82,19 @@ impl BakeQuality {
                 test_views: 4,
                 spp: 32,
                 bounces: 6,
-                field_steps: 400,
-                field_table_log2: 17,
-                field_levels: 16,
-                field_finest: 1024,
-                field_samples: 1 << 15,
-                head_steps: 1200,
-                batch: 4096,
-                cubes: 48,
-                cube_res: 5,
-                psh_res: 128,
+                bake: BakeRecipe {
+                    field_steps: 400,
+                    field_table_log2: 17,
+                    field_levels: 16,
+                    field_finest: 1024,
+                    field_samples: 1 << 15,
+                    head_steps: 1200,
+                    batch: 4096,
+                    cubes: 48,
+                    cube_res: 5,
+                    psh_res: 128,
+                    ..BakeRecipe::default()
+                },
             }),
             BakeQuality::Quick => Some(Recipe {
                 size: 48,
@@ -124,16 +102,19 @@ impl BakeQuality {
                 test_views: 2,
                 spp: 4,
                 bounces: 3,
-                field_steps: 40,
-                field_table_log2: 14,
-                field_levels: 8,
-                field_finest: 128,
-                field_samples: 1 << 13,
-                head_steps: 150,
-                batch: 1024,
-                cubes: 24,
-                cube_res: 5,
-                psh_res: 96,
+                bake: BakeRecipe {
+                    field_steps: 40,
+                    field_table_log2: 14,
+                    field_levels: 8,
+                    field_finest: 128,
+                    field_samples: 1 << 13,
+                    head_steps: 150,
+                    batch: 1024,
+                    cubes: 24,
+                    cube_res: 5,
+                    psh_res: 96,
+                    ..BakeRecipe::default()
+                },
             }),
             BakeQuality::Off => None,
         }
@@ -256,7 +237,7 @@ fn bake_object(dir: &Path, name: &str, recipe: &Recipe, progress: &Progress) -> 
     let part = dir.join(format!("{name}.nolf.part-{}", std::process::id()));
     let views = super::bake::training_data(&data, "train", 1, 0, 0)?;
     println!("bake: {} views of {1}x{1} from {2}", views.views.len(), recipe.size, data.display());
-    let baked = bake(&views, &data.display().to_string(), &recipe.bake_recipe(), None, &mut Bars::new(progress))?;
+    let baked = bake(&views, &data.display().to_string(), &recipe.bake, None, &mut Bars::new(progress))?;
     baked.asset.save(&part).with_context(|| format!("writing {}", part.display()))?;
 
     let psnr = score(&part, &data).context("scoring the asset on the held-out views")?;
@@ -293,11 +274,10 @@ mod tests {
     fn every_recipe_is_a_dataset_and_a_bake() {
         for quality in [BakeQuality::Standard, BakeQuality::Quick] {
             let r = quality.recipe().expect("a recipe");
-            assert!(r.size >= 16 && r.views > 0 && r.test_views > 0 && r.field_steps > 0 && r.head_steps > 0);
+            assert!(r.size >= 16 && r.views > 0 && r.test_views > 0 && r.bake.field_steps > 0 && r.bake.head_steps > 0);
             let spec = r.dataset_spec();
             assert_eq!((spec.views, spec.test_views, spec.width, spec.height), (r.views, r.test_views, r.size, r.size));
-            let bake = r.bake_recipe();
-            assert_eq!((bake.head_steps, bake.psh_res, bake.cube_res), (r.head_steps, r.psh_res, r.cube_res));
+            assert_eq!((r.bake.cube_res, r.bake.seed, r.bake.psh_features), (5, 1, 8));
         }
         assert!(BakeQuality::Off.recipe().is_none());
         assert_ne!(BakeQuality::Standard.folder(), BakeQuality::Quick.folder());
