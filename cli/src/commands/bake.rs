@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
-use nephele_kernels::ngp::{load_field, save_field};
+use nephele_kernels::ngp::{RadianceField, load_field, save_field};
 use nephele_train::dataset::{self, Dataset};
 use nephele_train::inolf::pipeline::{BakeProgress, BakeRecipe, bake};
 
@@ -106,16 +106,19 @@ impl Args {
     }
 }
 
-/// The bake's stages as progress bars, their summaries printed.
+/// The bake's stages as progress bars, their summaries printed; a trained field saved as
+/// soon as it exists when asked.
 pub(crate) struct Bars<'a> {
     progress: &'a Progress,
     bar: Option<ProgressBar>,
     stage: String,
+    save_field: Option<PathBuf>,
+    save_error: Option<anyhow::Error>,
 }
 
 impl<'a> Bars<'a> {
     pub(crate) fn new(progress: &'a Progress) -> Self {
-        Bars { progress, bar: None, stage: String::new() }
+        Bars { progress, bar: None, stage: String::new(), save_field: None, save_error: None }
     }
 }
 
@@ -141,6 +144,13 @@ impl BakeProgress for Bars<'_> {
             bar.finish_and_clear();
         }
         println!("{summary}");
+    }
+
+    fn field_trained(&mut self, field: &RadianceField) {
+        if let Some(path) = &self.save_field {
+            let saved = save_field(field, path).with_context(|| format!("saving {}", path.display()));
+            self.save_error = saved.err();
+        }
     }
 }
 
@@ -181,11 +191,13 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         Some(path) => Some(load_field(path).with_context(|| format!("loading {}", path.display()))?),
         None => None,
     };
-    let baked = bake(&data, &args.dataset.display().to_string(), &args.recipe(), field, &mut Bars::new(progress))?;
-    if let (true, Some(path)) = (baked.field_trained, &args.save_field) {
-        save_field(&baked.field, path).with_context(|| format!("saving {}", path.display()))?;
+    let mut bars = Bars { save_field: args.save_field.clone(), ..Bars::new(progress) };
+    let baked = bake(&data, &args.dataset.display().to_string(), &args.recipe(), field, &mut bars);
+    if let Some(e) = &bars.save_error {
+        // The bake goes on without the saved field; the failure is reported at the end.
+        tracing::warn!("{e:#}");
     }
-    let asset = baked.asset;
+    let asset = baked?.asset;
     asset.save(&args.out).with_context(|| format!("writing {}", args.out.display()))?;
     let sizes = asset.sizes();
     println!("asset {}:", args.out.display());
@@ -199,5 +211,8 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         std::fs::metadata(&args.out)?.len(),
         start.elapsed().as_secs_f64()
     );
-    Ok(())
+    match bars.save_error {
+        Some(e) => Err(e.context("the asset was written, but not the radiance field")),
+        None => Ok(()),
+    }
 }

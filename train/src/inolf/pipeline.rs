@@ -89,6 +89,9 @@ pub trait BakeProgress: Send {
     fn advance(&mut self, done: u64, total: u64, status: &str);
     /// The stage ended; `summary` is one line for the user.
     fn finished(&mut self, summary: String);
+    /// The radiance field was trained (not given): the place to keep it before the rest of
+    /// the bake runs, so that a later failure does not lose it.
+    fn field_trained(&mut self, _field: &RadianceField) {}
 }
 
 /// A [`BakeProgress`] that reports nothing (tests, batch jobs).
@@ -174,7 +177,9 @@ pub fn bake(
                 recipe.field_steps,
                 t.elapsed().as_secs_f64()
             ));
-            trainer.into_field()
+            let field = trainer.into_field();
+            progress.field_trained(&field);
+            field
         }
     };
     let fb = field.bounds();
