@@ -35,6 +35,16 @@ pub struct DatasetSpec {
     pub depth: bool,
 }
 
+impl DatasetSpec {
+    /// At least 1 training view, at most 100000 views in all.
+    pub fn validate(&self) -> Result<(), SynthError> {
+        if self.views == 0 || self.views + self.test_views > 100_000 {
+            return Err(SynthError::ViewCount { views: self.views, test_views: self.test_views });
+        }
+        Ok(())
+    }
+}
+
 #[derive(Debug, Error)]
 pub enum SynthError {
     #[error("at least 1 training view and at most 100000 views in all (asked {views} + {test_views})")]
@@ -60,9 +70,7 @@ pub fn render_dataset(
     out: &Path,
     on_rows: &(dyn Fn(u32) + Sync),
 ) -> Result<(), SynthError> {
-    if spec.views == 0 || spec.views + spec.test_views > 100_000 {
-        return Err(SynthError::ViewCount { views: spec.views, test_views: spec.test_views });
-    }
+    spec.validate()?;
     let poses = view_poses(&scene, spec.views + spec.test_views, !spec.full_sphere, spec.seed);
     let fov_x = scene.dataset_fov_x();
     let options = RenderOptions {

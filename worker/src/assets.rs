@@ -65,23 +65,15 @@ impl AssetError {
 /// Knobs for the kernels a loader builds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct AssetOptions {
-    /// Samples per pixel of path-traced assets (built-in scenes, glTF).
-    pub pathtrace_spp: u32,
-    /// Bounces of path-traced assets.
-    pub pathtrace_bounces: u32,
+    /// What the kernels' registry needs to open an asset (path-traced samples and bounces).
+    pub load: LoadOptions,
     /// Most kernels kept loaded; the oldest is dropped beyond that.
     pub max_cached: usize,
 }
 
-impl AssetOptions {
-    fn load(&self) -> LoadOptions {
-        LoadOptions { pathtrace_spp: self.pathtrace_spp, pathtrace_bounces: self.pathtrace_bounces }
-    }
-}
-
 impl Default for AssetOptions {
     fn default() -> AssetOptions {
-        AssetOptions { pathtrace_spp: 4, pathtrace_bounces: 4, max_cached: 32 }
+        AssetOptions { load: LoadOptions::default(), max_cached: 32 }
     }
 }
 
@@ -129,7 +121,7 @@ impl DirAssetLoader {
         for format in assets::FORMATS {
             let load = format.load;
             let handler: FormatHandler =
-                Arc::new(move |path, options| load(path, &options.load()).map_err(|e| e.to_string()));
+                Arc::new(move |path, options| load(path, &options.load).map_err(|e| e.to_string()));
             loader.register_format(format.extension, format.kernel_kind, handler);
         }
         Ok(loader)
@@ -166,7 +158,7 @@ impl DirAssetLoader {
             return handler(&path, &self.options).map_err(|reason| AssetError::Load { id: id.into(), reason });
         }
         if scenes::names().contains(&id) {
-            tracing::info!(asset = id, spp = self.options.pathtrace_spp, "loading built-in scene (path traced)");
+            tracing::info!(asset = id, spp = self.options.load.pathtrace_spp, "loading built-in scene (path traced)");
             let scene = scenes::builtin(id).map_err(|e| AssetError::Load { id: id.into(), reason: e.to_string() })?;
             return path_traced(scene.scene, &self.options)
                 .map_err(|reason| AssetError::Load { id: id.into(), reason });
@@ -184,7 +176,7 @@ impl DirAssetLoader {
 
 /// The reference path tracer over `scene` as a kernel.
 pub fn path_traced(scene: nephele_pathtracer::Scene, options: &AssetOptions) -> Result<Kernel, String> {
-    assets::path_traced(scene, &options.load()).map_err(|e| e.to_string())
+    assets::path_traced(scene, &options.load).map_err(|e| e.to_string())
 }
 
 impl AssetLoader for DirAssetLoader {
@@ -235,8 +227,11 @@ mod tests {
     use super::*;
 
     fn loader(dir: &Path) -> DirAssetLoader {
-        DirAssetLoader::new(dir, AssetOptions { pathtrace_spp: 1, pathtrace_bounces: 1, max_cached: 2 })
-            .expect("loader")
+        DirAssetLoader::new(
+            dir,
+            AssetOptions { load: LoadOptions { pathtrace_spp: 1, pathtrace_bounces: 1 }, max_cached: 2 },
+        )
+        .expect("loader")
     }
 
     #[test]

@@ -13,7 +13,8 @@ use nephele_train::inolf::pipeline::{BakeProgress, BakeRecipe, bake};
 
 use crate::progress::Progress;
 
-/// Bake an i-NOLF asset from a NeRF-synthetic dataset.
+/// Bake an i-NOLF asset from a NeRF-synthetic dataset. The bake's defaults are the
+/// library's (`BakeRecipe::default()`), not a second copy.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Dataset folder (NeRF-synthetic layout: transforms_train.json and images).
@@ -42,46 +43,46 @@ pub struct Args {
     #[arg(long)]
     save_field: Option<PathBuf>,
     /// Training steps of the radiance field.
-    #[arg(long, default_value_t = 2000)]
+    #[arg(long, default_value_t = BakeRecipe::default().field_steps)]
     field_steps: u32,
     /// log2 of the radiance field's hash-table entries per level (i-NGP: 19).
-    #[arg(long, default_value_t = 19)]
+    #[arg(long, default_value_t = BakeRecipe::default().field_table_log2)]
     field_table_log2: u32,
     /// Hash-grid levels of the radiance field.
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = BakeRecipe::default().field_levels)]
     field_levels: u32,
     /// Finest hash-grid resolution of the radiance field.
-    #[arg(long, default_value_t = 2048)]
+    #[arg(long, default_value_t = BakeRecipe::default().field_finest)]
     field_finest: u32,
     /// Density samples per training step of the radiance field.
-    #[arg(long, default_value_t = 1 << 16)]
+    #[arg(long, default_value_t = BakeRecipe::default().field_samples)]
     field_samples: usize,
     /// Training steps of the i-NOLF heads.
-    #[arg(long, default_value_t = 3000)]
-    pub(crate) steps: u32,
+    #[arg(long, default_value_t = BakeRecipe::default().head_steps)]
+    steps: u32,
     /// Rays per step of the heads.
-    #[arg(long, default_value_t = 4096)]
+    #[arg(long, default_value_t = BakeRecipe::default().batch)]
     batch: usize,
     /// Coarse cells of the density cubes along the longest side.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = BakeRecipe::default().cubes)]
     cubes: u32,
     /// Samples per cube side (density and diffuse cubes).
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = BakeRecipe::default().cube_res)]
     cube_res: u32,
     /// Side of the PSH lattice over the object's box (NEPHELE: 128, 256 or 512).
-    #[arg(long, default_value_t = 256)]
-    pub(crate) psh_res: u32,
+    #[arg(long, default_value_t = BakeRecipe::default().psh_res)]
+    psh_res: u32,
     /// Learned features per PSH slot.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = BakeRecipe::default().psh_features)]
     psh_features: u32,
     /// Densities below this (per unit length) are cut to zero before caching: the floor of
     /// what counts as matter.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = BakeRecipe::default().density_threshold)]
     density_threshold: f32,
     /// Also keep the diffuse network in the asset (for the "+ diffuse MLP" variant).
     #[arg(long)]
     keep_diffuse_network: bool,
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = BakeRecipe::default().seed)]
     seed: u64,
 }
 

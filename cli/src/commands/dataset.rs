@@ -89,14 +89,14 @@ impl RenderArgs {
 }
 
 fn render(args: RenderArgs, progress: &Progress) -> Result<()> {
-    anyhow::ensure!(args.views > 0, "--views must be at least 1");
-    anyhow::ensure!(args.views + args.test_views <= 100_000, "at most 100000 views in all");
+    let spec = args.spec();
+    spec.validate()?;
     if args.out.exists() && !args.force && std::fs::read_dir(&args.out).map(|mut d| d.next().is_some()).unwrap_or(false)
     {
         bail!("{} is not empty; pass --force to write into it", args.out.display());
     }
-    let scene = super::load_scene(&args.scene)?;
-    render_into(scene, &args.scene, &args.spec(), &args.out, progress)
+    let scene = nephele_pathtracer::scenes::load(&args.scene)?;
+    render_into(scene, &args.scene, &spec, &args.out, progress)
 }
 
 /// Renders `spec` of `scene` into `out` with a progress bar, then says what it wrote.

@@ -51,11 +51,6 @@ pub fn parse_background(text: &str) -> Result<[f32; 3], String> {
     }
 }
 
-/// Loads a built-in scene by name, or a glTF file (path ending in .gltf/.glb).
-pub fn load_scene(name_or_path: &str) -> Result<nephele_pathtracer::scenes::BuiltinScene> {
-    Ok(nephele_pathtracer::scenes::load(name_or_path)?)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -68,7 +68,7 @@ impl From<BackgroundArg> for Background {
 
 pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let aovs = parse_aovs(&args.aov)?;
-    let builtin = super::load_scene(&args.scene)?;
+    let builtin = nephele_pathtracer::scenes::load(&args.scene)?;
     let (default_eye, default_target, default_fov) = builtin.default_view();
     let fov_y = match args.fov_y {
         Some(deg) if deg.is_finite() && deg > 0.0 && deg < 180.0 => deg.to_radians(),

@@ -5,6 +5,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{Context, Result};
+use nephele_kernels::assets::LoadOptions;
 use nephele_proto::FrameConfig;
 use nephele_shutdown::Shutdown;
 use nephele_worker::{AssetOptions, DirAssetLoader, WorkerConfig};
@@ -58,7 +59,8 @@ pub struct Args {
 pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
     let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let name = args.name.unwrap_or_else(|| format!("worker-{}", std::process::id()));
-    let options = AssetOptions { pathtrace_spp: args.spp, pathtrace_bounces: args.bounces, ..AssetOptions::default() };
+    let load = LoadOptions { pathtrace_spp: args.spp, pathtrace_bounces: args.bounces };
+    let options = AssetOptions { load, ..AssetOptions::default() };
     let loader = DirAssetLoader::new(&args.assets, options)
         .with_context(|| format!("opening the asset directory {}", args.assets.display()))?;
     let mut config = WorkerConfig::new(args.master, name, threads);

@@ -127,8 +127,6 @@ pub struct Baked {
     /// The radiance field it cached (trained here, or the one given): save it to bake
     /// again from the same field.
     pub field: RadianceField,
-    /// Whether `field` was trained by this call.
-    pub field_trained: bool,
 }
 
 /// Bakes an i-NOLF asset of `data`'s views (all of them: hold views out before), from
@@ -274,5 +272,5 @@ pub fn bake(
         "loss": report.smoothed_loss, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "psh_res": recipe.psh_res,
     });
     let asset = to_asset(&model, cubes, Some(diffuse), recipe.keep_diffuse_network, description)?;
-    Ok(Baked { asset, field, field_trained })
+    Ok(Baked { asset, field })
 }
