@@ -12,7 +12,7 @@ use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::psh::{PshOptions, PshTable};
 use nephele_kernels::kernel::{Bounds, all_pixels};
-use nephele_nn::{HashGrid, HashGridConfig};
+use nephele_nn::{HashGrid, HashGridConfig, SimdMode};
 use nephele_pathtracer::scenes;
 use nephele_pathtracer::voxel::{VoxelBits, VoxelGrid, surface_bits};
 use serde_json::json;
@@ -124,6 +124,19 @@ pub struct InolfArgs {
     /// Multiple of the first view's distance for `--large-frame`.
     #[arg(long, default_value = "0.5", value_parser = parse_factor)]
     large_distance: f32,
+    /// Instruction set of the kernels: auto (AVX2+FMA where the CPU has them), off (scalar),
+    /// or both (every row as auto, plus the baseline and the main i-NOLF row again in scalar
+    /// code, so the SIMD speed-up is measured in this run).
+    #[arg(long, value_enum, default_value = "both")]
+    simd: SimdChoice,
+}
+
+/// `bench inolf --simd`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SimdChoice {
+    Auto,
+    Off,
+    Both,
 }
 
 /// Positive distance factors (`--distances`); empty for `none` or "".
@@ -258,7 +271,7 @@ pub fn cubes(args: CubesArgs, progress: &dyn Progress) -> Result<()> {
         args.resolution, args.cube_res
     );
     println!(
-        "{:<11} {:>8} {:>8} {:>10} {:>11} {:>7} {:>8} {:>6} {:>9} {:>11} {:>9} {:>9} {:>9}",
+        "{:<11} {:>8} {:>8} {:>10} {:>11} {:>7} {:>8} {:>6} {:>9} {:>11} {:>11} {:>9} {:>9} {:>9}",
         "scene",
         "cells",
         "cubes",
@@ -269,6 +282,7 @@ pub fn cubes(args: CubesArgs, progress: &dyn Progress) -> Result<()> {
         "hit %",
         "cells/ray",
         "samples/ray",
+        "lookups/ray",
         "dense/ray",
         "ns/ray",
         "ns/miss"
@@ -295,10 +309,11 @@ pub fn cubes(args: CubesArgs, progress: &dyn Progress) -> Result<()> {
         let hit_pct = 100.0 * hits.iter().filter(|h| h.opacity > 0.5).count() as f64 / n;
         let cells = hits.iter().map(|h| f64::from(h.cells)).sum::<f64>() / n;
         let samples = hits.iter().map(|h| f64::from(h.samples)).sum::<f64>() / n;
+        let lookups = hits.iter().map(|h| f64::from(h.lookups)).sum::<f64>() / n;
         let dense = rays.iter().map(|r| dense_samples(&cubes, r.origin, r.direction)).sum::<f64>() / n;
         let mib = |b: u64| b as f64 / (1 << 20) as f64;
         println!(
-            "{:<11} {:>8} {:>8} {:>10.2} {:>11.2} {:>7.1} {:>8.2} {:>6.1} {:>9.1} {:>11.1} {:>9.1} {:>9.0} {:>9.0}",
+            "{:<11} {:>8} {:>8} {:>10.2} {:>11.2} {:>7.1} {:>8.2} {:>6.1} {:>9.1} {:>11.1} {:>11.1} {:>9.1} {:>9.0} {:>9.0}",
             name,
             fp.cells,
             fp.occupied_cells,
@@ -309,12 +324,13 @@ pub fn cubes(args: CubesArgs, progress: &dyn Progress) -> Result<()> {
             hit_pct,
             cells,
             samples,
+            lookups,
             dense,
             total_ns / n,
             miss_ns
         );
         rows.push(json!({"scene": name, "cells": fp.cells, "cubes": fp.occupied_cells, "bytes": fp.bytes, "dense_bytes": fp.dense_bytes,
-            "build_s": build_s, "hit_fraction": hit_pct / 100.0, "cells_per_ray": cells, "samples_per_ray": samples,
+            "build_s": build_s, "hit_fraction": hit_pct / 100.0, "cells_per_ray": cells, "samples_per_ray": samples, "lookups_per_ray": lookups,
             "dense_samples_per_ray": dense, "ns_per_ray": total_ns / n, "ns_per_miss": miss_ns}));
         bar.inc(1);
     }
@@ -472,7 +488,9 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
         anyhow::ensure!(!data.views.is_empty(), "no view left out by --holdout-every {}", args.holdout_every);
     }
     data.views.truncate(args.views.max(1));
-    let ngp = NgpKernel::load(&args.field).with_context(|| format!("loading {}", args.field.display()))?;
+    let simd = if args.simd == SimdChoice::Off { SimdMode::Off } else { SimdMode::Auto };
+    let mut ngp = NgpKernel::load(&args.field).with_context(|| format!("loading {}", args.field.display()))?;
+    ngp.set_simd(simd);
     let bounds = ngp.field().bounds();
     let centre = 0.5 * (bounds.min + bounds.max);
     let field_bytes = ngp.field().memory_bytes();
@@ -480,8 +498,22 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
     let mut base_field = Some(ngp.field().clone());
     let mut variants = vec![Variant { name: "i-NGP baseline".into(), kernel: Box::new(ngp), model_bytes: field_bytes }];
     let mut main_inolf = 0;
+    let mut main_kernel = None;
+    // Rows run in scalar code for `--simd both`, and the rows they repeat.
+    let mut scalar_rows = Vec::new();
+    if args.simd == SimdChoice::Both {
+        let mut scalar = NgpKernel::load(&args.field).with_context(|| format!("loading {}", args.field.display()))?;
+        scalar.set_simd(SimdMode::Off);
+        scalar_rows.push(variants.len());
+        variants.push(Variant {
+            name: "i-NGP baseline, scalar".into(),
+            kernel: Box::new(scalar),
+            model_bytes: field_bytes,
+        });
+    }
     for (i, path) in args.asset.iter().enumerate() {
         let mut cubes = InolfKernel::load(path).with_context(|| format!("loading {}", path.display()))?;
+        cubes.set_simd(simd);
         let psh = cubes.psh().table.domain();
         let mut network = cubes.clone();
         let has_network = network.set_diffuse_source(DiffuseSource::Network).is_ok();
@@ -503,7 +535,14 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
                 variants.push(variant(format!("+ density cubes (diffuse MLP, PSH {psh}^3)"), network));
             }
             main_inolf = variants.len();
+            main_kernel = Some(cubes.clone());
+            let mut scalar = cubes.clone();
             variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3)"), cubes));
+            if args.simd == SimdChoice::Both {
+                scalar.set_simd(SimdMode::Off);
+                scalar_rows.push(variants.len());
+                variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3), scalar"), scalar));
+            }
         } else {
             let file = path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
             variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3, {file})"), cubes));
@@ -554,7 +593,12 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
     let base_ms = rows[0].ms;
     let (w, h) = (views[0].image.width(), views[0].image.height());
     let mib = |b: f64| b / 1048576.0;
-    println!("{} held-out views of {w}x{h}, {} threads", views.len(), rayon::current_num_threads());
+    println!(
+        "{} held-out views of {w}x{h}, {} threads, SIMD: {} (rows marked scalar: the same code one lane wide)",
+        views.len(),
+        rayon::current_num_threads(),
+        simd.describe()
+    );
     println!(
         "model MiB: the parts the kernel reads; runtime MiB: most extra heap in use at once during a frame (outputs included{})",
         if crate::heap::peak().is_some() { "" } else { "; '-': measured only by a build with --features heap-peak" }
@@ -577,12 +621,27 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
             base_ms / r.ms.max(1e-9)
         );
     }
+    if let [base_scalar, inolf_scalar] = scalar_rows[..] {
+        println!(
+            "SIMD speed-up in this run ({} over scalar): i-NGP baseline {:.2}x, i-NOLF {:.2}x",
+            simd.describe(),
+            rows[base_scalar].ms / rows[0].ms.max(1e-9),
+            rows[inolf_scalar].ms / rows[main_inolf].ms.max(1e-9)
+        );
+    }
     for path in &args.asset {
         let file = std::fs::metadata(path)?.len();
         println!("asset {}: {:.2} MiB on disk", path.display(), mib(file as f64));
     }
 
     let inolf = &variants[main_inolf];
+    if let Some(kernel) = main_kernel.as_ref() {
+        let cameras = views
+            .iter()
+            .map(|v| Camera::from_fov_x(v.image.width(), v.image.height(), data.camera_angle_x, v.camera_to_world))
+            .collect::<Result<Vec<_>, _>>()?;
+        work_per_ray(kernel, &cameras, rows[main_inolf].ms);
+    }
     // Distance curve: one camera, moved towards the object's centre.
     if !args.distances.0.is_empty() {
         println!();
@@ -631,6 +690,63 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// The i-NOLF kernel's work on one frame, counted, and the floor it implies on this
+/// machine: the least cycles each unit of work needs (loads at two per cycle, eight-wide
+/// FMA at two per cycle), summed, over the core clock and the threads.
+fn work_per_ray(kernel: &nephele_kernels::inolf::kernel::InolfKernel, cameras: &[Camera], measured_ms: f64) {
+    use nephele_kernels::inolf::kernel::{HIT_OPACITY, RAY_NEAR};
+    let (mut cells, mut samples, mut lookups, mut hits, mut rays) = (0u64, 0u64, 0u64, 0u64, 0u64);
+    for camera in cameras {
+        for p in all_pixels(camera) {
+            let ray = camera.pixel_center_ray(p % camera.width(), p / camera.width());
+            let m = kernel.density().march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+            cells += u64::from(m.cells);
+            samples += u64::from(m.samples);
+            lookups += u64::from(m.lookups);
+            hits += u64::from(m.opacity >= HIT_OPACITY);
+            rays += 1;
+        }
+    }
+    let n = rays as f64;
+    let frames = cameras.len().max(1) as f64;
+    let macs = kernel.specular_macs() as f64;
+    let psh_dim = kernel.psh().dim() as f64;
+    // Least cycles per unit of work (see BENCHMARKS.md): a coarse cell is an index load and
+    // a compare (1); an empty sample a bit test (1); a lookup 16 loads (8 corner bytes, 8
+    // table entries) at two per cycle (8); a hit ray 8 PSH corners (two table loads and
+    // `psh_dim` features each), 8 diffuse corners of 6 bytes, and the MLP at 16 MACs/cycle.
+    let hit_cycles = 8.0 * (2.0 + psh_dim) / 2.0 + 8.0 * 6.0 / 2.0 + macs / 16.0;
+    let cycles = cells as f64 + (samples - lookups) as f64 + 8.0 * lookups as f64 + hit_cycles * hits as f64;
+    let ghz = cpu_ghz().unwrap_or(2.5);
+    let threads = rayon::current_num_threads() as f64;
+    let floor_ms = cycles / frames / (ghz * 1e9 * threads) * 1e3;
+    println!();
+    println!("work per ray of the main i-NOLF row, averaged over the {} views:", cameras.len());
+    println!(
+        "  cells {:.2}, samples {:.2}, lookups {:.2} (samples in voxels with matter), hit rays {:.1} %",
+        cells as f64 / n,
+        samples as f64 / n,
+        lookups as f64 / n,
+        100.0 * hits as f64 / n
+    );
+    println!(
+        "  per hit ray: specular MLP {macs:.0} MACs, 8 PSH corners of {psh_dim:.0} features, 8 diffuse corners of 6 bytes"
+    );
+    println!(
+        "  floor at {ghz:.2} GHz x {threads:.0} threads: {:.0} cycles per frame = {floor_ms:.2} ms; measured {measured_ms:.2} ms ({:.1}x the floor)",
+        cycles / frames,
+        measured_ms / floor_ms.max(1e-9)
+    );
+}
+
+/// The core clock from `/proc/cpuinfo` (Linux), GHz.
+fn cpu_ghz() -> Option<f64> {
+    let text = std::fs::read_to_string("/proc/cpuinfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("cpu MHz"))?;
+    let mhz: f64 = line.split(':').nth(1)?.trim().parse().ok()?;
+    (mhz > 0.0).then_some(mhz / 1e3)
 }
 
 /// Milliseconds to render every pixel of `camera`, and the fraction with opacity > 0.5.

@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail, ensure};
 use nephele_proto::stream::{framed, handshake};
 use nephele_proto::{
-    BatchIds, BatchResult, FrameConfig, FrameReader, FrameWriter, Goodbye, KernelStats, Message, RayBatch, Role,
-    ViewProjection, decode_frame, encode_frame,
+    BatchIds, BatchResult, FrameConfig, FrameReader, FrameWriter, Goodbye, KernelStats, Message, RayBatch,
+    ResultEncoding, Role, ViewProjection, decode_frame, encode_frame,
 };
 use serde::{Deserialize, Serialize};
 use serde_json::json;
@@ -30,6 +30,13 @@ pub struct WireArgs {
     /// Repetitions of the in-memory encode/decode timings.
     #[arg(long, default_value_t = 200)]
     repeats: usize,
+    /// Built-in scene of the compact-results frame: its default view is path traced at
+    /// `--frame-size`, cut into batches, sent f32 and compact, and the composites compared.
+    #[arg(long, default_value = "glossy")]
+    frame_scene: String,
+    /// Size of that frame.
+    #[arg(long, default_value = "640x480", value_parser = nephele_geometry::camera::parse_size)]
+    frame_size: (u32, u32),
     /// Also write the results as JSON.
     #[arg(long)]
     json: Option<std::path::PathBuf>,
@@ -63,7 +70,74 @@ fn sample_result(pixels: usize, batch_id: u64) -> BatchResult {
         pixels,
         render_time_us: 1000,
         stats: KernelStats { rays: 1, rays_hit: 1, queries: 1 },
+        encoding: nephele_proto::ResultEncoding::F32,
     }
+}
+
+/// One real frame through both encodings: the default view of a built-in scene, path traced
+/// (transparent background), cut into batches of `batch` pixels, encoded f32 and compact and
+/// decoded; bytes per frame and the composite over white (8-bit sRGB, as a viewer sees it)
+/// of the compact path against the f32 path.
+fn compact_frame_figures(scene: &str, (width, height): (u32, u32), batch: usize) -> Result<serde_json::Value> {
+    use nephele_geometry::camera::Camera;
+    use nephele_kernels::kernel::{PixelResults, all_pixels, frame_to_image};
+    let builtin = nephele_pathtracer::scenes::load(scene)?;
+    let (eye, target, fov_y) = builtin.default_view();
+    let camera = Camera::look_at(width, height, fov_y, eye, target, glam::Vec3::Z)?;
+    let options = nephele_kernels::assets::LoadOptions { pathtrace_spp: 2, pathtrace_bounces: 2, ..Default::default() };
+    let kernel = nephele_kernels::assets::path_traced(builtin.scene.clone(), &options)?;
+    let pixels = all_pixels(&camera);
+    let (rendered, _) = kernel.render_pixels(&camera, &pixels)?;
+    let cfg = FrameConfig::default();
+    let mut received = PixelResults::with_len(pixels.len());
+    let (mut f32_bytes, mut compact_bytes, mut touched) = (0usize, 0usize, 0usize);
+    for (k, chunk) in pixels.chunks(batch).enumerate() {
+        let range = k * batch..k * batch + chunk.len();
+        let mut result = sample_result(1, k as u64);
+        result.width = width;
+        result.height = height;
+        result.pixels = chunk.to_vec();
+        result.color = rendered.color[range.clone()].to_vec();
+        result.opacity = rendered.opacity[range.clone()].to_vec();
+        result.depth = rendered.depth[range].to_vec();
+        let mut frame = Vec::new();
+        encode_frame(&Message::BatchResult(result.clone()), &mut frame, &cfg)?;
+        f32_bytes += frame.len();
+        frame.clear();
+        result.encoding = ResultEncoding::Compact;
+        encode_frame(&Message::BatchResult(result), &mut frame, &cfg)?;
+        compact_bytes += frame.len();
+        let Ok(Message::BatchResult(got)) = decode_frame(&frame, &cfg)?.0 else { bail!("compact frame rejected") };
+        touched += got.pixels.len();
+        for (j, &p) in got.pixels.iter().enumerate() {
+            let i = p as usize;
+            received.color[i] = got.color[j];
+            received.opacity[i] = got.opacity[j];
+            received.depth[i] = got.depth[j];
+        }
+    }
+    let exact = frame_to_image(width, height, &rendered).context("frame")?;
+    let compact = frame_to_image(width, height, &received).context("frame")?;
+    let (psnr, _) = nephele_imaging::metrics::psnr_and_ssim(&compact, &exact, [1.0; 3])?;
+    let depth_error = (0..pixels.len())
+        .filter(|&i| rendered.opacity[i] > 0.0 && rendered.depth[i] > 0.0)
+        .map(|i| ((received.depth[i] - rendered.depth[i]) / rendered.depth[i]).abs())
+        .fold(0.0f32, f32::max);
+    let n = pixels.len();
+    println!(
+        "one {width}x{height} frame of '{scene}' in batches of {batch}: {:.1} % of pixels touched; f32 {:.0} kB ({:.2} B/px), compact {:.0} kB ({:.2} B/px, {:.2} B per touched pixel): {:.1}x fewer bytes; composite over white PSNR {} against the f32 path, largest relative depth error {depth_error:.2e}",
+        100.0 * touched as f64 / n as f64,
+        f32_bytes as f64 / 1e3,
+        f32_bytes as f64 / n as f64,
+        compact_bytes as f64 / 1e3,
+        compact_bytes as f64 / n as f64,
+        compact_bytes as f64 / touched.max(1) as f64,
+        f32_bytes as f64 / compact_bytes.max(1) as f64,
+        if psnr.is_finite() { format!("{psnr:.1} dB") } else { "infinite (identical 8-bit images)".into() }
+    );
+    Ok(json!({"scene": scene, "width": width, "height": height, "touched_fraction": touched as f64 / n as f64,
+        "f32_bytes": f32_bytes, "compact_bytes": compact_bytes, "composite_psnr_db": if psnr.is_finite() { psnr } else { 999.0 },
+        "max_relative_depth_error": depth_error}))
 }
 
 /// The same result as serde sees it without packing: every element visited on its own.
@@ -145,6 +219,19 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
         assert_eq!(decoded.pixels.len(), n);
     }) / n as f64;
     let result_bytes_per_pixel = frame.len() as f64 / n as f64;
+    // The compact form of the same result (80 % of its pixels touched).
+    let compact_message = Message::BatchResult(BatchResult { encoding: ResultEncoding::Compact, ..result.clone() });
+    let mut compact_frame = Vec::new();
+    encode_frame(&compact_message, &mut compact_frame, &cfg)?;
+    let compact_encode_ns = median_ns(args.repeats, || {
+        buf.clear();
+        encode_frame(&compact_message, &mut buf, &cfg).expect("encodes");
+    }) / n as f64;
+    let compact_decode_ns = median_ns(args.repeats, || {
+        let (decoded, _) = decode_frame(&compact_frame, &cfg).expect("decodes");
+        assert!(decoded.is_ok());
+    }) / n as f64;
+    let compact_bytes_per_pixel = compact_frame.len() as f64 / n as f64;
     let batch = Message::RayBatch(RayBatch {
         ids: result.ids,
         asset_id: "lego".into(),
@@ -170,6 +257,10 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
     );
     println!(
         "{:<34} {:>12.2} {:>12.2} {:>12.2}",
+        "compact (80 % touched, half floats)", compact_encode_ns, compact_decode_ns, compact_bytes_per_pixel
+    );
+    println!(
+        "{:<34} {:>12.2} {:>12.2} {:>12.2}",
         "element by element (serde+postcard)",
         plain_encode_ns,
         plain_decode_ns,
@@ -179,6 +270,7 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
         "packed encode and decode include validation (finite colour, opacity in [0,1], indices in the image): {validate_ns:.2} ns/px of it"
     );
     println!("ray batch (master -> worker): {batch_bytes_per_pixel:.2} bytes/px on the wire");
+    let frame_figures = compact_frame_figures(&args.frame_scene, args.frame_size, n).context("compact frame")?;
 
     let bar = progress.bar(2 * args.batches as u64, "loopback", "batches");
     let process = loopback_processes(&args, &bar).context("two-process loopback")?;
@@ -212,6 +304,7 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
             "packed": { "encode_ns_per_pixel": encode_ns, "decode_ns_per_pixel": decode_ns, "validate_ns_per_pixel": validate_ns, "bytes_per_pixel": result_bytes_per_pixel },
             "elementwise": { "encode_ns_per_pixel": plain_encode_ns, "decode_ns_per_pixel": plain_decode_ns, "bytes_per_pixel": plain.len() as f64 / n as f64 },
             "ray_batch_bytes_per_pixel": batch_bytes_per_pixel,
+            "compact": { "encode_ns_per_pixel": compact_encode_ns, "decode_ns_per_pixel": compact_decode_ns, "bytes_per_pixel": compact_bytes_per_pixel, "frame": frame_figures },
             "loopback_two_processes": loopback(&process),
             "loopback_tokio_tasks": loopback(&tasks),
         });

@@ -232,6 +232,7 @@ impl BatchResult {
             depth,
             render_time_us: 0,
             stats: nephele_proto::KernelStats::default(),
+            encoding: nephele_proto::ResultEncoding::F32,
         };
         BatchResult { session, frame, view, key, data: Arc::new(data) }
     }
@@ -613,7 +614,9 @@ fn try_insert(pending: Option<&mut PendingFrame>, batch: BatchResult) -> Result<
     };
     batch.validate(&pending.plan.layout)?;
     let planned = &pending.plan.batches[slot];
-    if planned.view != batch.view || planned.pixels.len() != batch.data.pixels.len() {
+    // A compact result sends only the pixels its object touched (the others are misses), so
+    // a batch may hold fewer pixels than planned, never more.
+    if planned.view != batch.view || planned.pixels.len() < batch.data.pixels.len() {
         let reason = format!(
             "planned {} pixels of view {}, got {} pixels of view {}",
             planned.pixels.len(),
@@ -959,6 +962,35 @@ mod tests {
         assert!(!f.report.deadline_hit);
         let counters = c.counters(1).unwrap();
         assert_eq!((counters.frames_complete, counters.batches_received, counters.batches_missing), (1, 3, 0));
+    }
+
+    /// Compact results send only the pixels their object touched: a batch with fewer pixels
+    /// than planned (or none) completes the frame, and the pixels it left out are misses.
+    #[test]
+    fn compact_batches_with_only_touched_pixels_complete_the_frame() {
+        let t0 = Instant::now();
+        let layout = FrameLayout::mono(2, 2).unwrap();
+        let mut c = Compositor::default();
+        c.open_session(1).unwrap();
+        let p = plan(
+            3,
+            layout,
+            [0.5, 0.5, 0.5],
+            t0 + Duration::from_secs(5),
+            vec![planned(0, 0, 0, &[0, 1, 2, 3]), planned(1, 0, 0, &[0, 1])],
+        );
+        c.plan_frame(p).unwrap();
+        // Object 0 touched pixels 1 and 3 only; object 1 touched nothing.
+        let touched = [([0.2, 0.0, 0.0], 1.0, 1.0), ([0.0, 0.0, 0.4], 1.0, 1.0)];
+        assert_eq!(c.add_batch(result(3, 0, 0, 0, &[1, 3], &touched)), Ok(BatchStatus::Accepted));
+        assert_eq!(c.add_batch(result(3, 1, 0, 0, &[], &[])), Ok(BatchStatus::FrameComplete));
+        let f = c.poll(t0).remove(0);
+        assert_eq!(*f.rgb, vec![[0.5, 0.5, 0.5], [0.2, 0.0, 0.0], [0.5, 0.5, 0.5], [0.0, 0.0, 0.4]]);
+        assert!(!f.report.deadline_hit);
+        // More pixels than planned is still an invalid batch.
+        c.plan_frame(plan(4, layout, [0.0; 3], t0, vec![planned(0, 0, 0, &[0])])).unwrap();
+        let two = [([0.0; 3], 1.0, 1.0); 2];
+        assert!(matches!(c.add_batch(result(4, 0, 0, 0, &[0, 1], &two)), Err(FusionError::InvalidBatch { .. })));
     }
 
     #[test]

@@ -14,19 +14,23 @@ use thiserror::Error;
 use crate::inolf::kernel::InolfKernel;
 use crate::kernel::{PathTracedKernel, RayKernel};
 use crate::ngp::NgpKernel;
+use nephele_nn::SimdMode;
 
-/// Knobs for kernels whose cost is chosen at load time (path-traced assets).
+/// Knobs chosen at load time: the cost of path-traced assets, the instruction set of the
+/// neural kernels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LoadOptions {
     /// Samples per pixel of path-traced assets (built-in scenes, glTF).
     pub pathtrace_spp: u32,
     /// Bounces of path-traced assets.
     pub pathtrace_bounces: u32,
+    /// Instruction set of the i-NOLF and i-NGP kernels (`--simd`).
+    pub simd: SimdMode,
 }
 
 impl Default for LoadOptions {
     fn default() -> LoadOptions {
-        LoadOptions { pathtrace_spp: 4, pathtrace_bounces: 4 }
+        LoadOptions { pathtrace_spp: 4, pathtrace_bounces: 4, simd: SimdMode::Auto }
     }
 }
 
@@ -65,12 +69,16 @@ pub const FORMATS: &[AssetFormat] = &[
     AssetFormat { extension: "gltf", kernel_kind: "pathtrace", magic: None, load: load_gltf },
 ];
 
-fn load_inolf(path: &Path, _: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
-    Ok(Arc::new(InolfKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?))
+fn load_inolf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
+    let mut kernel = InolfKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    kernel.set_simd(options.simd);
+    Ok(Arc::new(kernel))
 }
 
-fn load_ngp(path: &Path, _: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
-    Ok(Arc::new(NgpKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?))
+fn load_ngp(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
+    let mut kernel = NgpKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    kernel.set_simd(options.simd);
+    Ok(Arc::new(kernel))
 }
 
 fn load_gltf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {

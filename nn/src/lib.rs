@@ -28,11 +28,13 @@ pub mod adam;
 pub mod encoding;
 pub mod hashgrid;
 pub mod mlp;
+pub mod simd;
 
 pub use adam::{Adam, AdamConfig};
 pub use encoding::{frequency_encode, frequency_encoded_len, sh_coefficient_count, sh_encode};
 pub use hashgrid::{FEATURES_PER_LEVEL, HashGrid, HashGridConfig};
 pub use mlp::{Activation, Mlp, MlpConfig, MlpWorkspace};
+pub use simd::SimdMode;
 
 /// Invalid network configurations and mismatched buffers.
 #[derive(Debug, thiserror::Error, PartialEq)]

@@ -8,6 +8,7 @@
 //! weight gradient is the same axpy transposed, and the input gradient is a dot product of
 //! `W^T[k]` with the output gradient.
 
+use super::simd::{Simd, SimdMode, WithSimd, axpy, dot};
 use super::{InitRng, NnError, check_len};
 
 /// Maximum width of any layer (inputs, hidden or outputs); keeps a row in registers/L1.
@@ -125,6 +126,11 @@ impl MlpConfig {
         dims
     }
 
+    /// Multiply-adds of one row's forward pass (weights only; biases are additions).
+    pub fn macs_per_row(&self) -> usize {
+        self.layer_dims().iter().map(|(i, o)| i * o).sum()
+    }
+
     /// Number of weights and biases.
     pub fn num_params(&self) -> usize {
         self.layer_dims().iter().map(|(i, o)| i * o + o).sum()
@@ -145,6 +151,8 @@ pub struct Mlp {
     config: MlpConfig,
     layers: Vec<Layer>,
     params: Vec<f32>,
+    /// Instruction set of the passes (not a property of the function: not saved).
+    simd: SimdMode,
 }
 
 /// Activations kept by [`Mlp::forward`] for [`Mlp::backward`], plus scratch; reuse one per
@@ -162,32 +170,6 @@ impl MlpWorkspace {
     pub fn new() -> Self {
         Self::default()
     }
-}
-
-/// `y[j] += a * x[j]`.
-#[inline]
-fn axpy(y: &mut [f32], a: f32, x: &[f32]) {
-    for (yj, xj) in y.iter_mut().zip(x) {
-        *yj += a * xj;
-    }
-}
-
-/// Dot product with 8 independent accumulators so that it vectorises.
-#[inline]
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut acc = [0.0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for i in 0..8 {
-            acc[i] += x[i] * y[i];
-        }
-    }
-    let mut s = acc.iter().sum::<f32>();
-    for (x, y) in ra.iter().zip(rb) {
-        s += x * y;
-    }
-    s
 }
 
 impl Mlp {
@@ -214,7 +196,7 @@ impl Mlp {
             layers.push(Layer { input, output, weights: offset, bias: offset + input * output });
             offset += input * output + output;
         }
-        Ok(Mlp { config, layers, params: vec![0.0; offset] })
+        Ok(Mlp { config, layers, params: vec![0.0; offset], simd: SimdMode::Auto })
     }
 
     pub fn config(&self) -> &MlpConfig {
@@ -234,16 +216,26 @@ impl Mlp {
         self.params.len()
     }
 
+    /// Chooses the instruction set of the forward and backward passes (default: the best
+    /// the CPU has).
+    pub fn set_simd(&mut self, simd: SimdMode) {
+        self.simd = simd;
+    }
+
+    pub fn simd(&self) -> SimdMode {
+        self.simd
+    }
+
     /// One layer over `n` rows: `y = act(x W + b)`.
-    #[inline]
-    fn layer_forward(&self, layer: &Layer, act: Activation, x: &[f32], y: &mut [f32]) {
+    #[inline(always)]
+    fn layer_forward<S: Simd>(&self, simd: S, layer: &Layer, act: Activation, x: &[f32], y: &mut [f32]) {
         let w = &self.params[layer.weights..layer.weights + layer.input * layer.output];
         let b = &self.params[layer.bias..layer.bias + layer.output];
         for (xr, yr) in x.chunks_exact(layer.input).zip(y.chunks_exact_mut(layer.output)) {
             yr.copy_from_slice(b);
             for (k, &xk) in xr.iter().enumerate() {
                 if xk != 0.0 {
-                    axpy(yr, xk, &w[k * layer.output..(k + 1) * layer.output]);
+                    axpy(simd, yr, xk, &w[k * layer.output..(k + 1) * layer.output]);
                 }
             }
             if act != Activation::None {
@@ -268,6 +260,24 @@ impl Mlp {
                 actual: input.len(),
             });
         }
+        struct Op<'a> {
+            mlp: &'a Mlp,
+            input: &'a [f32],
+            ws: &'a mut MlpWorkspace,
+        }
+        impl WithSimd for Op<'_> {
+            type Output = ();
+            #[inline(always)]
+            fn with_simd<S: Simd>(self, simd: S) {
+                self.mlp.forward_in(simd, self.input, self.ws)
+            }
+        }
+        self.simd.arch().dispatch(Op { mlp: self, input, ws });
+        Ok(&ws.outputs[self.layers.len() - 1][..])
+    }
+
+    #[inline(always)]
+    fn forward_in<S: Simd>(&self, simd: S, input: &[f32], ws: &mut MlpWorkspace) {
         let n = input.len() / self.config.input;
         ws.rows = n;
         ws.outputs.resize_with(self.layers.len(), Vec::new);
@@ -276,9 +286,8 @@ impl Mlp {
             let y = &mut rest[0];
             y.resize(n * layer.output, 0.0);
             let x = if i == 0 { input } else { &before[i - 1][..] };
-            self.layer_forward(layer, self.activation(i), x, y);
+            self.layer_forward(simd, layer, self.activation(i), x, y);
         }
-        Ok(&ws.outputs[self.layers.len() - 1][..])
     }
 
     /// Forward pass without keeping activations: `output` gets `n x config.output` values.
@@ -287,23 +296,42 @@ impl Mlp {
         let n = input.len() / self.config.input;
         check_len("MLP input", n * self.config.input, input.len())?;
         check_len("MLP output", n * self.config.output, output.len())?;
+        struct Op<'a> {
+            mlp: &'a Mlp,
+            input: &'a [f32],
+            output: &'a mut [f32],
+            scratch: &'a mut MlpWorkspace,
+        }
+        impl WithSimd for Op<'_> {
+            type Output = ();
+            #[inline(always)]
+            fn with_simd<S: Simd>(self, simd: S) {
+                self.mlp.infer_in(simd, self.input, self.output, self.scratch)
+            }
+        }
+        self.simd.arch().dispatch(Op { mlp: self, input, output, scratch });
+        Ok(())
+    }
+
+    #[inline(always)]
+    fn infer_in<S: Simd>(&self, simd: S, input: &[f32], output: &mut [f32], scratch: &mut MlpWorkspace) {
+        let n = input.len() / self.config.input;
         let last = self.layers.len() - 1;
         if last == 0 {
-            self.layer_forward(&self.layers[0], self.config.output_activation, input, output);
-            return Ok(());
+            self.layer_forward(simd, &self.layers[0], self.config.output_activation, input, output);
+            return;
         }
         let (mut a, mut b) = (std::mem::take(&mut scratch.delta), std::mem::take(&mut scratch.delta_prev));
         a.resize(n * self.config.hidden, 0.0);
         b.resize(n * self.config.hidden, 0.0);
-        self.layer_forward(&self.layers[0], Activation::Relu, input, &mut a);
+        self.layer_forward(simd, &self.layers[0], Activation::Relu, input, &mut a);
         for i in 1..last {
-            self.layer_forward(&self.layers[i], Activation::Relu, &a, &mut b);
+            self.layer_forward(simd, &self.layers[i], Activation::Relu, &a, &mut b);
             std::mem::swap(&mut a, &mut b);
         }
-        self.layer_forward(&self.layers[last], self.config.output_activation, &a, output);
+        self.layer_forward(simd, &self.layers[last], self.config.output_activation, &a, output);
         scratch.delta = a;
         scratch.delta_prev = b;
-        Ok(())
     }
 
     /// Backward pass after [`Mlp::forward`] on the same `input`: `d_output` is the loss's
@@ -328,6 +356,36 @@ impl Mlp {
         if ws.outputs.len() != self.layers.len() {
             return Err(NnError::Config("MLP backward without a forward pass".into()));
         }
+        struct Op<'a> {
+            mlp: &'a Mlp,
+            input: &'a [f32],
+            ws: &'a mut MlpWorkspace,
+            d_output: &'a [f32],
+            grad: &'a mut [f32],
+            d_input: Option<&'a mut [f32]>,
+        }
+        impl WithSimd for Op<'_> {
+            type Output = ();
+            #[inline(always)]
+            fn with_simd<S: Simd>(self, simd: S) {
+                self.mlp.backward_in(simd, self.input, self.ws, self.d_output, self.grad, self.d_input)
+            }
+        }
+        self.simd.arch().dispatch(Op { mlp: self, input, ws, d_output, grad, d_input });
+        Ok(())
+    }
+
+    #[inline(always)]
+    fn backward_in<S: Simd>(
+        &self,
+        simd: S,
+        input: &[f32],
+        ws: &mut MlpWorkspace,
+        d_output: &[f32],
+        grad: &mut [f32],
+        d_input: Option<&mut [f32]>,
+    ) {
+        let n = ws.rows;
         let last = self.layers.len() - 1;
         // delta = dL/dz of the last layer.
         let mut delta = std::mem::take(&mut ws.delta);
@@ -341,10 +399,10 @@ impl Mlp {
             let x: &[f32] = if i == 0 { input } else { &ws.outputs[i - 1] };
             let (gw, gb) = grad[layer.weights..layer.bias + layer.output].split_at_mut(layer.input * layer.output);
             for (xr, dr) in x.chunks_exact(layer.input).zip(delta.chunks_exact(layer.output)) {
-                axpy(gb, 1.0, dr);
+                axpy(simd, gb, 1.0, dr);
                 for (k, &xk) in xr.iter().enumerate() {
                     if xk != 0.0 {
-                        axpy(&mut gw[k * layer.output..(k + 1) * layer.output], xk, dr);
+                        axpy(simd, &mut gw[k * layer.output..(k + 1) * layer.output], xk, dr);
                     }
                 }
             }
@@ -364,12 +422,12 @@ impl Mlp {
                     let xr = &x[r * layer.input..(r + 1) * layer.input];
                     for (k, v) in dp.iter_mut().enumerate() {
                         if xr[k] > 0.0 {
-                            *v = dot(&w[k * layer.output..(k + 1) * layer.output], dr);
+                            *v = dot(simd, &w[k * layer.output..(k + 1) * layer.output], dr);
                         }
                     }
                 } else {
                     for (k, v) in dp.iter_mut().enumerate() {
-                        *v = dot(&w[k * layer.output..(k + 1) * layer.output], dr);
+                        *v = dot(simd, &w[k * layer.output..(k + 1) * layer.output], dr);
                     }
                 }
             }
@@ -382,7 +440,6 @@ impl Mlp {
         }
         ws.delta = delta;
         ws.delta_prev = delta_prev;
-        Ok(())
     }
 }
 

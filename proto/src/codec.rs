@@ -35,6 +35,11 @@ pub fn encode_payload<B: BufMut>(message: &Message, out: &mut B) -> Result<(), P
 /// peer. Never use it to talk to a real one.
 pub fn encode_payload_unchecked<B: BufMut>(message: &Message, out: &mut B) -> Result<(), ProtoError> {
     let kind = message.kind();
+    if let Message::BatchResult(m) = message
+        && m.encoding == crate::messages::ResultEncoding::Compact
+    {
+        return crate::compact::encode(m, out);
+    }
     out.put_u8(kind.tag());
     match message {
         Message::Hello(m) => {
@@ -67,6 +72,13 @@ pub fn encode_payload_unchecked<B: BufMut>(message: &Message, out: &mut B) -> Re
 /// is a rejected message.
 pub fn decode_payload(payload: &[u8]) -> Result<Incoming, ProtoError> {
     let (&tag, rest) = payload.split_first().ok_or(ProtoError::EmptyFrame)?;
+    if tag == crate::compact::COMPACT_TAG {
+        let message = Message::BatchResult(crate::compact::decode(rest)?);
+        return Ok(match validate::message(&message) {
+            Ok(()) => Ok(message),
+            Err(error) => Err(Rejected { kind: MessageKind::BatchResult, ids: message.batch_ids(), error }),
+        });
+    }
     let kind = MessageKind::from_tag(tag).ok_or(ProtoError::UnknownMessageType(tag))?;
     let message = match kind {
         MessageKind::Hello => Message::Hello(decode_hello(rest)?),
@@ -132,7 +144,7 @@ fn from_body<T: DeserializeOwned>(kind: MessageKind, body: &[u8]) -> Result<T, P
 }
 
 /// Postcard output straight into the frame buffer (a `memcpy` per packed array).
-struct BufFlavor<'a, B: BufMut>(&'a mut B);
+pub(crate) struct BufFlavor<'a, B: BufMut>(pub(crate) &'a mut B);
 
 impl<B: BufMut> postcard::ser_flavors::Flavor for BufFlavor<'_, B> {
     type Output = ();

@@ -17,6 +17,7 @@
 //! [`RayBatch`] with [`BatchFailed`] and keeps serving everybody else's batches.
 
 pub mod codec;
+pub mod compact;
 mod error;
 pub mod frame;
 pub mod messages;
@@ -36,7 +37,8 @@ pub use messages::*;
 pub const MAGIC: [u8; 4] = *b"NPHL";
 /// Version of everything after the `Hello`. Peers of different versions refuse each other.
 /// 2: `BatchIds::task_id` and the composer ⇄ master messages.
-pub const PROTOCOL_VERSION: u16 = 2;
+/// 3: compact batch results ([`compact`]).
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// The [`ErrorMessage`] that tells a peer why its connection is being closed.
 pub fn error_message(error: &ProtoError) -> Message {

@@ -202,6 +202,22 @@ pub struct BatchResult {
     pub depth: Vec<f32>,
     pub render_time_us: u64,
     pub stats: KernelStats,
+    /// How the result travels (not a field on the wire: the frame's tag says it). A result
+    /// decoded from a compact frame says `Compact`: its values are quantised and it holds
+    /// only the pixels the object touched.
+    #[serde(skip)]
+    pub encoding: ResultEncoding,
+}
+
+/// The wire form of a [`BatchResult`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum ResultEncoding {
+    /// Every pixel of the batch, 32-bit floats: 24 bytes per pixel (the reference).
+    #[default]
+    F32,
+    /// Only the pixels with opacity > 0, half floats and 16-bit opacity: 10 bytes per sent
+    /// pixel plus its index delta (see [`crate::compact`] for the error of each field).
+    Compact,
 }
 
 /// A batch's result was sent to its composer (worker → master): the master's completion

@@ -112,6 +112,7 @@ fn batch_result() -> impl Strategy<Value = BatchResult> {
                     depth,
                     render_time_us,
                     stats,
+                    encoding: crate::ResultEncoding::F32,
                 })
         },
     )
@@ -282,6 +283,7 @@ fn good_result(n: usize) -> BatchResult {
         pixels,
         render_time_us: 1234,
         stats: KernelStats { rays: 10, rays_hit: 5, queries: 40 },
+        encoding: crate::ResultEncoding::F32,
     }
 }
 
@@ -393,7 +395,7 @@ proptest! {
     }
 
     #[test]
-    fn random_payloads_behind_a_valid_header_never_panic(tag in 0u8..16, body in prop::collection::vec(any::<u8>(), 0..400)) {
+    fn random_payloads_behind_a_valid_header_never_panic(tag in prop_oneof![0u8..20, Just(compact::COMPACT_TAG)], body in prop::collection::vec(any::<u8>(), 0..400)) {
         feed_all_decoders(&raw_frame(tag, &body), cfg());
     }
 
@@ -599,6 +601,113 @@ fn pixel_sets_out_of_the_image_and_bad_sizes_are_rejected() {
     assert!(decode_one(&unchecked(MessageKind::RayBatch, &batch)).expect("decodes").is_err());
     batch.pixels = vec![16384 * 16384 - 1];
     assert!(decode_one(&unchecked(MessageKind::RayBatch, &batch)).expect("decodes").is_ok());
+}
+
+/// What the compact encoding promises (see `compact`): only the touched pixels, in order;
+/// colour and depth to half-float precision, opacity to 16 bits.
+fn check_compact(sent: &BatchResult, got: &BatchResult) -> Result<(), TestCaseError> {
+    prop_assert_eq!(got.encoding, ResultEncoding::Compact);
+    prop_assert_eq!(
+        (got.ids, got.worker_id, got.width, got.height),
+        (sent.ids, sent.worker_id, sent.width, sent.height)
+    );
+    prop_assert_eq!((got.render_time_us, got.stats), (sent.render_time_us, sent.stats));
+    let kept: Vec<usize> =
+        (0..sent.pixels.len()).filter(|&i| sent.opacity[i] > 0.0 || sent.color[i] != [0.0; 3]).collect();
+    prop_assert_eq!(got.pixels.len(), kept.len());
+    let half_max = 65504.0f32;
+    let close = |want: f32, have: f32| {
+        let want = want.clamp(-half_max, half_max);
+        (want - have).abs() <= want.abs() * 2f32.powi(-11) + 2f32.powi(-24)
+    };
+    for (j, &i) in kept.iter().enumerate() {
+        prop_assert_eq!(got.pixels[j], sent.pixels[i]);
+        for k in 0..3 {
+            prop_assert!(
+                close(sent.color[i][k], got.color[j][k]),
+                "colour {} vs {}",
+                sent.color[i][k],
+                got.color[j][k]
+            );
+        }
+        prop_assert!((sent.opacity[i] - got.opacity[j]).abs() <= 1.0 / 131070.0 + 1e-7);
+        prop_assert!(close(sent.depth[i], got.depth[j]), "depth {} vs {}", sent.depth[i], got.depth[j]);
+    }
+    Ok(())
+}
+
+proptest! {
+    #[test]
+    fn compact_results_keep_the_touched_pixels_within_the_stated_error(r in batch_result()) {
+        let sent = BatchResult { encoding: ResultEncoding::Compact, ..r };
+        let got = match decode_one(&frame_of(&Message::BatchResult(sent.clone()))) {
+            Ok(Ok(Message::BatchResult(got))) => got,
+            other => panic!("{other:?}"),
+        };
+        check_compact(&sent, &got)?;
+        // Decoding again changes nothing: the encoding is idempotent on its own output.
+        let again = match decode_one(&frame_of(&Message::BatchResult(got.clone()))) {
+            Ok(Ok(Message::BatchResult(again))) => again,
+            other => panic!("{other:?}"),
+        };
+        prop_assert_eq!(again, got);
+    }
+}
+
+#[test]
+fn compact_results_cost_about_eleven_bytes_per_touched_pixel() {
+    // 4096 pixels in a row, a quarter of them touched (in one run): a quarter of the bytes
+    // and less than half per pixel.
+    let mut r = good_result(4096);
+    r.pixels = (0..4096).collect();
+    r.opacity = (0..4096).map(|i| if (1000..2024).contains(&i) { 0.5 } else { 0.0 }).collect();
+    r.color = (0..4096).map(|i| if (1000..2024).contains(&i) { [0.1, 0.2, 0.3] } else { [0.0; 3] }).collect();
+    let f32_bytes = frame_of(&Message::BatchResult(r.clone())).len();
+    let compact = BatchResult { encoding: ResultEncoding::Compact, ..r };
+    let compact_bytes = frame_of(&Message::BatchResult(compact)).len();
+    assert!(f32_bytes >= 4096 * 24, "{f32_bytes}");
+    assert!(compact_bytes <= 1024 * (compact::VALUE_BYTES + 1) + 4 + 64, "{compact_bytes}");
+    // Nothing touched: a result without pixels, still valid (the composer learns the batch
+    // is done and that the object covers none of it).
+    let mut empty = good_result(16);
+    empty.opacity = vec![0.0; 16];
+    empty.color = vec![[0.0; 3]; 16];
+    empty.encoding = ResultEncoding::Compact;
+    match decode_one(&frame_of(&Message::BatchResult(empty))) {
+        Ok(Ok(Message::BatchResult(got))) => assert!(got.pixels.is_empty() && got.color.is_empty()),
+        other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn hostile_compact_results_are_rejected_or_refused() {
+    let r = BatchResult { encoding: ResultEncoding::Compact, ..good_result(8) };
+    let frame = frame_of(&Message::BatchResult(r));
+    // The last 10 bytes before the render time and stats are the last pixel's values; set
+    // them to all ones: NaN colour halves and depth -> a rejected (not fatal) message.
+    let mut bad = frame.clone();
+    let tail = bad.len();
+    let body = &mut bad[..tail];
+    let values_end = body.len() - (1 + 3 + 1 + 1 + 1); // render_time_us (1234: 2 bytes) + 3 stats varints
+    for b in &mut body[values_end - 12..values_end - 2] {
+        *b = 0xff;
+    }
+    assert!(matches!(decode_one(&bad), Ok(Err(_)) | Err(_)), "NaN values must not pass");
+    // Index deltas past the image: rejected with the index.
+    let mut far = good_result(2);
+    far.opacity = vec![1.0, 1.0];
+    far.pixels = vec![0, 640 * 480 - 1];
+    far.encoding = ResultEncoding::Compact;
+    let mut frame = frame_of(&Message::BatchResult(far));
+    // The second delta (zigzag 2 * 307199) is a three-byte varint after the first one; make
+    // it larger by setting its top byte.
+    let pos = frame.iter().position(|&b| b == 0xfe).expect("delta bytes");
+    frame[pos + 2] = 0x7f;
+    assert!(matches!(rejected(&frame).error, ValidationError::PixelOutOfImage { .. }));
+    // Truncated index varints and values that are not whole pixels are fatal.
+    for body in [vec![0u8; 3], vec![0xff; 40]] {
+        assert!(decode_one(&raw_frame(compact::COMPACT_TAG, &body)).is_err());
+    }
 }
 
 #[test]
@@ -918,6 +1027,8 @@ fn write_fuzz_seeds() {
     bad.camera.view.as_mut()[0] = f32::NAN;
     std::fs::write(dir.join("RayBatch-nan.bin"), unchecked(MessageKind::RayBatch, &bad)).expect("write");
     std::fs::write(dir.join("BatchResult-10.bin"), frame_of(&Message::BatchResult(good_result(10)))).expect("write");
+    let compact = BatchResult { encoding: ResultEncoding::Compact, ..good_result(10) };
+    std::fs::write(dir.join("BatchResult-compact-10.bin"), frame_of(&Message::BatchResult(compact))).expect("write");
     std::fs::write(dir.join("huge-length.bin"), u32::MAX.to_le_bytes()).expect("write");
     assert_eq!(count, MessageKind::ALL.len());
 }

@@ -166,7 +166,10 @@ fn ray_batch(m: &RayBatch) -> Result<(), ValidationError> {
 
 fn batch_result(m: &BatchResult) -> Result<(), ValidationError> {
     image_size(m.width, m.height)?;
-    pixel_set(&m.pixels, m.width, m.height)?;
+    // A result may hold no pixel: a compact one whose object covered none of its pixels.
+    if !m.pixels.is_empty() {
+        pixel_set(&m.pixels, m.width, m.height)?;
+    }
     let n = m.pixels.len();
     same_len("color", m.color.len(), n)?;
     same_len("opacity", m.opacity.len(), n)?;

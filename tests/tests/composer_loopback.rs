@@ -169,6 +169,7 @@ async fn worker_results_over_tcp_become_the_streamed_picture() {
         depth: vec![depth; pixels.len()],
         render_time_us: 10,
         stats: KernelStats::default(),
+        encoding: nephele_proto::ResultEncoding::F32,
     };
     let plan = |frame: u64, parts: Vec<PlanPart>| FramePlan {
         session_id: session,

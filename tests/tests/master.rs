@@ -29,7 +29,7 @@ use nephele_pathtracer::Renderer;
 use nephele_pathtracer::scenes;
 use nephele_proto::{
     BatchResult, ClientPose, ComposerRegister, ErrorCode, FrameConfig, FramePlan, FrameReader, FrameWriter, Message,
-    Role, StreamOpened, ViewProjection,
+    ResultEncoding, Role, StreamOpened, ViewProjection,
 };
 use nephele_tests::nephele_bin;
 use serde_json::{Value, json};
@@ -108,7 +108,9 @@ impl MasterProcess {
     }
 }
 
-/// A worker whose log goes to `log` (to check what the master told it).
+/// A worker whose log goes to `log` (to check what the master told it). Worker "alpha" sends
+/// exact f32 results, every other one compact results (the default), so the end-to-end check
+/// sees both encodings.
 fn start_worker(farm: SocketAddr, assets: &Path, name: &str, log: &Path) -> Process {
     let file = std::fs::File::create(log).expect("worker log");
     let child = Command::new(nephele_bin())
@@ -116,6 +118,7 @@ fn start_worker(farm: SocketAddr, assets: &Path, name: &str, log: &Path) -> Proc
         .arg("--assets")
         .arg(assets)
         .args(["--spp", &SPP.to_string(), "--bounces", &BOUNCES.to_string(), "--reconnect-secs", "60"])
+        .args(["--results", if name == "alpha" { "f32" } else { "compact" }])
         .env("NEPHELE_LOG", if logs() { "debug" } else { "info" })
         .env("NO_COLOR", "1")
         .stdout(Stdio::null())
@@ -342,9 +345,26 @@ impl TestComposer {
         for r in tasks.iter().filter_map(|t| self.store.get(t)).flatten() {
             for (k, &p) in r.pixels.iter().enumerate() {
                 let p = p as usize;
-                assert_eq!(r.color[k], expected.color[p], "frame {} pixel {p} colour", plan.frame_id);
-                assert_eq!(r.opacity[k], expected.opacity[p], "frame {} pixel {p} opacity", plan.frame_id);
-                assert_eq!(r.depth[k], expected.depth[p], "frame {} pixel {p} depth", plan.frame_id);
+                match r.encoding {
+                    ResultEncoding::F32 => {
+                        assert_eq!(r.color[k], expected.color[p], "frame {} pixel {p} colour", plan.frame_id);
+                        assert_eq!(r.opacity[k], expected.opacity[p], "frame {} pixel {p} opacity", plan.frame_id);
+                        assert_eq!(r.depth[k], expected.depth[p], "frame {} pixel {p} depth", plan.frame_id);
+                    }
+                    // Half floats and 16-bit opacity: the error `nephele_proto::compact` states.
+                    ResultEncoding::Compact => {
+                        let half = |want: f32, got: f32| (want - got).abs() <= want.abs() * 2f32.powi(-11) + 1e-7;
+                        for c in 0..3 {
+                            assert!(
+                                half(expected.color[p][c], r.color[k][c]),
+                                "frame {} pixel {p} colour",
+                                plan.frame_id
+                            );
+                        }
+                        assert!((expected.opacity[p] - r.opacity[k]).abs() <= 1.0 / 131070.0 + 1e-7);
+                        assert!(half(expected.depth[p], r.depth[k]), "frame {} pixel {p} depth", plan.frame_id);
+                    }
+                }
                 checked += 1;
             }
         }

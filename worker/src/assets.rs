@@ -229,7 +229,10 @@ mod tests {
     fn loader(dir: &Path) -> DirAssetLoader {
         DirAssetLoader::new(
             dir,
-            AssetOptions { load: LoadOptions { pathtrace_spp: 1, pathtrace_bounces: 1 }, max_cached: 2 },
+            AssetOptions {
+                load: LoadOptions { pathtrace_spp: 1, pathtrace_bounces: 1, ..LoadOptions::default() },
+                max_cached: 2,
+            },
         )
         .expect("loader")
     }

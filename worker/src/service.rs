@@ -20,8 +20,8 @@ use nephele_kernels::kernel::all_pixels;
 use nephele_proto::stream::{Connection, framed, handshake, recv};
 use nephele_proto::{
     BatchDone, BatchFailed, BatchIds, BatchResult, Cancel, CancelTarget, ErrorCode, ErrorMessage, FrameConfig, Goodbye,
-    KernelStats, LoadReport, Message, ProtoError, RayBatch, Register, Registered, Role, clip_text, error_message,
-    validate,
+    KernelStats, LoadReport, Message, ProtoError, RayBatch, Register, Registered, ResultEncoding, Role, clip_text,
+    error_message, validate,
 };
 use thiserror::Error;
 use tokio::net::TcpStream;
@@ -56,6 +56,9 @@ pub struct WorkerConfig {
     pub calibration_asset: String,
     /// Image side of the calibration render.
     pub calibration_size: u32,
+    /// How results travel to the composer: compact (only the pixels the object touched,
+    /// half floats) or f32 (every pixel, exact).
+    pub result_encoding: ResultEncoding,
 }
 
 impl WorkerConfig {
@@ -72,6 +75,7 @@ impl WorkerConfig {
             max_queued_batches: 4096,
             calibration_asset: "diffuse".into(),
             calibration_size: 64,
+            result_encoding: ResultEncoding::Compact,
         }
     }
 }
@@ -95,6 +99,7 @@ struct Shared {
     loader: Arc<dyn AssetLoader>,
     composers: ComposerLinks,
     worker_id: AtomicU64,
+    result_encoding: ResultEncoding,
 }
 
 /// Counters that survive reconnections.
@@ -123,6 +128,7 @@ pub async fn run<F: Future<Output = ()>>(
         loader,
         composers: ComposerLinks::new(config.frame, config.io_timeout),
         worker_id: AtomicU64::new(0),
+        result_encoding: config.result_encoding,
     });
     let rays_per_second = calibrate(&shared, &config).await?;
     tracing::info!(name = %config.name, threads = config.threads, rays_per_second = format!("{rays_per_second:.0}"), "calibrated");
@@ -517,6 +523,7 @@ async fn render_and_deliver(
         depth: results.depth,
         render_time_us,
         stats,
+        encoding: shared.result_encoding,
     });
     validate::message(&result)
         .map_err(|e| (ErrorCode::RenderFailed, format!("the kernel produced an invalid result: {e}")))?;

@@ -34,11 +34,16 @@ pub struct Args {
     /// Render only the first N poses.
     #[arg(long)]
     limit: Option<usize>,
+    /// Instruction set of the neural kernels: auto (AVX2+FMA where the CPU has them) or off
+    /// (scalar code, for comparison).
+    #[arg(long, default_value = "auto", value_name = "auto|off")]
+    simd: nephele_nn::SimdMode,
 }
 
 /// Opens an asset, choosing the kernel by the file's magic bytes (the kernels' registry).
-pub fn load_kernel(path: &Path) -> Result<std::sync::Arc<dyn RayKernel>> {
-    Ok(nephele_kernels::assets::load_by_magic(path, &nephele_kernels::assets::LoadOptions::default())?)
+pub fn load_kernel(path: &Path, simd: nephele_nn::SimdMode) -> Result<std::sync::Arc<dyn RayKernel>> {
+    let options = nephele_kernels::assets::LoadOptions { simd, ..Default::default() };
+    Ok(nephele_kernels::assets::load_by_magic(path, &options)?)
 }
 
 /// The image file a frame names, relative to the transforms file's folder.
@@ -49,7 +54,7 @@ fn frame_image(dir: &Path, file_path: &str) -> PathBuf {
 
 pub fn run(args: Args, progress: &Progress) -> Result<()> {
     anyhow::ensure!(args.downscale > 0, "--downscale must be at least 1");
-    let kernel = load_kernel(&args.asset)?;
+    let kernel = load_kernel(&args.asset, args.simd)?;
     let transforms =
         dataset::read_transforms(&args.transforms).with_context(|| format!("reading {}", args.transforms.display()))?;
     let dir = args.transforms.parent().unwrap_or(Path::new("."));

@@ -43,6 +43,10 @@ pub struct Args {
     /// Path-tracing samples per pixel of the workers, for objects served path traced.
     #[arg(long, default_value_t = 1)]
     spp: u32,
+    /// Instruction set of the workers' neural kernels: auto (AVX2+FMA where the CPU has
+    /// them) or off (scalar code, for comparison).
+    #[arg(long, default_value = "auto", value_name = "auto|off")]
+    simd: nephele_nn::SimdMode,
     /// Asset folder of the workers, where the first start bakes missing objects (default:
     /// `$NEPHELE_CACHE`, `$XDG_CACHE_HOME/nephele` or `~/.cache/nephele`, then
     /// `assets/<quality>`).
@@ -146,6 +150,8 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
             &format!("worker-{i}"),
             "--spp",
             &args.spp.to_string(),
+            "--simd",
+            &args.simd.to_string(),
         ]);
         worker.arg("--assets").arg(&assets);
         supervisor.spawn(&format!("worker-{i}"), worker)?;

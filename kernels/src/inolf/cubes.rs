@@ -265,6 +265,88 @@ pub struct DensityCubes {
     cubes: SparseCubes,
     /// `sigma` of each 8-bit code.
     lut: [f32; 256],
+    /// One bit per voxel (the `(cube_res - 1)^3` spaces between samples) of every cube: set
+    /// where some corner sample is not zero. Derived from the samples when loading; a sample
+    /// in a clear voxel has density exactly 0 and is skipped without decoding its corners.
+    occupancy: VoxelOccupancy,
+    /// Which blocks of `BLOCK^3` coarse cells hold any cube: the march crosses an empty
+    /// block in one step instead of one per cell.
+    blocks: BlockOccupancy,
+}
+
+/// Coarse cells per side of an empty-space block.
+pub const BLOCK: u32 = 4;
+
+/// One flag per block of `BLOCK^3` coarse cells, derived from the index grid.
+#[derive(Debug, Clone, PartialEq)]
+struct BlockOccupancy {
+    dims: [u32; 3],
+    occupied: Vec<bool>,
+}
+
+impl BlockOccupancy {
+    fn of(cubes: &SparseCubes) -> BlockOccupancy {
+        let dims = cubes.dims.map(|d| d.div_ceil(BLOCK));
+        let mut occupied = vec![false; dims.iter().map(|&d| d as usize).product()];
+        let [nx, ny, nz] = cubes.dims.map(|d| d as usize);
+        for z in 0..nz {
+            for y in 0..ny {
+                for x in 0..nx {
+                    if cubes.index[x + nx * (y + ny * z)] != EMPTY_CELL {
+                        let b = [x, y, z].map(|v| v / BLOCK as usize);
+                        occupied[b[0] + dims[0] as usize * (b[1] + dims[1] as usize * b[2])] = true;
+                    }
+                }
+            }
+        }
+        BlockOccupancy { dims, occupied }
+    }
+
+    #[inline(always)]
+    fn is_occupied(&self, b: [i64; 3]) -> bool {
+        let d = self.dims.map(|v| v as usize);
+        self.occupied[b[0] as usize + d[0] * (b[1] as usize + d[1] * b[2] as usize)]
+    }
+}
+
+/// Per-cube voxel occupancy bits, `words` u64 per cube.
+#[derive(Debug, Clone, PartialEq)]
+struct VoxelOccupancy {
+    words: usize,
+    bits: Vec<u64>,
+}
+
+impl VoxelOccupancy {
+    fn of(cubes: &SparseCubes) -> VoxelOccupancy {
+        let res = cubes.cube_res as usize;
+        let v = res - 1;
+        let words = (v * v * v).div_ceil(64);
+        let mut bits = vec![0u64; words * cubes.cube_count()];
+        for (cube, (samples, out)) in
+            cubes.data.chunks_exact(res * res * res).zip(bits.chunks_exact_mut(words)).enumerate()
+        {
+            let _ = cube;
+            for z in 0..v {
+                for y in 0..v {
+                    for x in 0..v {
+                        let clear = (0..8).all(|k| {
+                            let (dx, dy, dz) = (k & 1, (k >> 1) & 1, k >> 2);
+                            samples[(x + dx) + res * ((y + dy) + res * (z + dz))] == 0
+                        });
+                        if !clear {
+                            let i = x + v * (y + v * z);
+                            out[i / 64] |= 1 << (i % 64);
+                        }
+                    }
+                }
+            }
+        }
+        VoxelOccupancy { words, bits }
+    }
+
+    fn bytes(&self) -> u64 {
+        8 * self.bits.len() as u64
+    }
 }
 
 /// Result of marching one ray.
@@ -276,8 +358,11 @@ pub struct MarchHit {
     pub t: f32,
     /// That largest weight.
     pub max_weight: f32,
-    /// Density samples taken.
+    /// Sample positions visited inside stored cubes.
     pub samples: u32,
+    /// Of those, the samples whose voxel holds matter: corners decoded and interpolated
+    /// (the others have density exactly 0 and cost a bit test).
+    pub lookups: u32,
     /// Coarse cells visited (empty or not).
     pub cells: u32,
 }
@@ -307,7 +392,14 @@ impl DensityCubes {
             return Err(CubeError::Inconsistent(format!("density cubes have {} channels", cubes.channels)));
         }
         let lut = decode_table(cubes.sample_step());
-        Ok(DensityCubes { cubes, lut })
+        let occupancy = VoxelOccupancy::of(&cubes);
+        let blocks = BlockOccupancy::of(&cubes);
+        Ok(DensityCubes { cubes, lut, occupancy, blocks })
+    }
+
+    /// Bytes of the voxel occupancy bits derived at load time (not stored in assets).
+    pub fn occupancy_bytes(&self) -> u64 {
+        self.occupancy.bytes() + self.blocks.occupied.len() as u64
     }
 
     pub fn cubes(&self) -> &SparseCubes {
@@ -425,29 +517,58 @@ impl DensityCubes {
             }
         }
         let cubes = SparseCubes { min: bounds.min, cell, dims, cube_res: o.cube_res, channels: 1, index, data };
-        Ok(DensityCubes { cubes, lut })
+        let occupancy = VoxelOccupancy::of(&cubes);
+        let blocks = BlockOccupancy::of(&cubes);
+        Ok(DensityCubes { cubes, lut, occupancy, blocks })
     }
 
     /// Interpolated density (`sigma`) at `p`; 0 outside the cubes.
     pub fn density(&self, p: Vec3) -> f32 {
         let Some(c) = self.cubes.cell_of(p) else { return 0.0 };
         let Some(cube) = self.cubes.cube_at(c) else { return 0.0 };
-        self.density_in(cube, c, p)
+        let cell_min = self.cubes.min + self.cubes.cell * Vec3::new(c[0] as f32, c[1] as f32, c[2] as f32);
+        self.density_at(cube, (p - cell_min) / self.cubes.sample_step()).0
     }
 
-    #[inline]
-    fn density_in(&self, cube: u32, c: [u32; 3], p: Vec3) -> f32 {
-        let (offs, ws) = self.cubes.corners(cube, c, p);
-        let d = &self.cubes.data;
-        let mut s = 0.0;
-        for k in 0..8 {
-            s += ws[k] * self.lut[d[offs[k]] as usize];
+    /// Density at cube-local sample coordinates `g` (`(p - cell_min) / sample_step`) of
+    /// `cube`: 0 at once when the voxel is clear, else the trilinear interpolation of the
+    /// decoded corners (seven lerps). Returns whether the corners were decoded.
+    #[inline(always)]
+    fn density_at(&self, cube: u32, g: Vec3) -> (f32, bool) {
+        let res = self.cubes.cube_res as usize;
+        let v = res - 1;
+        let top = v as f32;
+        let f = g.clamp(Vec3::ZERO, Vec3::splat(top));
+        // `f` >= 0 (NaN clamps to 0), so the cast is floor; through i32, one instruction
+        // (a float to usize cast is a dozen on x86-64 without AVX-512).
+        let last = (res - 2) as i32;
+        let (ix, iy, iz) = ((f.x as i32).min(last), (f.y as i32).min(last), (f.z as i32).min(last));
+        let w = f - Vec3::new(ix as f32, iy as f32, iz as f32);
+        let (ix, iy, iz) = (ix as usize, iy as usize, iz as usize);
+        let voxel = ix + v * (iy + v * iz);
+        let word = self.occupancy.bits[cube as usize * self.occupancy.words + voxel / 64];
+        if word & (1 << (voxel % 64)) == 0 {
+            return (0.0, false);
         }
-        s
+        let base = cube as usize * res * res * res + ix + res * (iy + res * iz);
+        let d = &self.cubes.data;
+        let s = |o: usize| self.lut[d[base + o] as usize];
+        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+        let (r, rr) = (res, res * res);
+        let x00 = lerp(s(0), s(1), w.x);
+        let x10 = lerp(s(r), s(r + 1), w.x);
+        let x01 = lerp(s(rr), s(rr + 1), w.x);
+        let x11 = lerp(s(rr + r), s(rr + r + 1), w.x);
+        (lerp(lerp(x00, x10, w.y), lerp(x01, x11, w.y), w.z), true)
     }
 
     /// Marches the ray `origin + t dir` (`dir` of unit length) over `[t_near, t_far]`
     /// through the occupied cells. Non-finite input gives an empty hit.
+    ///
+    /// Cost per ray: a slab test, one DDA step per coarse cell crossed, and per sample
+    /// position inside a stored cube a voxel bit test; only samples in voxels with matter
+    /// decode eight corners (counted in [`MarchHit::lookups`]).
+    #[inline(always)]
     pub fn march(&self, origin: Vec3, dir: Vec3, t_near: f32, t_far: f32) -> MarchHit {
         let mut hit = MarchHit::default();
         if !(origin.is_finite() && dir.is_finite() && t_near.is_finite() && !t_far.is_nan()) || dir == Vec3::ZERO {
@@ -475,6 +596,7 @@ impl DensityCubes {
             return hit;
         }
         let step = cubes.sample_step();
+        let inv_step = 1.0 / step;
         let d = cubes.dims;
         // DDA set-up from the entry point.
         let entry = origin + dir * t0;
@@ -484,7 +606,7 @@ impl DensityCubes {
         let mut t_delta = [f32::INFINITY; 3];
         let mut stepdir = [0i64; 3];
         for a in 0..3 {
-            c[a] = (f[a].floor() as i64).clamp(0, i64::from(d[a]) - 1);
+            c[a] = floor_i64(f[a]).clamp(0, i64::from(d[a]) - 1);
             if dir[a] > 0.0 {
                 stepdir[a] = 1;
                 t_next[a] = (lo[a] + (c[a] + 1) as f32 * cubes.cell - origin[a]) / dir[a];
@@ -500,7 +622,50 @@ impl DensityCubes {
         // Samples sit at t0 + (k + 1/2) step, whatever cell they fall in.
         let mut k = 0u64;
         let max_cells = (d[0] + d[1] + d[2]) as usize + 3;
+        let inv_dir = Vec3::ONE / dir;
+        let block_side = cubes.cell * BLOCK as f32;
         for _ in 0..max_cells {
+            // An empty block of cells is crossed in one step: the DDA restarts where the ray
+            // leaves it. Sample positions depend on t only, so nothing else changes.
+            // Inside the grid every c is in 0..dims, so the block is a shift.
+            let block = c.map(|v| v >> BLOCK.trailing_zeros());
+            if !self.blocks.is_occupied(block) {
+                hit.cells += 1;
+                let (mut t_leave, mut exit_axis) = (f32::INFINITY, 0);
+                for a in 0..3 {
+                    if stepdir[a] != 0 {
+                        let face = lo[a] + (block[a] + i64::from(stepdir[a] > 0)) as f32 * block_side;
+                        let t = (face - origin[a]) * inv_dir[a];
+                        if t < t_leave {
+                            (t_leave, exit_axis) = (t, a);
+                        }
+                    }
+                }
+                if t_leave >= t1 {
+                    break;
+                }
+                t_cur = t_cur.max(t_leave);
+                let p = origin + dir * t_cur;
+                for a in 0..3 {
+                    if stepdir[a] == 0 {
+                        continue;
+                    }
+                    c[a] = if a == exit_axis {
+                        (block[a] + i64::from(stepdir[a] > 0)) * i64::from(BLOCK) - i64::from(stepdir[a] < 0)
+                    } else {
+                        // The ray's cell index only moves along `stepdir`: a point on a face
+                        // rounds to either side, and going back could ping-pong between two
+                        // empty blocks at an edge.
+                        let at = floor_i64((p[a] - lo[a]) / cubes.cell).clamp(0, i64::from(d[a]) - 1);
+                        if stepdir[a] > 0 { c[a].max(at) } else { c[a].min(at) }
+                    };
+                    t_next[a] = (lo[a] + (c[a] + i64::from(stepdir[a] > 0)) as f32 * cubes.cell - origin[a]) / dir[a];
+                }
+                if c[exit_axis] < 0 || c[exit_axis] >= i64::from(d[exit_axis]) {
+                    break;
+                }
+                continue;
+            }
             let axis = if t_next[0] <= t_next[1] && t_next[0] <= t_next[2] {
                 0
             } else if t_next[1] <= t_next[2] {
@@ -513,16 +678,23 @@ impl DensityCubes {
             let cell = [c[0] as u32, c[1] as u32, c[2] as u32];
             if let Some(cube) = cubes.cube_at(cell) {
                 // First sample index at or after t_cur.
-                let first = ((t_cur - t0) / step - 0.5).ceil().max(0.0) as u64;
+                let first = ceil_non_negative(((t_cur - t0) / step - 0.5).max(0.0));
                 k = k.max(first);
+                let cell_min = lo + cubes.cell * Vec3::new(cell[0] as f32, cell[1] as f32, cell[2] as f32);
+                // Cube-local sample coordinates of sample k; one sample step along the ray
+                // moves them by `dir` exactly, so they advance by addition (recomputed at
+                // every cell, so rounding cannot build up over more than a cube).
+                let mut g = (origin + dir * (t0 + (k as f32 + 0.5) * step) - cell_min) * inv_step;
                 loop {
                     let t = t0 + (k as f32 + 0.5) * step;
                     if t >= t_exit {
                         break;
                     }
                     k += 1;
-                    let sigma = self.density_in(cube, cell, origin + dir * t);
+                    let (sigma, decoded) = self.density_at(cube, g);
+                    g += dir;
                     hit.samples += 1;
+                    hit.lookups += u32::from(decoded);
                     if sigma <= 0.0 {
                         continue;
                     }
@@ -552,6 +724,21 @@ impl DensityCubes {
         hit.opacity = (1.0 - transmittance).clamp(0.0, 1.0);
         hit
     }
+}
+
+/// `floor(x)` as an integer without a libm call (baseline x86-64 has no `roundss`);
+/// saturating for huge or NaN input like `as`.
+#[inline(always)]
+fn floor_i64(x: f32) -> i64 {
+    let t = x as i64;
+    t - i64::from((t as f32) > x)
+}
+
+/// `ceil(x)` for `x >= 0` (NaN gives 0) without a libm call.
+#[inline(always)]
+fn ceil_non_negative(x: f32) -> u64 {
+    let t = x as u64;
+    t + u64::from((t as f32) < x)
 }
 
 /// Marks every cell within `r` cells (Chebyshev distance) of a marked cell.
@@ -613,6 +800,22 @@ mod tests {
         CUBES.get_or_init(|| build(sphere_density))
     }
 
+    /// Two small balls in opposite corners of a 32^3 grid: most blocks between them are
+    /// empty, so rays cross them in block steps.
+    fn sparse_cubes() -> &'static DensityCubes {
+        static CUBES: std::sync::OnceLock<DensityCubes> = std::sync::OnceLock::new();
+        CUBES.get_or_init(|| {
+            let balls = |points: &[Vec3], out: &mut [f32]| {
+                for (p, o) in points.iter().zip(out) {
+                    let near = p.distance(Vec3::splat(-0.6)) < 0.25 || p.distance(Vec3::new(0.6, 0.55, 0.5)) < 0.2;
+                    *o = if near { 300.0 } else { 0.0 };
+                }
+            };
+            let options = CubeOptions { resolution: 32, cube_res: 5, probe: 2, dilate: 1 };
+            DensityCubes::build(unit_box(), &options, balls, &|_| {}).expect("build")
+        })
+    }
+
     fn box_cubes() -> &'static DensityCubes {
         static CUBES: std::sync::OnceLock<DensityCubes> = std::sync::OnceLock::new();
         CUBES.get_or_init(|| build(box_density))
@@ -656,6 +859,22 @@ mod tests {
         assert_eq!(cubes.density(Vec3::new(0.9, 0.9, 0.9)), 0.0);
         // Corner cells are empty.
         assert_eq!(cubes.cubes().cube_at([0, 0, 0]), None);
+    }
+
+    #[test]
+    fn empty_blocks_are_crossed_in_one_step() {
+        let cubes = sparse_cubes();
+        // Along the diagonal between the balls: fewer DDA steps than cells crossed.
+        let d = Vec3::ONE.normalize();
+        let h = cubes.march(Vec3::splat(-0.3), d, 0.0, f32::INFINITY);
+        check_sane(&h);
+        assert!(h.opacity > 0.9, "{h:?}");
+        let cells_crossed = (0.9f32 * 3f32.sqrt() / cubes.cubes().cell()) as u32;
+        assert!(h.cells < cells_crossed * 3 / 4, "{h:?}: {cells_crossed} cells on the way");
+        // A ray through empty blocks only costs a few steps and no samples.
+        let h = cubes.march(Vec3::new(-2.0, 0.9, -0.9), Vec3::X, 0.0, f32::INFINITY);
+        assert_eq!((h.opacity, h.samples), (0.0, 0));
+        assert!(h.cells <= 8 + 2, "{h:?}");
     }
 
     #[test]
@@ -763,8 +982,87 @@ mod tests {
         )
     }
 
+    /// The march's definition, written plainly: density at every sample position
+    /// `t0 + (k + 1/2) step` from the box entry to the exit, no cells, no skipping.
+    fn reference_march(cubes: &DensityCubes, o: Vec3, d: Vec3, t_near: f32, t_far: f32) -> MarchHit {
+        let mut hit = MarchHit::default();
+        let b = cubes.bounds();
+        let (mut t0, mut t1) = (t_near.max(0.0), t_far);
+        for a in 0..3 {
+            if d[a] == 0.0 {
+                if o[a] < b.min[a] || o[a] > b.max[a] {
+                    return hit;
+                }
+            } else {
+                let (ta, tb) = ((b.min[a] - o[a]) / d[a], (b.max[a] - o[a]) / d[a]);
+                t0 = t0.max(ta.min(tb));
+                t1 = t1.min(ta.max(tb));
+            }
+        }
+        if !(t0 < t1) {
+            return hit;
+        }
+        let step = cubes.cubes().sample_step();
+        let mut transmittance = 1.0f32;
+        let mut k = 0u32;
+        loop {
+            let t = t0 + (k as f32 + 0.5) * step;
+            if t >= t1 {
+                break;
+            }
+            k += 1;
+            let sigma = cubes.density(o + d * t);
+            if sigma <= 0.0 {
+                continue;
+            }
+            let alpha = 1.0 - (-sigma * step).exp();
+            let w = transmittance * alpha;
+            if w > hit.max_weight {
+                hit.max_weight = w;
+                hit.t = t;
+            }
+            transmittance *= 1.0 - alpha;
+            if transmittance < MIN_TRANSMITTANCE {
+                break;
+            }
+        }
+        hit.opacity = (1.0 - transmittance).clamp(0.0, 1.0);
+        hit
+    }
+
+    /// The blending weight the plain march gives the sample at distance `t`.
+    fn reference_weight_at(cubes: &DensityCubes, o: Vec3, d: Vec3, near: f32, t: f32) -> f32 {
+        let before = reference_march(cubes, o, d, near, t - 1e-4);
+        let through = reference_march(cubes, o, d, near, t + 1e-4);
+        (1.0 - before.opacity) - (1.0 - through.opacity)
+    }
+
+    /// The fast march and the plain one agree: the same coarse opacity to 1e-4 and the same
+    /// hit distance, unless two samples' weights tie to within rounding (then within the
+    /// ray's extent through the box, and with equal maximum weights).
+    fn check_against_reference(cubes: &DensityCubes, o: Vec3, d: Vec3, near: f32) -> Result<(), TestCaseError> {
+        let fast = cubes.march(o, d, near, f32::INFINITY);
+        let slow = reference_march(cubes, o, d, near, f32::INFINITY);
+        prop_assert!((fast.opacity - slow.opacity).abs() < 1e-4, "{:?} vs {:?}", fast, slow);
+        prop_assert!((fast.max_weight - slow.max_weight).abs() < 1e-4, "{:?} vs {:?}", fast, slow);
+        if (fast.t - slow.t).abs() > 1e-4 {
+            // Another sample won: only where the two largest weights tie to rounding.
+            prop_assert!((fast.max_weight - slow.max_weight).abs() < 1e-4, "{:?} vs {:?}", fast, slow);
+            prop_assert!((reference_weight_at(cubes, o, d, near, fast.t) - slow.max_weight).abs() < 1e-4);
+        }
+        prop_assert!(fast.lookups <= fast.samples);
+        Ok(())
+    }
+
     proptest! {
-        #![proptest_config(ProptestConfig::with_cases(600))]
+        #![proptest_config(ProptestConfig::with_cases(2000))]
+
+        #[test]
+        fn march_agrees_with_its_plain_definition(o in origin(), d in direction(), near in 0.0f32..0.2) {
+            check_against_reference(sphere_cubes(), o, d, near)?;
+            check_against_reference(box_cubes(), o, d, near)?;
+            check_against_reference(sparse_cubes(), o, d, near)?;
+        }
 
         #[test]
         fn sphere_rays_are_sane_and_hit_where_the_sphere_is(o in origin(), d in direction(), near in 0.0f32..0.2) {
@@ -803,7 +1101,11 @@ mod tests {
                 }
             }
             let cell = cubes.cubes().cell();
-            if inside_slabs && t1 - t0 > 2.0 * cell {
+            // Rays that graze a face (a cell into the box they are still within half a cell
+            // of it) see the interpolated edge of the cubes, not the box: not checked here
+            // (the march still equals its definition there, see the agreement test).
+            let deep = (o + d * (t0 + cell)).abs().max_element() < 0.5 - 0.5 * cell;
+            if inside_slabs && deep && t1 - t0 > 2.0 * cell {
                 prop_assert!(h.opacity > 0.9, "{:?} analytic {}", h, t0);
                 prop_assert!((h.t - t0).abs() <= cell, "{:?} analytic {}", h, t0);
             }

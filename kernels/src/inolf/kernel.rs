@@ -24,7 +24,7 @@ use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT
 use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 use crate::ngp::{FieldScratch, RadianceField};
 use nephele_geometry::camera::Camera;
-use nephele_nn::{HashGrid, Mlp, MlpWorkspace, sh_coefficient_count, sh_encode};
+use nephele_nn::{HashGrid, Mlp, MlpWorkspace, SimdMode, sh_coefficient_count, sh_encode};
 
 /// Rays whose coarse opacity is below this are treated as misses (kernel and training).
 pub const HIT_OPACITY: f32 = 1e-3;
@@ -78,6 +78,7 @@ pub struct InolfKernel {
     specular: Mlp,
     shape: HeadsShape,
     source: DiffuseSource,
+    simd: SimdMode,
 }
 
 /// Why an asset file could not be opened as a kernel.
@@ -108,6 +109,7 @@ impl InolfKernel {
             specular: heads.specular,
             shape: heads.meta.shape,
             source,
+            simd: SimdMode::Auto,
         })
     }
 
@@ -129,7 +131,25 @@ impl InolfKernel {
             specular: model.specular.clone(),
             shape: model.shape,
             source,
+            simd: SimdMode::Auto,
         }
+    }
+
+    /// Chooses the instruction set of the march and the heads (default: the best the CPU
+    /// has; [`SimdMode::Off`] for the scalar comparison).
+    pub fn set_simd(&mut self, simd: SimdMode) {
+        self.simd = simd;
+        self.specular.set_simd(simd);
+        if let Some((_, mlp)) = &mut self.diffuse_net {
+            mlp.set_simd(simd);
+        }
+        if let Some(field) = &mut self.hit_field {
+            Arc::make_mut(field).set_simd(simd);
+        }
+    }
+
+    pub fn simd(&self) -> SimdMode {
+        self.simd
     }
 
     /// Chooses the diffuse source; fails if that part is not in the asset.
@@ -151,7 +171,8 @@ impl InolfKernel {
 
     /// Takes hit points and coarse opacities from `field`'s density network instead of the
     /// density cubes (the field the asset was baked from; the cubes cache its density).
-    pub fn use_density_network(&mut self, field: RadianceField) {
+    pub fn use_density_network(&mut self, mut field: RadianceField) {
+        field.set_simd(self.simd);
         self.hit_field = Some(Arc::new(field));
     }
 
@@ -163,7 +184,7 @@ impl InolfKernel {
     pub fn memory(&self) -> KernelMemory {
         let mlp = |m: &Mlp| 4 * m.num_params() as u64;
         let mut m = KernelMemory {
-            density_cubes: self.density.cubes().footprint().bytes,
+            density_cubes: self.density.cubes().footprint().bytes + self.density.occupancy_bytes(),
             diffuse_cubes: self.diffuse_cubes.as_ref().map_or(0, |c| c.footprint().bytes),
             diffuse_network: self.diffuse_net.as_ref().map_or(0, |(g, d)| 4 * g.num_params() as u64 + mlp(d)),
             psh_tables: self.psh.table.table_bytes() as u64,
@@ -185,13 +206,21 @@ impl InolfKernel {
         &self.density
     }
 
+    /// Multiply-adds of the specular MLP per hitting ray.
+    pub fn specular_macs(&self) -> usize {
+        self.specular.config().macs_per_row()
+    }
+
     /// The specular branch's PSH encoding (its lattice side is `psh().table.domain()`).
     pub fn psh(&self) -> &PshEncoding {
         &self.psh
     }
 
     /// Renders one chunk of pixels into the given output slices; returns the rays that hit
-    /// and the density-network samples taken (0 with the density cubes).
+    /// and the density-network samples taken (0 with the density cubes). Inlined into the
+    /// SIMD dispatch of `render_pixels`, so the march is compiled for the chosen instruction
+    /// set.
+    #[inline(always)]
     fn render_chunk(
         &self,
         camera: &Camera,
@@ -293,7 +322,7 @@ impl RayKernel for InolfKernel {
             .zip(out.color.par_chunks_mut(CHUNK))
             .zip(out.opacity.par_chunks_mut(CHUNK))
             .zip(out.depth.par_chunks_mut(CHUNK))
-            .map(|(((p, c), o), d)| self.render_chunk(camera, p, c, o, d))
+            .map(|(((p, c), o), d)| self.simd.run(|| self.render_chunk(camera, p, c, o, d)))
             .collect();
         let (mut rays_hit, mut network_samples) = (0, 0);
         for h in hit_counts {

@@ -153,6 +153,12 @@ pub fn density_activation(raw: f32) -> f32 {
 }
 
 impl RadianceField {
+    /// Chooses the instruction set of both MLPs (default: the best the CPU has).
+    pub fn set_simd(&mut self, simd: nephele_nn::SimdMode) {
+        self.density.set_simd(simd);
+        self.color.set_simd(simd);
+    }
+
     /// A freshly initialised field over the cubic box `[min, min + size]`, with every
     /// occupancy cell set.
     pub fn new(config: FieldConfig, min: Vec3, size: f32, seed: u64) -> Result<Self, NgpError> {

@@ -55,6 +55,11 @@ impl NgpKernel {
         &self.field
     }
 
+    /// Chooses the instruction set of the field's MLPs.
+    pub fn set_simd(&mut self, simd: nephele_nn::SimdMode) {
+        self.field.set_simd(simd);
+    }
+
     /// Volume-renders world rays `(origin, unit direction)` in parallel.
     pub fn render_rays(&self, rays: &[(Vec3, Vec3)]) -> (Vec<RayResult>, MarchStats) {
         let results: Vec<RayResult> = rays
