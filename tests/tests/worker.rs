@@ -40,6 +40,10 @@ impl WorkerProcess {
             .arg("--assets")
             .arg(assets)
             .args(["--reconnect-secs", "20", "--drain-secs", "20"])
+            // These tests compare frames pixel by pixel with the in-process kernel and count
+            // every pixel of a batch: exact f32 results. Compact results (the default) are
+            // checked end to end in tests/master.rs and in the proto and fusion tests.
+            .args(["--results", "f32"])
             .args(extra)
             .env("NEPHELE_LOG", if logs { "debug" } else { "warn" })
             .stdout(Stdio::null())
