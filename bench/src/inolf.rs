@@ -498,7 +498,7 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
     let mut base_field = Some(ngp.field().clone());
     let mut variants = vec![Variant { name: "i-NGP baseline".into(), kernel: Box::new(ngp), model_bytes: field_bytes }];
     let mut main_inolf = 0;
-    let mut main_kernel = None;
+    let mut main_work = None;
     // Rows run in scalar code for `--simd both`, and the rows they repeat.
     let mut scalar_rows = Vec::new();
     if args.simd == SimdChoice::Both {
@@ -535,11 +535,19 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
                 variants.push(variant(format!("+ density cubes (diffuse MLP, PSH {psh}^3)"), network));
             }
             main_inolf = variants.len();
-            main_kernel = Some(cubes.clone());
-            let mut scalar = cubes.clone();
-            variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3)"), cubes));
-            if args.simd == SimdChoice::Both {
+            let cameras = data
+                .views
+                .iter()
+                .map(|v| Camera::from_fov_x(v.image.width(), v.image.height(), data.camera_angle_x, v.camera_to_world))
+                .collect::<Result<Vec<_>, _>>()?;
+            main_work = Some(FrameWork::count(&cubes, &cameras));
+            let scalar = (args.simd == SimdChoice::Both).then(|| {
+                let mut scalar = cubes.clone();
                 scalar.set_simd(SimdMode::Off);
+                scalar
+            });
+            variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3)"), cubes));
+            if let Some(scalar) = scalar {
                 scalar_rows.push(variants.len());
                 variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3), scalar"), scalar));
             }
@@ -635,12 +643,8 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
     }
 
     let inolf = &variants[main_inolf];
-    if let Some(kernel) = main_kernel.as_ref() {
-        let cameras = views
-            .iter()
-            .map(|v| Camera::from_fov_x(v.image.width(), v.image.height(), data.camera_angle_x, v.camera_to_world))
-            .collect::<Result<Vec<_>, _>>()?;
-        work_per_ray(kernel, &cameras, rows[main_inolf].ms);
+    if let Some(work) = &main_work {
+        work.print(rows[main_inolf].ms);
     }
     // Distance curve: one camera, moved towards the object's centre.
     if !args.distances.0.is_empty() {
@@ -692,53 +696,82 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
     Ok(())
 }
 
-/// The i-NOLF kernel's work on one frame, counted, and the floor it implies on this
+/// The i-NOLF kernel's work on a set of frames, counted, and the floor it implies on this
 /// machine: the least cycles each unit of work needs (loads at two per cycle, eight-wide
 /// FMA at two per cycle), summed, over the core clock and the threads.
-fn work_per_ray(kernel: &nephele_kernels::inolf::kernel::InolfKernel, cameras: &[Camera], measured_ms: f64) {
-    use nephele_kernels::inolf::kernel::{HIT_OPACITY, RAY_NEAR};
-    let (mut cells, mut samples, mut lookups, mut hits, mut rays) = (0u64, 0u64, 0u64, 0u64, 0u64);
-    for camera in cameras {
-        for p in all_pixels(camera) {
-            let ray = camera.pixel_center_ray(p % camera.width(), p / camera.width());
-            let m = kernel.density().march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
-            cells += u64::from(m.cells);
-            samples += u64::from(m.samples);
-            lookups += u64::from(m.lookups);
-            hits += u64::from(m.opacity >= HIT_OPACITY);
-            rays += 1;
+struct FrameWork {
+    cells: u64,
+    samples: u64,
+    lookups: u64,
+    hits: u64,
+    rays: u64,
+    frames: usize,
+    macs: f64,
+    psh_dim: f64,
+}
+
+impl FrameWork {
+    fn count(kernel: &nephele_kernels::inolf::kernel::InolfKernel, cameras: &[Camera]) -> FrameWork {
+        use nephele_kernels::inolf::kernel::{HIT_OPACITY, RAY_NEAR};
+        let mut w = FrameWork {
+            cells: 0,
+            samples: 0,
+            lookups: 0,
+            hits: 0,
+            rays: 0,
+            frames: cameras.len(),
+            macs: kernel.specular_macs() as f64,
+            psh_dim: kernel.psh().dim() as f64,
+        };
+        for camera in cameras {
+            for p in all_pixels(camera) {
+                let ray = camera.pixel_center_ray(p % camera.width(), p / camera.width());
+                let m = kernel.density().march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+                w.cells += u64::from(m.cells);
+                w.samples += u64::from(m.samples);
+                w.lookups += u64::from(m.lookups);
+                w.hits += u64::from(m.opacity >= HIT_OPACITY);
+                w.rays += 1;
+            }
         }
+        w
     }
-    let n = rays as f64;
-    let frames = cameras.len().max(1) as f64;
-    let macs = kernel.specular_macs() as f64;
-    let psh_dim = kernel.psh().dim() as f64;
-    // Least cycles per unit of work (see BENCHMARKS.md): a coarse cell is an index load and
-    // a compare (1); an empty sample a bit test (1); a lookup 16 loads (8 corner bytes, 8
-    // table entries) at two per cycle (8); a hit ray 8 PSH corners (two table loads and
-    // `psh_dim` features each), 8 diffuse corners of 6 bytes, and the MLP at 16 MACs/cycle.
-    let hit_cycles = 8.0 * (2.0 + psh_dim) / 2.0 + 8.0 * 6.0 / 2.0 + macs / 16.0;
-    let cycles = cells as f64 + (samples - lookups) as f64 + 8.0 * lookups as f64 + hit_cycles * hits as f64;
-    let ghz = cpu_ghz().unwrap_or(2.5);
-    let threads = rayon::current_num_threads() as f64;
-    let floor_ms = cycles / frames / (ghz * 1e9 * threads) * 1e3;
-    println!();
-    println!("work per ray of the main i-NOLF row, averaged over the {} views:", cameras.len());
-    println!(
-        "  cells {:.2}, samples {:.2}, lookups {:.2} (samples in voxels with matter), hit rays {:.1} %",
-        cells as f64 / n,
-        samples as f64 / n,
-        lookups as f64 / n,
-        100.0 * hits as f64 / n
-    );
-    println!(
-        "  per hit ray: specular MLP {macs:.0} MACs, 8 PSH corners of {psh_dim:.0} features, 8 diffuse corners of 6 bytes"
-    );
-    println!(
-        "  floor at {ghz:.2} GHz x {threads:.0} threads: {:.0} cycles per frame = {floor_ms:.2} ms; measured {measured_ms:.2} ms ({:.1}x the floor)",
-        cycles / frames,
-        measured_ms / floor_ms.max(1e-9)
-    );
+
+    fn print(&self, measured_ms: f64) {
+        let n = self.rays.max(1) as f64;
+        let frames = self.frames.max(1) as f64;
+        let (macs, psh_dim) = (self.macs, self.psh_dim);
+        // Least cycles per unit of work (see BENCHMARKS.md): a coarse cell is an index load
+        // and a compare (1); an empty sample a bit test (1); a lookup 16 loads (8 corner
+        // bytes, 8 table entries) at two per cycle (8); a hit ray 8 PSH corners (two table
+        // loads and `psh_dim` features each), 8 diffuse corners of 6 bytes, and the MLP at
+        // 16 MACs/cycle.
+        let hit_cycles = 8.0 * (2.0 + psh_dim) / 2.0 + 8.0 * 6.0 / 2.0 + macs / 16.0;
+        let cycles = self.cells as f64
+            + (self.samples - self.lookups) as f64
+            + 8.0 * self.lookups as f64
+            + hit_cycles * self.hits as f64;
+        let ghz = cpu_ghz().unwrap_or(2.5);
+        let threads = rayon::current_num_threads() as f64;
+        let floor_ms = cycles / frames / (ghz * 1e9 * threads) * 1e3;
+        println!();
+        println!("work per ray of the main i-NOLF row, averaged over the {} views:", self.frames);
+        println!(
+            "  cells {:.2}, samples {:.2}, lookups {:.2} (samples in voxels with matter), hit rays {:.1} %",
+            self.cells as f64 / n,
+            self.samples as f64 / n,
+            self.lookups as f64 / n,
+            100.0 * self.hits as f64 / n
+        );
+        println!(
+            "  per hit ray: specular MLP {macs:.0} MACs, 8 PSH corners of {psh_dim:.0} features, 8 diffuse corners of 6 bytes"
+        );
+        println!(
+            "  floor at {ghz:.2} GHz x {threads:.0} threads: {:.0} cycles per frame = {floor_ms:.2} ms; measured {measured_ms:.2} ms ({:.1}x the floor)",
+            cycles / frames,
+            measured_ms / floor_ms.max(1e-9)
+        );
+    }
 }
 
 /// The core clock from `/proc/cpuinfo` (Linux), GHz.

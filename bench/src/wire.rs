@@ -64,7 +64,11 @@ fn sample_result(pixels: usize, batch_id: u64) -> BatchResult {
         worker_id: 1,
         width,
         height,
-        color: pixels.iter().map(|&p| [hash(p) * 0.8, hash(p ^ 1) * 0.8, hash(p ^ 2) * 0.8]).collect(),
+        // One pixel in five is a miss: no colour, no opacity, no depth.
+        color: pixels
+            .iter()
+            .map(|&p| if p % 5 == 0 { [0.0; 3] } else { [hash(p) * 0.8, hash(p ^ 1) * 0.8, hash(p ^ 2) * 0.8] })
+            .collect(),
         opacity: pixels.iter().map(|&p| if p % 5 == 0 { 0.0 } else { 1.0 }).collect(),
         depth: pixels.iter().map(|&p| if p % 5 == 0 { 0.0 } else { 2.0 + hash(p) }).collect(),
         pixels,
@@ -172,6 +176,30 @@ impl From<&BatchResult> for ElementWise {
     }
 }
 
+/// One message's in-memory codec figures: median encode and decode (validation included)
+/// per pixel of its `pixels`, and its frame's bytes per pixel.
+struct Codec {
+    encode_ns: f64,
+    decode_ns: f64,
+    bytes_per_pixel: f64,
+}
+
+fn frame_codec(message: &Message, pixels: usize, repeats: usize) -> Result<Codec> {
+    let cfg = FrameConfig::default();
+    let mut frame = Vec::new();
+    encode_frame(message, &mut frame, &cfg)?;
+    let mut buf = Vec::with_capacity(frame.len());
+    let encode_ns = median_ns(repeats, || {
+        buf.clear();
+        encode_frame(message, &mut buf, &cfg).expect("encodes");
+    }) / pixels as f64;
+    let decode_ns = median_ns(repeats, || {
+        let (decoded, _) = decode_frame(&frame, &cfg).expect("decodes");
+        assert!(decoded.is_ok());
+    }) / pixels as f64;
+    Ok(Codec { encode_ns, decode_ns, bytes_per_pixel: frame.len() as f64 / pixels as f64 })
+}
+
 /// Median of `repeats` timings of `f`, nanoseconds.
 fn median_ns(repeats: usize, mut f: impl FnMut()) -> f64 {
     let mut times: Vec<f64> = (0..repeats.max(3))
@@ -193,17 +221,8 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
     let message = Message::BatchResult(result.clone());
 
     // In memory: packed (the protocol) against element by element.
-    let mut frame = Vec::new();
-    encode_frame(&message, &mut frame, &cfg)?;
-    let mut buf = Vec::with_capacity(frame.len());
-    let encode_ns = median_ns(args.repeats, || {
-        buf.clear();
-        encode_frame(&message, &mut buf, &cfg).expect("encodes");
-    }) / n as f64;
-    let decode_ns = median_ns(args.repeats, || {
-        let (decoded, _) = decode_frame(&frame, &cfg).expect("decodes");
-        assert!(decoded.is_ok());
-    }) / n as f64;
+    let packed = frame_codec(&message, n, args.repeats)?;
+    let (encode_ns, decode_ns, result_bytes_per_pixel) = (packed.encode_ns, packed.decode_ns, packed.bytes_per_pixel);
     let validate_ns = median_ns(args.repeats, || {
         nephele_proto::validate::message(&message).expect("valid");
     }) / n as f64;
@@ -218,20 +237,11 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
         let decoded: ElementWise = postcard::from_bytes(&plain).expect("decodes");
         assert_eq!(decoded.pixels.len(), n);
     }) / n as f64;
-    let result_bytes_per_pixel = frame.len() as f64 / n as f64;
     // The compact form of the same result (80 % of its pixels touched).
     let compact_message = Message::BatchResult(BatchResult { encoding: ResultEncoding::Compact, ..result.clone() });
-    let mut compact_frame = Vec::new();
-    encode_frame(&compact_message, &mut compact_frame, &cfg)?;
-    let compact_encode_ns = median_ns(args.repeats, || {
-        buf.clear();
-        encode_frame(&compact_message, &mut buf, &cfg).expect("encodes");
-    }) / n as f64;
-    let compact_decode_ns = median_ns(args.repeats, || {
-        let (decoded, _) = decode_frame(&compact_frame, &cfg).expect("decodes");
-        assert!(decoded.is_ok());
-    }) / n as f64;
-    let compact_bytes_per_pixel = compact_frame.len() as f64 / n as f64;
+    let compact = frame_codec(&compact_message, n, args.repeats)?;
+    let (compact_encode_ns, compact_decode_ns, compact_bytes_per_pixel) =
+        (compact.encode_ns, compact.decode_ns, compact.bytes_per_pixel);
     let batch = Message::RayBatch(RayBatch {
         ids: result.ids,
         asset_id: "lego".into(),

@@ -326,10 +326,7 @@ impl VoxelOccupancy {
         let v = res - 1;
         let words = (v * v * v).div_ceil(64);
         let mut bits = vec![0u64; words * cubes.cube_count()];
-        for (cube, (samples, out)) in
-            cubes.data.chunks_exact(res * res * res).zip(bits.chunks_exact_mut(words)).enumerate()
-        {
-            let _ = cube;
+        for (samples, out) in cubes.data.chunks_exact(res * res * res).zip(bits.chunks_exact_mut(words)) {
             for z in 0..v {
                 for y in 0..v {
                     for x in 0..v {

@@ -78,7 +78,6 @@ pub struct InolfKernel {
     specular: Mlp,
     shape: HeadsShape,
     source: DiffuseSource,
-    simd: SimdMode,
 }
 
 /// Why an asset file could not be opened as a kernel.
@@ -109,7 +108,6 @@ impl InolfKernel {
             specular: heads.specular,
             shape: heads.meta.shape,
             source,
-            simd: SimdMode::Auto,
         })
     }
 
@@ -131,14 +129,12 @@ impl InolfKernel {
             specular: model.specular.clone(),
             shape: model.shape,
             source,
-            simd: SimdMode::Auto,
         }
     }
 
     /// Chooses the instruction set of the march and the heads (default: the best the CPU
     /// has; [`SimdMode::Off`] for the scalar comparison).
     pub fn set_simd(&mut self, simd: SimdMode) {
-        self.simd = simd;
         self.specular.set_simd(simd);
         if let Some((_, mlp)) = &mut self.diffuse_net {
             mlp.set_simd(simd);
@@ -148,8 +144,9 @@ impl InolfKernel {
         }
     }
 
+    /// The instruction set in use (every network of the kernel holds the same).
     pub fn simd(&self) -> SimdMode {
-        self.simd
+        self.specular.simd()
     }
 
     /// Chooses the diffuse source; fails if that part is not in the asset.
@@ -172,7 +169,7 @@ impl InolfKernel {
     /// Takes hit points and coarse opacities from `field`'s density network instead of the
     /// density cubes (the field the asset was baked from; the cubes cache its density).
     pub fn use_density_network(&mut self, mut field: RadianceField) {
-        field.set_simd(self.simd);
+        field.set_simd(self.simd());
         self.hit_field = Some(Arc::new(field));
     }
 
@@ -317,12 +314,13 @@ impl RayKernel for InolfKernel {
     fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
         validate_pixels(camera, pixels)?;
         let mut out = PixelResults::with_len(pixels.len());
+        let simd = self.simd();
         let hit_counts: Vec<Result<(u64, u64), ModelError>> = pixels
             .par_chunks(CHUNK)
             .zip(out.color.par_chunks_mut(CHUNK))
             .zip(out.opacity.par_chunks_mut(CHUNK))
             .zip(out.depth.par_chunks_mut(CHUNK))
-            .map(|(((p, c), o), d)| self.simd.run(|| self.render_chunk(camera, p, c, o, d)))
+            .map(|(((p, c), o), d)| simd.run(|| self.render_chunk(camera, p, c, o, d)))
             .collect();
         let (mut rays_hit, mut network_samples) = (0, 0);
         for h in hit_counts {
