@@ -129,6 +129,10 @@ pub struct InolfArgs {
     /// code, so the SIMD speed-up is measured in this run).
     #[arg(long, value_enum, default_value = "both")]
     simd: SimdChoice,
+    /// Also run the main i-NOLF row on a GPU: gpu (a hardware GPU, else a software Vulkan
+    /// adapter, labelled as such), auto (a hardware GPU if there is one) or cpu (no GPU row).
+    #[arg(long, default_value = "cpu", value_name = "cpu|auto|gpu")]
+    device: nephele_gpu::DeviceChoice,
 }
 
 /// `bench inolf --simd`.
@@ -499,6 +503,8 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
     let mut variants = vec![Variant { name: "i-NGP baseline".into(), kernel: Box::new(ngp), model_bytes: field_bytes }];
     let mut main_inolf = 0;
     let mut main_work = None;
+    let gpu_context = nephele_gpu::GpuContext::open(args.device)?;
+    let mut gpu_row = None;
     // Rows run in scalar code for `--simd both`, and the rows they repeat.
     let mut scalar_rows = Vec::new();
     if args.simd == SimdChoice::Both {
@@ -546,10 +552,20 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
                 scalar.set_simd(SimdMode::Off);
                 scalar
             });
+            let gpu = match &gpu_context {
+                Some(ctx) => Some(nephele_gpu::GpuInolfKernel::new(ctx.clone(), &cubes)?),
+                None => None,
+            };
             variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3)"), cubes));
             if let Some(scalar) = scalar {
                 scalar_rows.push(variants.len());
                 variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3), scalar"), scalar));
+            }
+            if let Some(gpu) = gpu {
+                gpu_row = Some(variants.len());
+                let model_bytes = gpu.device_bytes();
+                let name = format!("+ diffuse cubes (PSH {psh}^3), GPU");
+                variants.push(Variant { name, kernel: Box::new(gpu), model_bytes });
             }
         } else {
             let file = path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
@@ -636,6 +652,21 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
             rows[base_scalar].ms / rows[0].ms.max(1e-9),
             rows[inolf_scalar].ms / rows[main_inolf].ms.max(1e-9)
         );
+    }
+    if let (Some(row), Some(ctx)) = (gpu_row, &gpu_context) {
+        let software =
+            if ctx.is_software() { ": a software adapter on this machine's CPU cores, not a GPU figure" } else { "" };
+        println!("GPU row on {}{software}", ctx.label());
+        println!("GPU over CPU (SIMD) i-NOLF in this run: {:.2}x", rows[main_inolf].ms / rows[row].ms.max(1e-9));
+        let mut agreement = nephele_gpu::Agreement::default();
+        for v in views {
+            let camera = Camera::from_fov_x(v.image.width(), v.image.height(), data.camera_angle_x, v.camera_to_world)?;
+            let pixels = all_pixels(&camera);
+            let (cpu, _) = variants[main_inolf].kernel.render_pixels(&camera, &pixels)?;
+            let (gpu, _) = variants[row].kernel.render_pixels(&camera, &pixels)?;
+            agreement.merge(&nephele_gpu::Agreement::of(&cpu, &gpu));
+        }
+        println!("GPU against CPU i-NOLF: {agreement}");
     }
     for path in &args.asset {
         let file = std::fs::metadata(path)?.len();

@@ -21,6 +21,7 @@ use nephele_pathtracer::scenes;
 use nephele_pathtracer::{RenderOptions, Renderer};
 use serde_json::json;
 
+pub mod device;
 pub mod encode;
 pub mod heap;
 pub mod inolf;
@@ -65,6 +66,10 @@ pub enum Command {
     /// i-NOLF against the i-NGP-style baseline on held-out views of a dataset: quality,
     /// time per frame, rays per second and speed-up, measured in one run.
     Inolf(crate::inolf::InolfArgs),
+    /// One i-NOLF asset on the CPU and on a GPU in the same run (orbit views): ms per frame,
+    /// the ratio, and the GPU frames' difference from the CPU frames. A software Vulkan
+    /// adapter (Mesa's lavapipe) is accepted and labelled as such.
+    Device(crate::device::DeviceArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -97,6 +102,7 @@ pub fn run(command: Command, progress: &dyn Progress) -> Result<()> {
         Command::Cubes(args) => crate::inolf::cubes(args, progress),
         Command::PshCache(args) => crate::inolf::psh_cache(args, progress),
         Command::Inolf(args) => crate::inolf::inolf(args, progress),
+        Command::Device(args) => crate::device::device(args, progress),
     }
 }
 

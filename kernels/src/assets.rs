@@ -16,9 +16,19 @@ use crate::kernel::{PathTracedKernel, RayKernel};
 use crate::ngp::NgpKernel;
 use nephele_nn::SimdMode;
 
+/// A device that takes kernels over once the CPU has loaded them: the GPU backend
+/// (`nephele-gpu`) implements it, so that this registry stays the one place that turns files
+/// into kernels without depending on a GPU API.
+pub trait Accelerator: Send + Sync + std::fmt::Debug {
+    /// The device's twin of an i-NOLF kernel, or why it cannot have one.
+    fn inolf(&self, kernel: &InolfKernel) -> Result<Arc<dyn RayKernel>, String>;
+    /// The device, for logs and reports.
+    fn label(&self) -> String;
+}
+
 /// Knobs chosen at load time: the cost of path-traced assets, the instruction set of the
-/// neural kernels.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// neural kernels, the device that runs them.
+#[derive(Debug, Clone)]
 pub struct LoadOptions {
     /// Samples per pixel of path-traced assets (built-in scenes, glTF).
     pub pathtrace_spp: u32,
@@ -26,11 +36,13 @@ pub struct LoadOptions {
     pub pathtrace_bounces: u32,
     /// Instruction set of the i-NOLF and i-NGP kernels (`--simd`).
     pub simd: SimdMode,
+    /// Where kernels with a GPU twin run (`--device`); `None`: the CPU.
+    pub accelerator: Option<Arc<dyn Accelerator>>,
 }
 
 impl Default for LoadOptions {
     fn default() -> LoadOptions {
-        LoadOptions { pathtrace_spp: 4, pathtrace_bounces: 4, simd: SimdMode::Auto }
+        LoadOptions { pathtrace_spp: 4, pathtrace_bounces: 4, simd: SimdMode::Auto, accelerator: None }
     }
 }
 
@@ -72,12 +84,18 @@ pub const FORMATS: &[AssetFormat] = &[
 fn load_inolf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
     let mut kernel = InolfKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?;
     kernel.set_simd(options.simd);
-    Ok(Arc::new(kernel))
+    match &options.accelerator {
+        Some(device) => device.inolf(&kernel).map_err(LoadError::Invalid),
+        None => Ok(Arc::new(kernel)),
+    }
 }
 
 fn load_ngp(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
     let mut kernel = NgpKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?;
     kernel.set_simd(options.simd);
+    if let Some(device) = &options.accelerator {
+        tracing::warn!(device = %device.label(), path = %path.display(), "the i-NGP baseline has no GPU kernel yet; it runs on the CPU");
+    }
     Ok(Arc::new(kernel))
 }
 

@@ -311,6 +311,7 @@ struct WorkerLink {
     threads: u32,
     kernels: Vec<String>,
     rays_per_second: f64,
+    device: String,
     link: LinkSender,
     joined: Time,
     load: Option<LoadReport>,
@@ -546,6 +547,7 @@ impl Actor {
             %peer,
             threads = register.threads,
             rays_per_second = format!("{:.0}", register.rays_per_second),
+            device = %register.device,
             "worker registered"
         );
         self.counters.workers_joined += 1;
@@ -557,6 +559,7 @@ impl Actor {
                 threads: register.threads,
                 kernels: register.kernels,
                 rays_per_second: register.rays_per_second,
+                device: register.device,
                 link,
                 joined: now,
                 load: None,
@@ -960,6 +963,7 @@ impl Actor {
                     "threads": w.threads,
                     "kernels": w.kernels,
                     "calibrated_rays_per_s": w.rays_per_second,
+                    "device": w.device,
                     "draining": w.draining,
                     "connected_s": now.since(w.joined).as_secs_f64(),
                     "load": w.load,
@@ -1100,8 +1104,13 @@ mod tests {
 
         let (wtx, mut wrx) = mpsc::unbounded_channel();
         let (reply, answer) = oneshot::channel();
-        let register =
-            Register { name: "w".into(), threads: 1, kernels: vec!["pathtrace".into()], rays_per_second: 1e6 };
+        let register = Register {
+            name: "w".into(),
+            threads: 1,
+            kernels: vec!["pathtrace".into()],
+            rays_per_second: 1e6,
+            device: "cpu".into(),
+        };
         assert!(farm.send(Event::WorkerJoin { register, peer: peer(), link: wtx, reply }));
         let wid = answer.await.expect("reply").expect("worker accepted");
         let (ctx, mut crx) = mpsc::unbounded_channel();

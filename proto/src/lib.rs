@@ -38,7 +38,7 @@ pub const MAGIC: [u8; 4] = *b"NPHL";
 /// Version of everything after the `Hello`. Peers of different versions refuse each other.
 /// 2: `BatchIds::task_id` and the composer ⇄ master messages.
 /// 3: compact batch results ([`compact`]).
-pub const PROTOCOL_VERSION: u16 = 3;
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// The [`ErrorMessage`] that tells a peer why its connection is being closed.
 pub fn error_message(error: &ProtoError) -> Message {

@@ -103,6 +103,10 @@ pub struct Register {
     /// Throughput measured by a calibration render at start-up, rays per second. The
     /// scheduler's Heavy/Light thresholds come from these figures.
     pub rays_per_second: f64,
+    /// What its neural kernels run on, for logs and `GET /v1/farm` (`cpu (AVX2+FMA)`,
+    /// `NVIDIA H200 (Vulkan)`, `llvmpipe (Vulkan, software)`); free text, at most
+    /// [`crate::validate::MAX_TEXT_LEN`] bytes.
+    pub device: String,
 }
 
 /// The master accepts a worker.

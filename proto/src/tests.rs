@@ -185,12 +185,13 @@ fn worker_message() -> impl Strategy<Value = Message> {
     let role = prop_oneof![Just(Role::Master), Just(Role::Worker), Just(Role::Composer), Just(Role::Tool)];
     prop_oneof![
         role.prop_map(|r| Message::Hello(Hello::new(r))),
-        (token(64), 1u32..512, prop::collection::vec(token(32), 1..4), 0.0f64..1e12).prop_map(
-            |(name, threads, kernels, rays_per_second)| Message::Register(Register {
+        (token(64), 1u32..512, prop::collection::vec(token(32), 1..4), 0.0f64..1e12, "[ -~]{0,40}").prop_map(
+            |(name, threads, kernels, rays_per_second, device)| Message::Register(Register {
                 name,
                 threads,
                 kernels,
-                rays_per_second
+                rays_per_second,
+                device
             })
         ),
         (any::<u64>(), 10u32..=60_000).prop_map(|(worker_id, load_report_interval_ms)| Message::Registered(
@@ -764,7 +765,7 @@ fn names_asset_ids_and_addresses_are_checked() {
         assert!(validate::address(bad).is_err(), "{bad:?}");
     }
     let register = |name: &str, threads, kernels: Vec<String>, rays_per_second| {
-        Message::Register(Register { name: name.into(), threads, kernels, rays_per_second })
+        Message::Register(Register { name: name.into(), threads, kernels, rays_per_second, device: "cpu".into() })
     };
     let ok = register("w1", 4, vec!["pathtrace".into()], 1e6);
     assert!(validate::message(&ok).is_ok());

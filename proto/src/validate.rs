@@ -138,6 +138,7 @@ fn register(m: &Register) -> Result<(), ValidationError> {
     for kind in &m.kernels {
         token("kernel kind", kind, MAX_KERNEL_NAME_LEN)?;
     }
+    text("device", &m.device)?;
     non_negative("rays_per_second", m.rays_per_second)
 }
 

@@ -63,7 +63,7 @@ impl AssetError {
 }
 
 /// Knobs for the kernels a loader builds.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone)]
 pub struct AssetOptions {
     /// What the kernels' registry needs to open an asset (path-traced samples and bounces).
     pub load: LoadOptions,

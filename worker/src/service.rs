@@ -56,6 +56,9 @@ pub struct WorkerConfig {
     pub calibration_asset: String,
     /// Image side of the calibration render.
     pub calibration_size: u32,
+    /// What the neural kernels run on, reported at registration (`cpu (AVX2+FMA)`, a GPU
+    /// adapter's name).
+    pub device: String,
     /// How results travel to the composer: compact (only the pixels the object touched,
     /// half floats) or f32 (every pixel, exact).
     pub result_encoding: ResultEncoding,
@@ -74,6 +77,7 @@ impl WorkerConfig {
             drain_timeout: Duration::from_secs(30),
             max_queued_batches: 4096,
             calibration_asset: "diffuse".into(),
+            device: "cpu".into(),
             calibration_size: 64,
             result_encoding: ResultEncoding::Compact,
         }
@@ -137,6 +141,7 @@ pub async fn run<F: Future<Output = ()>>(
         threads: u32::try_from(config.threads).unwrap_or(u32::MAX),
         kernels: shared.loader.kernel_kinds(),
         rays_per_second,
+        device: config.device.clone(),
     };
 
     let mut shutdown = std::pin::pin!(shutdown);

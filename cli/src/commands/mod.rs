@@ -51,6 +51,22 @@ pub fn parse_background(text: &str) -> Result<[f32; 3], String> {
     }
 }
 
+/// Opens the device `--device` asks for: the kernels' accelerator (`None` for the CPU) and
+/// the label a worker reports (`cpu (AVX2+FMA)`, or the GPU adapter's name).
+pub fn open_device(
+    choice: nephele_gpu::DeviceChoice,
+    simd: nephele_nn::SimdMode,
+) -> Result<(Option<std::sync::Arc<dyn nephele_kernels::assets::Accelerator>>, String)> {
+    use anyhow::Context;
+    let accelerator = nephele_gpu::accelerator(choice).with_context(|| format!("--device {choice}"))?;
+    let label = match &accelerator {
+        Some(gpu) => gpu.label(),
+        None => format!("cpu ({})", simd.describe()),
+    };
+    tracing::info!(device = %label, asked = %choice, "kernels' device");
+    Ok((accelerator, label))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

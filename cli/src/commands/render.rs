@@ -38,11 +38,21 @@ pub struct Args {
     /// (scalar code, for comparison).
     #[arg(long, default_value = "auto", value_name = "auto|off")]
     simd: nephele_nn::SimdMode,
+    /// Where the i-NOLF kernel runs: auto (a hardware GPU if there is one, else the CPU),
+    /// cpu, or gpu (a hardware GPU, else a software Vulkan adapter).
+    #[arg(long, default_value = "auto", value_name = "auto|cpu|gpu")]
+    device: nephele_gpu::DeviceChoice,
 }
 
-/// Opens an asset, choosing the kernel by the file's magic bytes (the kernels' registry).
-pub fn load_kernel(path: &Path, simd: nephele_nn::SimdMode) -> Result<std::sync::Arc<dyn RayKernel>> {
-    let options = nephele_kernels::assets::LoadOptions { simd, ..Default::default() };
+/// Opens an asset, choosing the kernel by the file's magic bytes (the kernels' registry),
+/// on the device `device` asks for.
+pub fn load_kernel(
+    path: &Path,
+    simd: nephele_nn::SimdMode,
+    device: nephele_gpu::DeviceChoice,
+) -> Result<std::sync::Arc<dyn RayKernel>> {
+    let (accelerator, _) = super::open_device(device, simd)?;
+    let options = nephele_kernels::assets::LoadOptions { simd, accelerator, ..Default::default() };
     Ok(nephele_kernels::assets::load_by_magic(path, &options)?)
 }
 
@@ -54,7 +64,7 @@ fn frame_image(dir: &Path, file_path: &str) -> PathBuf {
 
 pub fn run(args: Args, progress: &Progress) -> Result<()> {
     anyhow::ensure!(args.downscale > 0, "--downscale must be at least 1");
-    let kernel = load_kernel(&args.asset, args.simd)?;
+    let kernel = load_kernel(&args.asset, args.simd, args.device)?;
     let transforms =
         dataset::read_transforms(&args.transforms).with_context(|| format!("reading {}", args.transforms.display()))?;
     let dir = args.transforms.parent().unwrap_or(Path::new("."));

@@ -47,6 +47,10 @@ pub struct Args {
     /// them) or off (scalar code, for comparison).
     #[arg(long, default_value = "auto", value_name = "auto|off")]
     simd: nephele_nn::SimdMode,
+    /// Where the workers run their i-NOLF kernels: auto (a hardware GPU if there is one, else
+    /// the CPU), cpu, or gpu (a hardware GPU, else a software Vulkan adapter).
+    #[arg(long, default_value = "auto", value_name = "auto|cpu|gpu")]
+    device: nephele_gpu::DeviceChoice,
     /// Asset folder of the workers, where the first start bakes missing objects (default:
     /// `$NEPHELE_CACHE`, `$XDG_CACHE_HOME/nephele` or `~/.cache/nephele`, then
     /// `assets/<quality>`).
@@ -152,8 +156,15 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
             &args.spp.to_string(),
             "--simd",
             &args.simd.to_string(),
+            "--device",
+            &args.device.to_string(),
         ]);
         worker.arg("--assets").arg(&assets);
+        // Calibrate on an object the workers will serve (its kernel, on its device), not on
+        // the path-traced default: the scheduler's estimates come from this figure.
+        if let Some(object) = baked.first() {
+            worker.args(["--calibration-asset", &object.name]);
+        }
         supervisor.spawn(&format!("worker-{i}"), worker)?;
     }
     // Wait until the farm is whole (workers calibrate before they register).

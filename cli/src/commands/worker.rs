@@ -40,6 +40,11 @@ pub struct Args {
     /// (scalar code, for comparison).
     #[arg(long, default_value = "auto", value_name = "auto|off")]
     simd: nephele_nn::SimdMode,
+    /// Where the i-NOLF kernels run: auto (a hardware GPU if there is one, else the CPU), cpu,
+    /// or gpu (a hardware GPU, else a software Vulkan adapter such as Mesa's lavapipe; an
+    /// error if there is none). Other kernels run on the CPU.
+    #[arg(long, default_value = "auto", value_name = "auto|cpu|gpu")]
+    device: nephele_gpu::DeviceChoice,
     /// How results travel to the composer: compact (only the pixels the object touched, half
     /// floats and 16-bit opacity, about 11 bytes per touched pixel) or f32 (every pixel, 24
     /// bytes, exact).
@@ -75,7 +80,8 @@ pub enum ResultsArg {
 pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
     let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let name = args.name.unwrap_or_else(|| format!("worker-{}", std::process::id()));
-    let load = LoadOptions { pathtrace_spp: args.spp, pathtrace_bounces: args.bounces, simd: args.simd };
+    let (accelerator, device) = crate::commands::open_device(args.device, args.simd)?;
+    let load = LoadOptions { pathtrace_spp: args.spp, pathtrace_bounces: args.bounces, simd: args.simd, accelerator };
     let options = AssetOptions { load, ..AssetOptions::default() };
     let loader = DirAssetLoader::new(&args.assets, options)
         .with_context(|| format!("opening the asset directory {}", args.assets.display()))?;
@@ -90,6 +96,7 @@ pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
     config.reconnect_for = Duration::from_secs(args.reconnect_secs);
     config.drain_timeout = Duration::from_secs(args.drain_secs);
     config.calibration_asset = args.calibration_asset;
+    config.device = device;
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)

@@ -407,6 +407,23 @@ impl DensityCubes {
         &self.cubes
     }
 
+    /// `sigma` of each 8-bit code (for backends that mirror [`DensityCubes::march`]).
+    pub fn decode_table(&self) -> &[f32; 256] {
+        &self.lut
+    }
+
+    /// The voxel occupancy bits: `words` u64 per cube, voxel `x + v (y + v z)` (`v =
+    /// cube_res - 1`) at bit `i % 64` of word `i / 64`.
+    pub fn voxel_bits(&self) -> (usize, &[u64]) {
+        (self.occupancy.words, &self.occupancy.bits)
+    }
+
+    /// The empty-space blocks: grid size in blocks of [`BLOCK`]^3 cells and one flag per
+    /// block, `x + dims.x (y + dims.y z)`.
+    pub fn block_flags(&self) -> ([u32; 3], &[bool]) {
+        (self.blocks.dims, &self.blocks.occupied)
+    }
+
     pub fn bounds(&self) -> Bounds {
         Bounds { min: self.cubes.min, max: self.cubes.max() }
     }

@@ -203,6 +203,21 @@ impl InolfKernel {
         &self.density
     }
 
+    /// The diffuse texture cubes, if the asset has them.
+    pub fn diffuse_cubes(&self) -> Option<&SparseCubes> {
+        self.diffuse_cubes.as_ref()
+    }
+
+    /// The specular MLP.
+    pub fn specular(&self) -> &Mlp {
+        &self.specular
+    }
+
+    /// Sizes of the heads.
+    pub fn shape(&self) -> HeadsShape {
+        self.shape
+    }
+
     /// Multiply-adds of the specular MLP per hitting ray.
     pub fn specular_macs(&self) -> usize {
         self.specular.config().macs_per_row()

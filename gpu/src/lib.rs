@@ -1,0 +1,53 @@
+//! GPU kernels through wgpu (WGSL compute), each the twin of a CPU kernel in
+//! `nephele-kernels` and tested against it (`tests.rs`): the same rays, the same march, the
+//! same networks, results equal to within stated tolerances.
+//!
+//! * [`GpuContext`] opens the device a [`DeviceChoice`] asks for (`--device auto|cpu|gpu`):
+//!   `auto` takes a hardware GPU when there is one and otherwise stays on the CPU; `gpu`
+//!   also accepts a software Vulkan adapter (Mesa's lavapipe, what CI runs the tests on) and
+//!   says so in its label.
+//! * [`GpuInolfKernel`] is the i-NOLF kernel: the asset's tables uploaded once, one
+//!   dispatch per batch, one invocation per pixel; behind [`RayKernel`] like every kernel.
+//! * [`accelerate`] turns a loaded CPU kernel into its GPU twin where one exists.
+//!
+//! [`RayKernel`]: nephele_kernels::kernel::RayKernel
+
+mod agreement;
+mod context;
+mod inolf;
+#[cfg(test)]
+mod tests;
+
+use std::sync::Arc;
+
+pub use agreement::{Agreement, DEPTH_RELATIVE_TOLERANCE};
+pub use context::{DeviceChoice, GpuContext, GpuError};
+pub use inolf::{GpuInolfKernel, MAX_SPECULAR_PARAMS};
+
+/// The GPU as the kernels' registry sees it ([`Accelerator`]): i-NOLF assets get their GPU
+/// twin; other kinds stay on the CPU until they have one.
+///
+/// [`Accelerator`]: nephele_kernels::assets::Accelerator
+#[derive(Debug, Clone)]
+pub struct GpuAccelerator(pub Arc<GpuContext>);
+
+impl nephele_kernels::assets::Accelerator for GpuAccelerator {
+    fn inolf(
+        &self,
+        kernel: &nephele_kernels::inolf::kernel::InolfKernel,
+    ) -> Result<Arc<dyn nephele_kernels::kernel::RayKernel>, String> {
+        let gpu = GpuInolfKernel::new(self.0.clone(), kernel).map_err(|e| e.to_string())?;
+        tracing::info!(device = %self.0.label(), bytes = gpu.device_bytes(), "i-NOLF asset resident on the GPU");
+        Ok(Arc::new(gpu))
+    }
+
+    fn label(&self) -> String {
+        self.0.label()
+    }
+}
+
+/// Opens what `choice` asks for as the registry's accelerator: `None` means the CPU.
+pub fn accelerator(choice: DeviceChoice) -> Result<Option<Arc<dyn nephele_kernels::assets::Accelerator>>, GpuError> {
+    Ok(GpuContext::open(choice)?
+        .map(|ctx| Arc::new(GpuAccelerator(ctx)) as Arc<dyn nephele_kernels::assets::Accelerator>))
+}
