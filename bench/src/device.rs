@@ -1,5 +1,6 @@
-//! `bench device`: one i-NOLF asset on the CPU and on a GPU in the same run: time per frame,
-//! the ratio, and how far the GPU frames are from the CPU frames.
+//! `bench device`: one i-NOLF asset (and optionally its radiance field, the baseline) on the
+//! CPU and on a GPU in the same run: time per frame, the ratio, and how far the GPU frames
+//! are from the CPU frames.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -7,9 +8,10 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use glam::Vec3;
 use nephele_geometry::camera::Camera;
-use nephele_gpu::{Agreement, DeviceChoice, GpuContext, GpuInolfKernel};
+use nephele_gpu::{Agreement, DeviceChoice, GpuContext, GpuInolfKernel, GpuNgpKernel};
 use nephele_kernels::inolf::kernel::InolfKernel;
 use nephele_kernels::kernel::{PixelResults, RayKernel, all_pixels};
+use nephele_kernels::ngp::NgpKernel;
 use nephele_nn::SimdMode;
 
 use crate::Progress;
@@ -32,6 +34,10 @@ pub struct DeviceArgs {
     /// only).
     #[arg(long, default_value = "gpu", value_name = "auto|gpu")]
     device: DeviceChoice,
+    /// Also the i-NGP-style baseline from this radiance field (`nephele bake --save-field`),
+    /// on both devices, over the same cameras.
+    #[arg(long)]
+    field: Option<PathBuf>,
     /// Instruction set of the CPU kernel.
     #[arg(long, default_value = "auto", value_name = "auto|off")]
     simd: SimdMode,
@@ -71,6 +77,35 @@ fn run(
     Ok((1e3 * seconds / n, hits as f64 / n, frames))
 }
 
+/// Times `cpu` and `gpu` over `cameras` and prints their rows, the ratio and the agreement.
+fn compare(
+    name: &str,
+    cpu: &dyn RayKernel,
+    gpu: &dyn RayKernel,
+    cameras: &[Camera],
+    args: &DeviceArgs,
+    gpu_label: &str,
+    bar: &indicatif::ProgressBar,
+) -> Result<()> {
+    let (cpu_ms, hits, cpu_frames) = run(cpu, cameras, bar)?;
+    let (gpu_ms, gpu_hits, gpu_frames) = run(gpu, cameras, bar)?;
+    let (w, h) = args.size;
+    println!("{name}: {} orbit views of {w}x{h}, {hits:.0} rays hit per frame", cameras.len());
+    println!("{:<52} {:>10} {:>14} {:>12}", "kernel", "ms/frame", "rays/s", "hit rays");
+    let rays = f64::from(w) * f64::from(h);
+    let cpu_label = format!("cpu ({}, {} threads)", args.simd.describe(), rayon::current_num_threads());
+    for (label, ms, hit) in [(cpu_label.as_str(), cpu_ms, hits), (gpu_label, gpu_ms, gpu_hits)] {
+        println!("{:<52} {:>10.2} {:>14.0} {:>12.0}", label, ms, rays / (ms / 1e3).max(1e-12), hit);
+    }
+    println!("GPU over CPU in this run: {:.2}x", cpu_ms / gpu_ms.max(1e-9));
+    let mut total = Agreement::default();
+    for (c, g) in cpu_frames.iter().zip(&gpu_frames) {
+        total.merge(&Agreement::of(c, g));
+    }
+    println!("GPU against CPU: {total}");
+    Ok(())
+}
+
 pub fn device(args: DeviceArgs, progress: &dyn Progress) -> Result<()> {
     anyhow::ensure!(
         args.device != DeviceChoice::Cpu,
@@ -81,36 +116,30 @@ pub fn device(args: DeviceArgs, progress: &dyn Progress) -> Result<()> {
     let ctx = GpuContext::open(args.device)?
         .context("--device auto found no hardware GPU (use --device gpu to accept a software adapter)")?;
     let gpu = GpuInolfKernel::new(ctx.clone(), &cpu)?;
+    let baseline = match &args.field {
+        Some(path) => {
+            let mut ngp = NgpKernel::load(path).with_context(|| format!("loading {}", path.display()))?;
+            ngp.set_simd(args.simd);
+            let gpu = GpuNgpKernel::new(ctx.clone(), &ngp)?;
+            Some((ngp, gpu))
+        }
+        None => None,
+    };
     let cameras = orbit(&cpu, args.size, args.views, args.distance)?;
-    let bar = progress.bar(2 * cameras.len() as u64, "rendering", "frames");
-    let (cpu_ms, hits, cpu_frames) = run(&cpu, &cameras, &bar)?;
-    let (gpu_ms, gpu_hits, gpu_frames) = run(&gpu, &cameras, &bar)?;
-    bar.finish_and_clear();
-
-    let (w, h) = args.size;
-    println!(
-        "i-NOLF {} on the CPU and on a GPU, {} orbit views of {w}x{h}, {hits:.0} rays hit per frame",
-        args.asset.display(),
-        cameras.len()
-    );
     let label = ctx.label();
     if ctx.is_software() {
         println!("GPU: {label} -- a software adapter running on this machine's CPU cores: not a GPU figure");
     } else {
         println!("GPU: {label}");
     }
-    println!("{:<52} {:>10} {:>14} {:>12}", "kernel", "ms/frame", "rays/s", "hit rays");
-    let rays = f64::from(w) * f64::from(h);
-    let cpu_label = format!("cpu ({}, {} threads)", args.simd.describe(), rayon::current_num_threads());
-    for (name, ms, hit) in [(cpu_label.as_str(), cpu_ms, hits), (label.as_str(), gpu_ms, gpu_hits)] {
-        println!("{:<52} {:>10.2} {:>14.0} {:>12.0}", name, ms, rays / (ms / 1e3).max(1e-12), hit);
-    }
-    println!("GPU over CPU in this run: {:.2}x", cpu_ms / gpu_ms.max(1e-9));
+    let rows = if baseline.is_some() { 4 } else { 2 };
+    let bar = progress.bar((rows * cameras.len()) as u64, "rendering", "frames");
+    compare(&format!("i-NOLF {}", args.asset.display()), &cpu, &gpu, &cameras, &args, &label, &bar)?;
     println!("GPU asset resident: {:.2} MiB", gpu.device_bytes() as f64 / 1048576.0);
-    let mut total = Agreement::default();
-    for (c, g) in cpu_frames.iter().zip(&gpu_frames) {
-        total.merge(&Agreement::of(c, g));
+    if let (Some((ngp, gpu)), Some(path)) = (&baseline, &args.field) {
+        compare(&format!("i-NGP baseline {}", path.display()), ngp, gpu, &cameras, &args, &label, &bar)?;
+        println!("GPU field resident: {:.2} MiB", gpu.device_bytes() as f64 / 1048576.0);
     }
-    println!("GPU against CPU: {total}");
+    bar.finish_and_clear();
     Ok(())
 }

@@ -500,13 +500,23 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
     let field_bytes = ngp.field().memory_bytes();
     // The "i-NOLF base" row's density network (the first asset's); the baseline keeps `ngp`.
     let mut base_field = Some(ngp.field().clone());
+    let gpu_context = nephele_gpu::GpuContext::open(args.device)?;
+    let gpu_baseline = match &gpu_context {
+        Some(ctx) => Some(nephele_gpu::GpuNgpKernel::new(ctx.clone(), &ngp)?),
+        None => None,
+    };
+    let mut gpu_base_row = None;
     let mut variants = vec![Variant { name: "i-NGP baseline".into(), kernel: Box::new(ngp), model_bytes: field_bytes }];
     let mut main_inolf = 0;
     let mut main_work = None;
-    let gpu_context = nephele_gpu::GpuContext::open(args.device)?;
     let mut gpu_row = None;
     // Rows run in scalar code for `--simd both`, and the rows they repeat.
     let mut scalar_rows = Vec::new();
+    if let Some(gpu) = gpu_baseline {
+        gpu_base_row = Some(variants.len());
+        let model_bytes = gpu.device_bytes();
+        variants.push(Variant { name: "i-NGP baseline, GPU".into(), kernel: Box::new(gpu), model_bytes });
+    }
     if args.simd == SimdChoice::Both {
         let mut scalar = NgpKernel::load(&args.field).with_context(|| format!("loading {}", args.field.display()))?;
         scalar.set_simd(SimdMode::Off);
@@ -658,15 +668,27 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
             if ctx.is_software() { ": a software adapter on this machine's CPU cores, not a GPU figure" } else { "" };
         println!("GPU row on {}{software}", ctx.label());
         println!("GPU over CPU (SIMD) i-NOLF in this run: {:.2}x", rows[main_inolf].ms / rows[row].ms.max(1e-9));
-        let mut agreement = nephele_gpu::Agreement::default();
-        for v in views {
-            let camera = Camera::from_fov_x(v.image.width(), v.image.height(), data.camera_angle_x, v.camera_to_world)?;
-            let pixels = all_pixels(&camera);
-            let (cpu, _) = variants[main_inolf].kernel.render_pixels(&camera, &pixels)?;
-            let (gpu, _) = variants[row].kernel.render_pixels(&camera, &pixels)?;
-            agreement.merge(&nephele_gpu::Agreement::of(&cpu, &gpu));
+        if let Some(base) = gpu_base_row {
+            println!(
+                "GPU over CPU (SIMD) i-NGP baseline in this run: {:.2}x; on the GPU, i-NOLF over the baseline: {:.1}x",
+                rows[0].ms / rows[base].ms.max(1e-9),
+                rows[base].ms / rows[row].ms.max(1e-9)
+            );
         }
-        println!("GPU against CPU i-NOLF: {agreement}");
+        let pairs = [(main_inolf, Some(row), "i-NOLF"), (0, gpu_base_row, "i-NGP baseline")];
+        for (cpu_row, gpu_row, name) in pairs {
+            let Some(gpu_row) = gpu_row else { continue };
+            let mut agreement = nephele_gpu::Agreement::default();
+            for v in views {
+                let (w, h) = (v.image.width(), v.image.height());
+                let camera = Camera::from_fov_x(w, h, data.camera_angle_x, v.camera_to_world)?;
+                let pixels = all_pixels(&camera);
+                let (cpu, _) = variants[cpu_row].kernel.render_pixels(&camera, &pixels)?;
+                let (gpu, _) = variants[gpu_row].kernel.render_pixels(&camera, &pixels)?;
+                agreement.merge(&nephele_gpu::Agreement::of(&cpu, &gpu));
+            }
+            println!("GPU against CPU {name}: {agreement}");
+        }
     }
     for path in &args.asset {
         let file = std::fs::metadata(path)?.len();

@@ -4,9 +4,8 @@
 use std::fmt;
 use std::sync::Arc;
 
-use wgpu::util::DeviceExt;
-
 use crate::context::{GpuContext, GpuError};
+use crate::dispatch::{Words, camera_words, pipeline, run, upload};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::inolf::cubes::{BLOCK, DensityCubes, MIN_TRANSMITTANCE, SparseCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
@@ -15,8 +14,6 @@ use nephele_kernels::inolf::model::SPECULAR_OUT;
 use nephele_kernels::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 use nephele_nn::{Mlp, sh_coefficient_count};
 
-/// Invocations per workgroup (the shader's `@workgroup_size`).
-const WORKGROUP: u32 = 64;
 /// Floats of the specular MLP that fit workgroup memory (WebGPU's 16 KiB minimum).
 pub const MAX_SPECULAR_PARAMS: usize = 4096;
 /// Floats written per pixel: r, g, b, opacity, depth, hit.
@@ -42,34 +39,6 @@ impl fmt::Debug for GpuInolfKernel {
     }
 }
 
-/// A growing array of 32-bit words; floats stored as their bits.
-#[derive(Default, Clone)]
-struct Words(Vec<u32>);
-
-impl Words {
-    fn offset(&self) -> u32 {
-        self.0.len() as u32
-    }
-    fn u32s(&mut self, v: impl IntoIterator<Item = u32>) -> u32 {
-        let at = self.offset();
-        self.0.extend(v);
-        at
-    }
-    fn f32s(&mut self, v: impl IntoIterator<Item = f32>) -> u32 {
-        self.u32s(v.into_iter().map(f32::to_bits))
-    }
-    /// Bytes four to a word, little end first.
-    fn bytes(&mut self, v: &[u8]) -> u32 {
-        self.u32s(v.chunks(4).map(|c| c.iter().rev().fold(0u32, |w, &b| (w << 8) | u32::from(b))))
-    }
-    fn vec4(&mut self, v: [f32; 4]) {
-        self.f32s(v);
-    }
-    fn uvec4(&mut self, v: [u32; 4]) {
-        self.u32s(v);
-    }
-}
-
 /// The asset half of the shader's `Params` (layout in `inolf.wgsl`).
 #[derive(Clone)]
 struct AssetParams(Words);
@@ -80,8 +49,7 @@ fn density_tables(d: &DensityCubes) -> (Words, [u32; 5]) {
     let index = w.u32s(c.index().iter().copied());
     let data = w.bytes(c.data());
     let (words, bits) = d.voxel_bits();
-    // u64 words as pairs of u32, low half first: bit i of a cube lands in u32 i / 32.
-    let voxels = w.u32s(bits.iter().flat_map(|&b| [b as u32, (b >> 32) as u32]));
+    let voxels = w.bits(bits);
     debug_assert_eq!(bits.len(), words * c.cube_count());
     let (_, flags) = d.block_flags();
     let blocks = w.u32s(flags.iter().map(|&f| u32::from(f)));
@@ -155,45 +123,12 @@ impl GpuInolfKernel {
         let (c_words, [c_index, c_data]) = cube_tables(diffuse);
         let (p_words, [p_offsets, p_keys, p_features]) = psh_tables(psh);
 
-        let device = &ctx.device;
-        let max_binding = ctx.limits().max_storage_buffer_binding_size;
-        let upload = |label: &str, words: &[u32]| -> Result<wgpu::Buffer, GpuError> {
-            // A zero-sized binding is not allowed: pad empty tables with one word.
-            let bytes: &[u8] = if words.is_empty() { &[0; 4] } else { bytemuck::cast_slice(words) };
-            if bytes.len() as u64 > max_binding {
-                return Err(GpuError::TooLarge(format!(
-                    "{label}: {} bytes, the device binds at most {max_binding}",
-                    bytes.len()
-                )));
-            }
-            Ok(device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytes,
-                usage: wgpu::BufferUsages::STORAGE,
-            }))
-        };
-        let density_buf = upload("density cubes", &d_words.0)?;
-        let diffuse_buf = upload("diffuse cubes", &c_words.0)?;
-        let psh_buf = upload("psh", &p_words.0)?;
-        let specular_buf = upload("specular mlp", &mlp.params().iter().map(|v| v.to_bits()).collect::<Vec<_>>())?;
+        let density_buf = upload(&ctx, "density cubes", &d_words.0)?;
+        let diffuse_buf = upload(&ctx, "diffuse cubes", &c_words.0)?;
+        let psh_buf = upload(&ctx, "psh", &p_words.0)?;
+        let specular_buf = upload(&ctx, "specular mlp", &mlp.params().iter().map(|v| v.to_bits()).collect::<Vec<_>>())?;
         let bytes = 4 * (d_words.0.len() + c_words.0.len() + p_words.0.len() + mlp.num_params()) as u64;
-
-        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("inolf.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shader_source(mlp, psh.dim() as u32, sh_degree).into()),
-        });
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("inolf"),
-            layout: None,
-            module: &module,
-            entry_point: Some("main"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Validation(e.to_string()));
-        }
+        let pipeline = pipeline(&ctx, "inolf.wgsl", shader_source(mlp, psh.dim() as u32, sh_degree))?;
 
         let c = density.cubes();
         let mut a = Words::default();
@@ -243,17 +178,9 @@ impl GpuInolfKernel {
     }
 
     fn params(&self, camera: &Camera, pixel_count: u32) -> Vec<u32> {
-        let mut w = Words::default();
-        let c2w = camera.camera_to_world();
-        w.vec4(c2w.x_axis.to_array());
-        w.vec4(c2w.y_axis.to_array());
-        w.vec4(c2w.z_axis.to_array());
-        w.vec4(c2w.w_axis.to_array());
-        w.vec4(camera.world_to_camera().row(2).to_array());
-        let (fx, fy, cx, cy) = camera.intrinsics();
-        w.vec4([fx, fy, cx, cy]);
-        w.u32s([camera.width(), pixel_count]);
+        let mut w = camera_words(camera, pixel_count);
         w.f32s([RAY_NEAR, HIT_OPACITY]);
+        w.u32s([0, 0]);
         w.0.extend_from_slice(&self.asset_params.0.0);
         w.0
     }
@@ -274,74 +201,10 @@ impl RayKernel for GpuInolfKernel {
         if n == 0 {
             return Ok((PixelResults::with_len(0), KernelStats::default()));
         }
-        let failed = |e: GpuError| KernelError::Failed(e.to_string());
-        let out_bytes = (n * OUT_FLOATS * 4) as u64;
-        let limits = self.ctx.limits();
-        if out_bytes > limits.max_storage_buffer_binding_size {
-            return Err(failed(GpuError::TooLarge(format!("{n} pixels in one batch"))));
-        }
-        let device = &self.ctx.device;
         let params = self.params(camera, n as u32);
-        let params_buf = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("params"),
-            contents: bytemuck::cast_slice(&params),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
-        let pixel_buf = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("pixels"),
-            contents: bytemuck::cast_slice(pixels),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
-        let out_buf = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("results"),
-            size: out_bytes,
-            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let readback = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size: out_bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("inolf"),
-            layout: &self.pipeline.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: params_buf.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: pixel_buf.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: self.density.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 3, resource: self.diffuse.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 4, resource: self.psh.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 5, resource: self.specular.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 6, resource: out_buf.as_entire_binding() },
-            ],
-        });
-        let groups = (n as u32).div_ceil(WORKGROUP);
-        let max_x = limits.max_compute_workgroups_per_dimension.max(1);
-        let (gx, gy) = (groups.min(max_x), groups.div_ceil(max_x));
-        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("inolf") });
-        {
-            let mut pass = encoder
-                .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("inolf"), timestamp_writes: None });
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &bind_group, &[]);
-            pass.dispatch_workgroups(gx, gy, 1);
-        }
-        encoder.copy_buffer_to_buffer(&out_buf, 0, &readback, 0, out_bytes);
-        let submission = self.ctx.queue.submit([encoder.finish()]);
-        let (tx, rx) = std::sync::mpsc::channel();
-        readback.map_async(wgpu::MapMode::Read, .., move |r| {
-            let _ = tx.send(r);
-        });
-        device
-            .poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None })
-            .map_err(|e| failed(GpuError::Readback(e.to_string())))?;
-        rx.recv()
-            .map_err(|e| failed(GpuError::Readback(e.to_string())))?
-            .map_err(|e| failed(GpuError::Readback(e.to_string())))?;
-        let view = readback.get_mapped_range(..).map_err(|e| failed(GpuError::Readback(e.to_string())))?;
-        let values: &[f32] = bytemuck::cast_slice(&view);
+        let tables = [&self.density, &self.diffuse, &self.psh, &self.specular];
+        let values = run(&self.ctx, &self.pipeline, &params, pixels, &tables, OUT_FLOATS)
+            .map_err(|e| KernelError::Failed(e.to_string()))?;
         let mut out = PixelResults::with_len(n);
         let mut rays_hit = 0u64;
         for (i, v) in values.chunks_exact(OUT_FLOATS).enumerate() {
@@ -350,8 +213,6 @@ impl RayKernel for GpuInolfKernel {
             out.depth[i] = v[4];
             rays_hit += u64::from(v[5] > 0.5);
         }
-        drop(view);
-        readback.unmap();
         Ok((out, KernelStats { rays: n as u64, rays_hit, queries: rays_hit }))
     }
 }

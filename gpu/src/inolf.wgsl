@@ -4,7 +4,8 @@
 // `sh_encode`, `SparseCubes::sample` and `combine` (eq. 7). Every step mirrors the CPU code
 // line by line so that the two agree to rounding; the tests in `src/tests.rs` hold them to it.
 //
-// The host prepends the sizes of the asset's specular MLP as constants:
+// The host prepends `common.wgsl` (camera, rays, SH) and the sizes of the asset's specular
+// MLP as constants:
 //   S_IN, S_HIDDEN, S_LAYERS (hidden layers), S_OUT_ACT (activation code), S_PARAMS,
 //   PSH_DIM, SH_DEGREE, SH_COUNT.
 //
@@ -13,19 +14,11 @@
 // under the device's binding size.
 
 struct Params {
-    // Camera: columns of camera-to-world (x, y, z axes, then the eye), and the third row of
-    // world-to-camera (view depth = -(row . p)).
-    c2w_x: vec4<f32>,
-    c2w_y: vec4<f32>,
-    c2w_z: vec4<f32>,
-    eye: vec4<f32>,
-    w2c_row_z: vec4<f32>,
-    // fx, fy, cx, cy
-    intrinsics: vec4<f32>,
-    width: u32,
-    pixel_count: u32,
+    camera: Camera,
     ray_near: f32,
     hit_opacity: f32,
+    pad0: u32,
+    pad1: u32,
 
     // Density cubes.
     d_min: vec4<f32>,   // xyz min, w cell
@@ -69,17 +62,11 @@ struct Params {
 // Per pixel: r, g, b, opacity, depth, hit (1 if the coarse opacity reached HIT_OPACITY).
 @group(0) @binding(6) var<storage, read_write> out: array<f32>;
 
-const WORKGROUP: u32 = 64u;
 const EMPTY_CELL: u32 = 0xffffffffu;
 const BIG: f32 = 3.0e38;
 
 // The specular MLP's weights, loaded once per workgroup.
 var<workgroup> mlp_weights: array<f32, S_PARAMS>;
-
-fn is_finite(x: f32) -> bool {
-    // A bit test: compilers may assume no NaN or infinity in float comparisons.
-    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
-}
 
 fn density_byte(index: u32) -> u32 {
     return (density[params.d_data_offset + (index >> 2u)] >> (8u * (index & 3u))) & 255u;
@@ -390,46 +377,9 @@ fn activate(x: f32, code: u32) -> f32 {
     }
 }
 
-// Real spherical harmonics of a unit direction (`nephele_nn::sh_encode`).
+// The SH part of the specular input row.
 fn sh_encode(dir: vec3<f32>, row: ptr<function, array<f32, S_IN>>) {
-    let len = length(dir);
-    var x = 0.0;
-    var y = 0.0;
-    var z = 1.0;
-    if is_finite(len) && len > 1e-20 {
-        x = dir.x / len;
-        y = dir.y / len;
-        z = dir.z / len;
-    }
-    let x2 = x * x;
-    let y2 = y * y;
-    let z2 = z * z;
-    var sh = array<f32, 25>();
-    sh[0] = 0.2820948;
-    sh[1] = -0.48860252 * y;
-    sh[2] = 0.48860252 * z;
-    sh[3] = -0.48860252 * x;
-    sh[4] = 1.0925484 * x * y;
-    sh[5] = -1.0925484 * y * z;
-    sh[6] = 0.9461747 * z2 - 0.31539157;
-    sh[7] = -1.0925484 * x * z;
-    sh[8] = 0.5462742 * (x2 - y2);
-    sh[9] = 0.5900436 * y * (-3.0 * x2 + y2);
-    sh[10] = 2.8906114 * x * y * z;
-    sh[11] = 0.4570458 * y * (1.0 - 5.0 * z2);
-    sh[12] = 0.37317633 * z * (5.0 * z2 - 3.0);
-    sh[13] = 0.4570458 * x * (1.0 - 5.0 * z2);
-    sh[14] = 1.4453057 * z * (x2 - y2);
-    sh[15] = 0.5900436 * x * (-x2 + 3.0 * y2);
-    sh[16] = 2.503343 * x * y * (x2 - y2);
-    sh[17] = 1.7701308 * y * z * (-3.0 * x2 + y2);
-    sh[18] = 0.9461747 * x * y * (7.0 * z2 - 1.0);
-    sh[19] = 0.6690465 * y * z * (7.0 * z2 - 3.0);
-    sh[20] = -3.1735664 * z2 + 3.702494 * z2 * z2 + 0.31735664;
-    sh[21] = 0.6690465 * x * z * (7.0 * z2 - 3.0);
-    sh[22] = 0.47308734 * (x2 - y2) * (7.0 * z2 - 1.0);
-    sh[23] = 1.7701308 * x * z * (-x2 + 3.0 * y2);
-    sh[24] = -3.7550144 * x2 * y2 + 0.6258357 * x2 * x2 + 0.6258357 * y2 * y2;
+    let sh = sh_values(dir);
     for (var i = 0u; i < SH_COUNT; i++) {
         (*row)[PSH_DIM + i] = sh[i];
     }
@@ -502,18 +452,12 @@ fn main(
     workgroupBarrier();
 
     let i = (wid.y * groups.x + wid.x) * WORKGROUP + lid;
-    if i >= params.pixel_count {
+    if i >= params.camera.pixel_count {
         return;
     }
-    let pixel = pixels[i];
-    let px = f32(pixel % params.width) + 0.5;
-    let py = f32(pixel / params.width) + 0.5;
-    let fx = params.intrinsics.x;
-    let fy = params.intrinsics.y;
-    let camera_dir = vec3<f32>((px - params.intrinsics.z) / fx, -(py - params.intrinsics.w) / fy, -1.0);
-    let world = params.c2w_x.xyz * camera_dir.x + params.c2w_y.xyz * camera_dir.y + params.c2w_z.xyz * camera_dir.z;
-    let dir = normalize(world);
-    let origin = params.eye.xyz;
+    let ray = camera_ray(params.camera, pixels[i]);
+    let dir = ray.dir;
+    let origin = ray.origin;
 
     let m = march(origin, dir, params.ray_near);
     if !(m.opacity >= params.hit_opacity) {
@@ -582,7 +526,7 @@ fn main(
 
     // Eq. 7.
     let c = a * (vec3<f32>(dif[0], dif[1], dif[2]) + vec3<f32>(dif[3], dif[4], dif[5]) * spec);
-    let depth = -(dot(params.w2c_row_z.xyz, p) + params.w2c_row_z.w);
+    let depth = view_depth(params.camera, p);
     if a > 0.0 && is_finite(a) && is_finite(depth) && depth > 0.0 && is_finite(c.x) && is_finite(c.y) && is_finite(c.z) {
         out[i * 6u + 0u] = max(c.x, 0.0);
         out[i * 6u + 1u] = max(c.y, 0.0);

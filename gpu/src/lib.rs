@@ -1,4 +1,4 @@
-//! GPU kernels through wgpu (WGSL compute), each the twin of a CPU kernel in
+//! GPU kernels through wgpu (WGSL compute; `common.wgsl` is every shader's prelude), each the twin of a CPU kernel in
 //! `nephele-kernels` and tested against it (`tests.rs`): the same rays, the same march, the
 //! same networks, results equal to within stated tolerances.
 //!
@@ -8,13 +8,19 @@
 //!   says so in its label.
 //! * [`GpuInolfKernel`] is the i-NOLF kernel: the asset's tables uploaded once, one
 //!   dispatch per batch, one invocation per pixel; behind [`RayKernel`] like every kernel.
+//! * [`GpuNgpKernel`] is the i-NGP-style baseline (hash grid, two MLPs, occupancy
+//!   skipping), so that GPU ratios between i-NOLF and its baseline compare like with like.
 //! * [`accelerate`] turns a loaded CPU kernel into its GPU twin where one exists.
 //!
 //! [`RayKernel`]: nephele_kernels::kernel::RayKernel
 
 mod agreement;
 mod context;
+mod dispatch;
 mod inolf;
+mod ngp;
+#[cfg(test)]
+mod ngp_tests;
 #[cfg(test)]
 mod tests;
 
@@ -23,9 +29,10 @@ use std::sync::Arc;
 pub use agreement::{Agreement, DEPTH_RELATIVE_TOLERANCE};
 pub use context::{DeviceChoice, GpuContext, GpuError};
 pub use inolf::{GpuInolfKernel, MAX_SPECULAR_PARAMS};
+pub use ngp::GpuNgpKernel;
 
-/// The GPU as the kernels' registry sees it ([`Accelerator`]): i-NOLF assets get their GPU
-/// twin; other kinds stay on the CPU until they have one.
+/// The GPU as the kernels' registry sees it ([`Accelerator`]): i-NOLF assets and radiance
+/// fields get their GPU twins; path-traced assets stay on the CPU.
 ///
 /// [`Accelerator`]: nephele_kernels::assets::Accelerator
 #[derive(Debug, Clone)]
@@ -38,6 +45,15 @@ impl nephele_kernels::assets::Accelerator for GpuAccelerator {
     ) -> Result<Arc<dyn nephele_kernels::kernel::RayKernel>, String> {
         let gpu = GpuInolfKernel::new(self.0.clone(), kernel).map_err(|e| e.to_string())?;
         tracing::info!(device = %self.0.label(), bytes = gpu.device_bytes(), "i-NOLF asset resident on the GPU");
+        Ok(Arc::new(gpu))
+    }
+
+    fn ngp(
+        &self,
+        kernel: &nephele_kernels::ngp::NgpKernel,
+    ) -> Result<Arc<dyn nephele_kernels::kernel::RayKernel>, String> {
+        let gpu = GpuNgpKernel::new(self.0.clone(), kernel).map_err(|e| e.to_string())?;
+        tracing::info!(device = %self.0.label(), bytes = gpu.device_bytes(), "radiance field resident on the GPU");
         Ok(Arc::new(gpu))
     }
 

@@ -24,11 +24,11 @@ use nephele_kernels::inolf::model::{HeadsShape, InolfModel};
 use nephele_kernels::inolf::psh::PshOptions;
 use nephele_kernels::kernel::{Bounds, KernelError, PixelResults, RayKernel, all_pixels};
 
-const MAX_MASK_FRACTION: f64 = 0.005;
-const MAX_COLOR_MEAN_ABS: f64 = 1e-3;
-const MAX_DEPTH_FRACTION: f64 = 0.005;
+pub(crate) const MAX_MASK_FRACTION: f64 = 0.005;
+pub(crate) const MAX_COLOR_MEAN_ABS: f64 = 1e-3;
+pub(crate) const MAX_DEPTH_FRACTION: f64 = 0.005;
 
-fn context() -> Arc<GpuContext> {
+pub(crate) fn context() -> Arc<GpuContext> {
     static CONTEXT: OnceLock<Arc<GpuContext>> = OnceLock::new();
     CONTEXT
         .get_or_init(|| match GpuContext::open(DeviceChoice::Gpu) {
@@ -121,7 +121,7 @@ fn render_both(camera: &Camera, pixels: &[u32]) -> (PixelResults, PixelResults) 
     (cpu, gpu)
 }
 
-fn check_agreement(a: &Agreement) -> Result<(), TestCaseError> {
+pub(crate) fn check_agreement(a: &Agreement) -> Result<(), TestCaseError> {
     prop_assert_eq!(a.non_finite, 0, "{}", a);
     prop_assert!(a.mask_mismatch_fraction() <= MAX_MASK_FRACTION, "{}", a);
     prop_assert!(a.color_mean_abs < MAX_COLOR_MEAN_ABS, "{}", a);
@@ -131,7 +131,7 @@ fn check_agreement(a: &Agreement) -> Result<(), TestCaseError> {
 
 /// Every pixel sane: finite non-negative colour, opacity in [0, 1], positive depth where
 /// opacity > 0 and nothing at all where it is 0.
-fn check_sane(out: &PixelResults) -> Result<(), TestCaseError> {
+pub(crate) fn check_sane(out: &PixelResults) -> Result<(), TestCaseError> {
     for i in 0..out.len() {
         prop_assert!(out.color[i].iter().all(|c| c.is_finite() && *c >= 0.0));
         prop_assert!((0.0..=1.0).contains(&out.opacity[i]));
@@ -245,7 +245,7 @@ fn device_choice_parses_and_cpu_opens_nothing() {
     }
 }
 
-fn camera_strategy() -> impl Strategy<Value = Camera> {
+pub(crate) fn camera_strategy() -> impl Strategy<Value = Camera> {
     (
         prop_oneof![
             (-4.0f32..4.0, -4.0f32..4.0, -4.0f32..4.0).prop_map(|(x, y, z)| Vec3::new(x, y, z)),

@@ -22,6 +22,8 @@ use nephele_nn::SimdMode;
 pub trait Accelerator: Send + Sync + std::fmt::Debug {
     /// The device's twin of an i-NOLF kernel, or why it cannot have one.
     fn inolf(&self, kernel: &InolfKernel) -> Result<Arc<dyn RayKernel>, String>;
+    /// The device's twin of the i-NGP-style baseline.
+    fn ngp(&self, kernel: &NgpKernel) -> Result<Arc<dyn RayKernel>, String>;
     /// The device, for logs and reports.
     fn label(&self) -> String;
 }
@@ -93,10 +95,10 @@ fn load_inolf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, 
 fn load_ngp(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
     let mut kernel = NgpKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?;
     kernel.set_simd(options.simd);
-    if let Some(device) = &options.accelerator {
-        tracing::warn!(device = %device.label(), path = %path.display(), "the i-NGP baseline has no GPU kernel yet; it runs on the CPU");
+    match &options.accelerator {
+        Some(device) => device.ngp(&kernel).map_err(LoadError::Invalid),
+        None => Ok(Arc::new(kernel)),
     }
-    Ok(Arc::new(kernel))
 }
 
 fn load_gltf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {

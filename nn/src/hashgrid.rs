@@ -101,19 +101,19 @@ fn level_layout(config: &HashGridConfig) -> Vec<Level> {
     levels
 }
 
-/// Geometry of one level.
+/// Geometry of one level (public for backends that mirror [`HashGrid::encode`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
-struct Level {
+pub struct Level {
     /// `N_l - 1`: the unit cube maps to `[0.5, scale + 0.5]` in grid units (as tiny-cuda-nn).
-    scale: f32,
+    pub scale: f32,
     /// Vertices per axis when indexed densely.
-    resolution: u32,
+    pub resolution: u32,
     /// First table entry of this level in the parameter vector (in entries).
-    offset: usize,
-    /// Entries in this level's table.
-    size: usize,
+    pub offset: usize,
+    /// Entries in this level's table (a power of two when hashed).
+    pub size: usize,
     /// Dense (one-to-one) indexing instead of hashing.
-    dense: bool,
+    pub dense: bool,
 }
 
 /// Corner indices and trilinear weights of one point at one level.
@@ -225,6 +225,11 @@ impl HashGrid {
             cell.weight[c] = w;
         }
         cell
+    }
+
+    /// Every level's geometry.
+    pub fn levels(&self) -> &[Level] {
+        &self.levels
     }
 
     /// Encodes one point into `out` (`output_dim()` values).

@@ -158,6 +158,12 @@ impl OccupancyGrid {
         self.coarse = coarse;
     }
 
+    /// The coarse level: one bit per block of [`BLOCK`]^3 cells, block `x + b (y + b z)`
+    /// (`b = resolution / BLOCK`) at bit `i % 64` of word `i / 64`.
+    pub fn coarse_words(&self) -> &[u64] {
+        &self.coarse
+    }
+
     /// Whether the coarse block holding cell `(x, y, z)` has any occupied cell.
     #[inline]
     pub fn block_occupied(&self, x: u32, y: u32, z: u32) -> bool {
