@@ -175,3 +175,19 @@ pub(crate) fn run(
     readback.unmap();
     Ok(values)
 }
+
+/// Renders one pixel so that the driver compiles the pipeline now (most compile at the
+/// first dispatch) and not inside the first batch's deadline.
+pub(crate) fn warm_up(kernel: &dyn nephele_kernels::kernel::RayKernel) -> Result<(), GpuError> {
+    let b = kernel.bounds();
+    let camera = Camera::look_at(
+        1,
+        1,
+        1.0,
+        b.center() + glam::Vec3::new(0.3, -1.0, 0.6) * b.size().length().max(1e-3),
+        b.center(),
+        glam::Vec3::Z,
+    )
+    .map_err(|e| GpuError::Validation(format!("warm-up camera: {e}")))?;
+    kernel.render_pixels(&camera, &[0]).map(|_| ()).map_err(|e| GpuError::Validation(format!("warm-up dispatch: {e}")))
+}

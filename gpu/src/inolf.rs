@@ -5,7 +5,7 @@ use std::fmt;
 use std::sync::Arc;
 
 use crate::context::{GpuContext, GpuError};
-use crate::dispatch::{Words, camera_words, pipeline, run, upload};
+use crate::dispatch::{Words, camera_words, pipeline, run, upload, warm_up};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::inolf::cubes::{BLOCK, DensityCubes, MIN_TRANSMITTANCE, SparseCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
@@ -154,7 +154,7 @@ impl GpuInolfKernel {
             0,
         ]);
 
-        Ok(GpuInolfKernel {
+        let kernel = GpuInolfKernel {
             bounds: density.bounds(),
             ctx,
             pipeline,
@@ -164,7 +164,9 @@ impl GpuInolfKernel {
             specular: specular_buf,
             asset_params: AssetParams(a),
             bytes,
-        })
+        };
+        warm_up(&kernel)?;
+        Ok(kernel)
     }
 
     /// Bytes of the asset resident on the device.

@@ -5,7 +5,7 @@ use std::fmt;
 use std::sync::Arc;
 
 use crate::context::{GpuContext, GpuError};
-use crate::dispatch::{Words, camera_words, pipeline, run, upload};
+use crate::dispatch::{Words, camera_words, pipeline, run, upload, warm_up};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 use nephele_kernels::ngp::field::EARLY_STOP_TRANSMITTANCE;
@@ -87,7 +87,7 @@ impl GpuNgpKernel {
         w.u32s([occ.resolution(), fine, coarse, levels]);
         w.f32s([EARLY_STOP_TRANSMITTANCE, MIN_COLOR_WEIGHT]);
         w.u32s([0]);
-        Ok(GpuNgpKernel {
+        let kernel = GpuNgpKernel {
             bounds: kernel.bounds(),
             ctx,
             pipeline,
@@ -96,7 +96,9 @@ impl GpuNgpKernel {
             mlp,
             field_params: w,
             bytes,
-        })
+        };
+        warm_up(&kernel)?;
+        Ok(kernel)
     }
 
     /// Bytes of the field resident on the device.

@@ -202,6 +202,9 @@ async fn calibrate(shared: &Arc<Shared>, config: &WorkerConfig) -> Result<f64, W
         let eye = bounds.center() + Vec3::new(1.0, -1.7, 0.9).normalize() * radius * 3.0;
         let camera = Camera::look_at(size, size, 0.8, eye, bounds.center(), Vec3::Z).map_err(|e| e.to_string())?;
         let pixels = all_pixels(&camera);
+        // A warm-up render first: a GPU driver compiles the shader at the first dispatch,
+        // and caches warm up on any device; the timed render is the steady state.
+        shared.pool.install(|| kernel.render_pixels(&camera, &pixels)).map_err(|e| e.to_string())?;
         let start = Instant::now();
         shared.pool.install(|| kernel.render_pixels(&camera, &pixels)).map_err(|e| e.to_string())?;
         Ok(pixels.len() as f64 / start.elapsed().as_secs_f64().max(1e-9))
