@@ -8,6 +8,13 @@
 // The host prepends `common.wgsl` and the sizes as constants: LEVELS, ENC (= 2 LEVELS),
 // D_HIDDEN, D_OUT (1 + geometric features), C_IN (D_OUT + SH_COUNT), C_HIDDEN, C_LAYERS,
 // SH_COUNT, C_OFFSET (first colour-network weight).
+//
+// Loop trip counts are kept low on purpose: Mesa's llvmpipe (the software Vulkan CI runs on)
+// ends every loop of an invocation once 65535 iterations have run in all loops together
+// (`LP_MAX_TGSI_LOOP_ITERATIONS`, shared by every loop of a shader). The MLP layers work on
+// four outputs and eight inputs per iteration and the hash-grid corners are written out, so
+// with the default sizes a coloured sample costs about 250 iterations and a ray can take some
+// 250 coloured samples before the cap; real GPUs have no such cap.
 
 struct Params {
     camera: Camera,
@@ -56,9 +63,19 @@ fn cell_exit(o: vec3<f32>, d: vec3<f32>, p: vec3<f32>, cells: f32) -> f32 {
     return t_exit;
 }
 
-// `HashGrid::encode` of a unit-cube point.
-fn encode(p: vec3<f32>) -> array<f32, ENC> {
-    var enc = array<f32, ENC>();
+// One private array holds every activation: the hash encoding, the density network's
+// hidden layer, the colour network's input (geometric features, then SH), its two hidden
+// buffers and its output. Arrays live in `main` and go by pointer.
+const A_ENC: u32 = 0u;
+const A_H: u32 = A_ENC + ENC;
+const A_CIN: u32 = A_H + D_HIDDEN;
+const A_CA: u32 = A_CIN + C_IN;
+const A_CB: u32 = A_CA + C_HIDDEN;
+const A_COUT: u32 = A_CB + C_HIDDEN;
+const ACT: u32 = A_COUT + 4u;
+
+// `HashGrid::encode` of a unit-cube point into act[A_ENC..].
+fn encode(p: vec3<f32>, act: ptr<function, array<f32, ACT>>) {
     let q = clamp(p, vec3<f32>(0.0), vec3<f32>(1.0));
     for (var l = 0u; l < LEVELS; l++) {
         let base_word = params.level_offset + 5u * l;
@@ -68,103 +85,139 @@ fn encode(p: vec3<f32>) -> array<f32, ENC> {
         let size = occupancy[base_word + 3u];
         let dense = occupancy[base_word + 4u] != 0u;
         let x = q * scale + vec3<f32>(0.5);
-        let f = floor(x);
-        let b = vec3<u32>(f);
-        let frac = x - f;
-        var f0 = 0.0;
-        var f1 = 0.0;
-        for (var c = 0u; c < 8u; c++) {
-            var w = 1.0;
-            var v = b;
-            for (var d = 0u; d < 3u; d++) {
-                if (c & (1u << d)) != 0u {
-                    w *= frac[d];
-                    v[d] = b[d] + 1u;
-                } else {
-                    w *= 1.0 - frac[d];
-                }
-            }
-            var index: u32;
-            if dense {
-                index = v.x + resolution * (v.y + resolution * v.z);
-            } else {
-                index = (v.x ^ (v.y * 2654435761u) ^ (v.z * 805459861u)) & (size - 1u);
-            }
-            let e = (first + index) * 2u;
-            f0 += w * grid[e];
-            f1 += w * grid[e + 1u];
-        }
-        enc[2u * l] = f0;
-        enc[2u * l + 1u] = f1;
+        let fl = floor(x);
+        let b = vec3<u32>(fl);
+        let frac = x - fl;
+        let level = Level(b, frac, resolution, first, size, dense);
+        // The eight corners written out (no loop: see the trip-count note above).
+        let f = corner(level, 0u) + corner(level, 1u) + corner(level, 2u) + corner(level, 3u)
+            + corner(level, 4u) + corner(level, 5u) + corner(level, 6u) + corner(level, 7u);
+        (*act)[A_ENC + 2u * l] = f.x;
+        (*act)[A_ENC + 2u * l + 1u] = f.y;
     }
-    return enc;
 }
 
-// The density MLP: ENC -> D_HIDDEN (ReLU) -> D_OUT (raw).
-fn density_mlp(x: ptr<function, array<f32, ENC>>) -> array<f32, D_OUT> {
-    var h = array<f32, D_HIDDEN>();
-    for (var o = 0u; o < D_HIDDEN; o++) {
-        var acc = mlp[ENC * D_HIDDEN + o];
-        for (var k = 0u; k < ENC; k++) {
-            acc += (*x)[k] * mlp[k * D_HIDDEN + o];
-        }
-        h[o] = max(acc, 0.0);
+struct Level {
+    base: vec3<u32>,
+    frac: vec3<f32>,
+    resolution: u32,
+    first: u32,
+    size: u32,
+    dense: bool,
+};
+
+// Weighted features of corner c (bit d set: +1 along axis d) of a level's cell.
+fn corner(l: Level, c: u32) -> vec2<f32> {
+    let up = vec3<u32>(c & 1u, (c >> 1u) & 1u, (c >> 2u) & 1u);
+    let v = l.base + up;
+    let wv = select(vec3<f32>(1.0) - l.frac, l.frac, up == vec3<u32>(1u));
+    let w = wv.x * wv.y * wv.z;
+    var index: u32;
+    if l.dense {
+        index = v.x + l.resolution * (v.y + l.resolution * v.z);
+    } else {
+        index = (v.x ^ (v.y * 2654435761u) ^ (v.z * 805459861u)) & (l.size - 1u);
     }
-    let off = ENC * D_HIDDEN + D_HIDDEN;
-    var y = array<f32, D_OUT>();
-    for (var o = 0u; o < D_OUT; o++) {
-        var acc = mlp[off + D_HIDDEN * D_OUT + o];
-        for (var k = 0u; k < D_HIDDEN; k++) {
-            acc += h[k] * mlp[off + k * D_OUT + o];
+    let e = (l.first + index) * 2u;
+    return w * vec2<f32>(grid[e], grid[e + 1u]);
+}
+
+fn row4(i: u32) -> vec4<f32> {
+    return vec4<f32>(mlp[i], mlp[i + 1u], mlp[i + 2u], mlp[i + 3u]);
+}
+
+// One layer of `nephele_nn::Mlp` (weights input-major, w[k * n_out + o], then the bias):
+// act[y0..y0 + n_out] = act(W^T act[x0..x0 + n_in] + b), four outputs and eight inputs per
+// iteration (four inputs for the last outputs when n_out is not a multiple of four).
+fn layer(act: ptr<function, array<f32, ACT>>, x0: u32, n_in: u32, y0: u32, n_out: u32, w0: u32, relu: bool) {
+    let bias = w0 + n_in * n_out;
+    var o = 0u;
+    loop {
+        if o + 4u > n_out {
+            break;
         }
-        y[o] = acc;
+        var acc = row4(bias + o);
+        var k = 0u;
+        loop {
+            if k + 8u > n_in {
+                break;
+            }
+            let r = w0 + k * n_out + o;
+            let n = n_out;
+            acc += (*act)[x0 + k] * row4(r) + (*act)[x0 + k + 1u] * row4(r + n)
+                + (*act)[x0 + k + 2u] * row4(r + 2u * n) + (*act)[x0 + k + 3u] * row4(r + 3u * n)
+                + (*act)[x0 + k + 4u] * row4(r + 4u * n) + (*act)[x0 + k + 5u] * row4(r + 5u * n)
+                + (*act)[x0 + k + 6u] * row4(r + 6u * n) + (*act)[x0 + k + 7u] * row4(r + 7u * n);
+            k += 8u;
+        }
+        loop {
+            if k >= n_in {
+                break;
+            }
+            acc += (*act)[x0 + k] * row4(w0 + k * n_out + o);
+            k += 1u;
+        }
+        if relu {
+            acc = max(acc, vec4<f32>(0.0));
+        }
+        (*act)[y0 + o] = acc.x;
+        (*act)[y0 + o + 1u] = acc.y;
+        (*act)[y0 + o + 2u] = acc.z;
+        (*act)[y0 + o + 3u] = acc.w;
+        o += 4u;
     }
-    return y;
+    loop {
+        if o >= n_out {
+            break;
+        }
+        var acc = mlp[bias + o];
+        var k = 0u;
+        loop {
+            if k + 4u > n_in {
+                break;
+            }
+            let r = w0 + k * n_out + o;
+            acc += (*act)[x0 + k] * mlp[r] + (*act)[x0 + k + 1u] * mlp[r + n_out]
+                + (*act)[x0 + k + 2u] * mlp[r + 2u * n_out] + (*act)[x0 + k + 3u] * mlp[r + 3u * n_out];
+            k += 4u;
+        }
+        loop {
+            if k >= n_in {
+                break;
+            }
+            acc += (*act)[x0 + k] * mlp[w0 + k * n_out + o];
+            k += 1u;
+        }
+        if relu {
+            acc = max(acc, 0.0);
+        }
+        (*act)[y0 + o] = acc;
+        o += 1u;
+    }
+}
+
+// The density MLP: ENC -> D_HIDDEN (ReLU) -> D_OUT (raw), its output written where the
+// colour network reads it.
+fn density_mlp(act: ptr<function, array<f32, ACT>>) {
+    layer(act, A_ENC, ENC, A_H, D_HIDDEN, 0u, true);
+    layer(act, A_H, D_HIDDEN, A_CIN, D_OUT, ENC * D_HIDDEN + D_HIDDEN, false);
 }
 
 // The colour MLP: C_IN -> C_HIDDEN (ReLU) x C_LAYERS -> 3 (sigmoid).
-fn color_mlp(x: ptr<function, array<f32, C_IN>>) -> vec3<f32> {
-    var out3 = vec3<f32>(0.0);
-    if C_LAYERS == 0u {
-        for (var o = 0u; o < 3u; o++) {
-            var acc = mlp[C_OFFSET + C_IN * 3u + o];
-            for (var k = 0u; k < C_IN; k++) {
-                acc += (*x)[k] * mlp[C_OFFSET + k * 3u + o];
-            }
-            out3[o] = sigmoid(acc);
-        }
-        return out3;
+fn color_mlp(act: ptr<function, array<f32, ACT>>) -> vec3<f32> {
+    var src = A_CIN;
+    var n_in = C_IN;
+    var w = C_OFFSET;
+    var dst = A_CA;
+    for (var l = 0u; l < C_LAYERS; l++) {
+        layer(act, src, n_in, dst, C_HIDDEN, w, true);
+        w += n_in * C_HIDDEN + C_HIDDEN;
+        src = dst;
+        n_in = C_HIDDEN;
+        dst = select(A_CA, A_CB, dst == A_CA);
     }
-    var a = array<f32, C_HIDDEN>();
-    var b = array<f32, C_HIDDEN>();
-    var off = C_OFFSET;
-    for (var o = 0u; o < C_HIDDEN; o++) {
-        var acc = mlp[off + C_IN * C_HIDDEN + o];
-        for (var k = 0u; k < C_IN; k++) {
-            acc += (*x)[k] * mlp[off + k * C_HIDDEN + o];
-        }
-        a[o] = max(acc, 0.0);
-    }
-    off += C_IN * C_HIDDEN + C_HIDDEN;
-    for (var layer = 1u; layer < C_LAYERS; layer++) {
-        for (var o = 0u; o < C_HIDDEN; o++) {
-            var acc = mlp[off + C_HIDDEN * C_HIDDEN + o];
-            for (var k = 0u; k < C_HIDDEN; k++) {
-                acc += a[k] * mlp[off + k * C_HIDDEN + o];
-            }
-            b[o] = max(acc, 0.0);
-        }
-        a = b;
-        off += C_HIDDEN * C_HIDDEN + C_HIDDEN;
-    }
-    for (var o = 0u; o < 3u; o++) {
-        var acc = mlp[off + C_HIDDEN * 3u + o];
-        for (var k = 0u; k < C_HIDDEN; k++) {
-            acc += a[k] * mlp[off + k * 3u + o];
-        }
-        out3[o] = sigmoid(acc);
-    }
-    return out3;
+    layer(act, src, n_in, A_COUT, 3u, w, false);
+    return vec3<f32>(sigmoid((*act)[A_COUT]), sigmoid((*act)[A_COUT + 1u]), sigmoid((*act)[A_COUT + 2u]));
 }
 
 fn srgb_to_linear(v: f32) -> f32 {
@@ -227,7 +280,12 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     let max_cell = params.occupancy_resolution - 1u;
     let blocks = params.occupancy_resolution / OCC_BLOCK;
 
+    var act = array<f32, ACT>();
+    // The direction's SH: the colour input's tail, the same for every sample.
     let sh = sh_values(ray.dir);
+    for (var k = 0u; k < SH_COUNT; k++) {
+        act[A_CIN + D_OUT + k] = sh[k];
+    }
     var transmittance = 1.0;
     var color = vec3<f32>(0.0);
     var opacity = 0.0;
@@ -257,21 +315,14 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         let ts = t;
         t += dt;
         samples += 1u;
-        var enc = encode(p);
-        let geo = density_mlp(&enc);
-        let sigma = exp(min(geo[0], 15.0));
+        encode(p, &act);
+        density_mlp(&act);
+        let sigma = exp(min(act[A_CIN], 15.0));
         let alpha = 1.0 - exp(-sigma * dt);
         let w = transmittance * alpha;
         transmittance *= 1.0 - alpha;
         if w >= params.min_color_weight {
-            var x = array<f32, C_IN>();
-            for (var k = 0u; k < D_OUT; k++) {
-                x[k] = geo[k];
-            }
-            for (var k = 0u; k < SH_COUNT; k++) {
-                x[D_OUT + k] = sh[k];
-            }
-            color += w * color_mlp(&x);
+            color += w * color_mlp(&act);
         }
         opacity += w;
         weighted_t += w * ts;
