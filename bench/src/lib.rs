@@ -66,9 +66,9 @@ pub enum Command {
     /// i-NOLF against the i-NGP-style baseline on held-out views of a dataset: quality,
     /// time per frame, rays per second and speed-up, measured in one run.
     Inolf(crate::inolf::InolfArgs),
-    /// One i-NOLF asset on the CPU and on a GPU in the same run (orbit views): ms per frame,
-    /// the ratio, and the GPU frames' difference from the CPU frames. A software Vulkan
-    /// adapter (Mesa's lavapipe) is accepted and labelled as such.
+    /// One i-NOLF asset (and with `--field` its baseline) on the CPU and on a GPU in the same
+    /// run (orbit views): ms per frame, the ratio, and the GPU frames' difference from the CPU
+    /// frames. A software Vulkan adapter (Mesa's lavapipe) is accepted and labelled as such.
     Device(crate::device::DeviceArgs),
 }
 

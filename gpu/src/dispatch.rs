@@ -191,3 +191,21 @@ pub(crate) fn warm_up(kernel: &dyn nephele_kernels::kernel::RayKernel) -> Result
     .map_err(|e| GpuError::Validation(format!("warm-up camera: {e}")))?;
     kernel.render_pixels(&camera, &[0]).map(|_| ()).map_err(|e| GpuError::Validation(format!("warm-up dispatch: {e}")))
 }
+
+/// Floats each kernel writes per pixel: r, g, b, opacity, depth, then one kernel-specific
+/// value (a hit flag, a sample count).
+pub(crate) const OUT_FLOATS: usize = 6;
+
+/// Splits the read-back floats into per-pixel results and the kernel-specific column.
+pub(crate) fn results(values: &[f32]) -> (nephele_kernels::kernel::PixelResults, Vec<f32>) {
+    let n = values.len() / OUT_FLOATS;
+    let mut out = nephele_kernels::kernel::PixelResults::with_len(n);
+    let mut extra = Vec::with_capacity(n);
+    for (i, v) in values.chunks_exact(OUT_FLOATS).enumerate() {
+        out.color[i] = [v[0], v[1], v[2]];
+        out.opacity[i] = v[3];
+        out.depth[i] = v[4];
+        extra.push(v[5]);
+    }
+    (out, extra)
+}

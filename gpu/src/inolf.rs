@@ -5,7 +5,7 @@ use std::fmt;
 use std::sync::Arc;
 
 use crate::context::{GpuContext, GpuError};
-use crate::dispatch::{Words, camera_words, pipeline, run, upload, warm_up};
+use crate::dispatch::{OUT_FLOATS, Words, camera_words, pipeline, results, run, upload, warm_up};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::inolf::cubes::{BLOCK, DensityCubes, MIN_TRANSMITTANCE, SparseCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
@@ -16,8 +16,6 @@ use nephele_nn::{Mlp, sh_coefficient_count};
 
 /// Floats of the specular MLP that fit workgroup memory (WebGPU's 16 KiB minimum).
 pub const MAX_SPECULAR_PARAMS: usize = 4096;
-/// Floats written per pixel: r, g, b, opacity, depth, hit.
-const OUT_FLOATS: usize = 6;
 
 /// An i-NOLF asset resident on a GPU.
 pub struct GpuInolfKernel {
@@ -207,14 +205,8 @@ impl RayKernel for GpuInolfKernel {
         let tables = [&self.density, &self.diffuse, &self.psh, &self.specular];
         let values = run(&self.ctx, &self.pipeline, &params, pixels, &tables, OUT_FLOATS)
             .map_err(|e| KernelError::Failed(e.to_string()))?;
-        let mut out = PixelResults::with_len(n);
-        let mut rays_hit = 0u64;
-        for (i, v) in values.chunks_exact(OUT_FLOATS).enumerate() {
-            out.color[i] = [v[0], v[1], v[2]];
-            out.opacity[i] = v[3];
-            out.depth[i] = v[4];
-            rays_hit += u64::from(v[5] > 0.5);
-        }
+        let (out, hit) = results(&values);
+        let rays_hit = hit.iter().filter(|&&h| h > 0.5).count() as u64;
         Ok((out, KernelStats { rays: n as u64, rays_hit, queries: rays_hit }))
     }
 }

@@ -5,15 +5,13 @@ use std::fmt;
 use std::sync::Arc;
 
 use crate::context::{GpuContext, GpuError};
-use crate::dispatch::{Words, camera_words, pipeline, run, upload, warm_up};
+use crate::dispatch::{OUT_FLOATS, Words, camera_words, pipeline, results, run, upload, warm_up};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 use nephele_kernels::ngp::field::EARLY_STOP_TRANSMITTANCE;
 use nephele_kernels::ngp::{NgpKernel, RadianceField};
 use nephele_nn::{Activation, sh_coefficient_count};
 
-/// Floats written per pixel: r, g, b, opacity, depth, samples.
-const OUT_FLOATS: usize = 6;
 /// Samples whose blending weight is below this skip the colour network (as the CPU field).
 const MIN_COLOR_WEIGHT: f32 = 1e-4;
 
@@ -129,15 +127,9 @@ impl RayKernel for GpuNgpKernel {
         let tables = [&self.occupancy, &self.grid, &self.mlp];
         let values = run(&self.ctx, &self.pipeline, &params.0, pixels, &tables, OUT_FLOATS)
             .map_err(|e| KernelError::Failed(e.to_string()))?;
-        let mut out = PixelResults::with_len(n);
-        let mut stats = KernelStats { rays: n as u64, ..KernelStats::default() };
-        for (i, v) in values.chunks_exact(OUT_FLOATS).enumerate() {
-            out.color[i] = [v[0], v[1], v[2]];
-            out.opacity[i] = v[3];
-            out.depth[i] = v[4];
-            stats.rays_hit += u64::from(v[5] > 0.0);
-            stats.queries += v[5] as u64;
-        }
-        Ok((out, stats))
+        let (out, samples) = results(&values);
+        let rays_hit = samples.iter().filter(|&&s| s > 0.0).count() as u64;
+        let queries = samples.iter().map(|&s| s as u64).sum();
+        Ok((out, KernelStats { rays: n as u64, rays_hit, queries }))
     }
 }

@@ -38,7 +38,7 @@ pub struct Args {
     /// (scalar code, for comparison).
     #[arg(long, default_value = "auto", value_name = "auto|off")]
     simd: nephele_nn::SimdMode,
-    /// Where the i-NOLF kernel runs: auto (a hardware GPU if there is one, else the CPU),
+    /// Where the neural kernel runs: auto (a hardware GPU if there is one, else the CPU),
     /// cpu, or gpu (a hardware GPU, else a software Vulkan adapter).
     #[arg(long, default_value = "auto", value_name = "auto|cpu|gpu")]
     device: nephele_gpu::DeviceChoice,

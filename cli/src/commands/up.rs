@@ -47,7 +47,7 @@ pub struct Args {
     /// them) or off (scalar code, for comparison).
     #[arg(long, default_value = "auto", value_name = "auto|off")]
     simd: nephele_nn::SimdMode,
-    /// Where the workers run their i-NOLF kernels: auto (a hardware GPU if there is one, else
+    /// Where the workers run their neural kernels (i-NOLF, the i-NGP baseline): auto (a hardware GPU if there is one, else
     /// the CPU), cpu, or gpu (a hardware GPU, else a software Vulkan adapter).
     #[arg(long, default_value = "auto", value_name = "auto|cpu|gpu")]
     device: nephele_gpu::DeviceChoice,

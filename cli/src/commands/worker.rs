@@ -40,9 +40,9 @@ pub struct Args {
     /// (scalar code, for comparison).
     #[arg(long, default_value = "auto", value_name = "auto|off")]
     simd: nephele_nn::SimdMode,
-    /// Where the i-NOLF kernels run: auto (a hardware GPU if there is one, else the CPU), cpu,
-    /// or gpu (a hardware GPU, else a software Vulkan adapter such as Mesa's lavapipe; an
-    /// error if there is none). Other kernels run on the CPU.
+    /// Where the neural kernels (i-NOLF, the i-NGP baseline) run: auto (a hardware GPU if there
+    /// is one, else the CPU), cpu, or gpu (a hardware GPU, else a software Vulkan adapter such
+    /// as Mesa's lavapipe; an error if there is none). Path-traced assets run on the CPU.
     #[arg(long, default_value = "auto", value_name = "auto|cpu|gpu")]
     device: nephele_gpu::DeviceChoice,
     /// How results travel to the composer: compact (only the pixels the object touched, half
