@@ -3,6 +3,7 @@
 
 use crate::context::{GpuContext, GpuError};
 use nephele_geometry::camera::Camera;
+use nephele_kernels::kernel::{KernelError, PixelResults, RayKernel, validate_pixels};
 use wgpu::util::DeviceExt;
 
 /// Invocations per workgroup (`WORKGROUP` in `common.wgsl`).
@@ -44,7 +45,7 @@ impl Words {
 }
 
 /// The `Camera` struct of `common.wgsl`: 28 words (112 bytes, 16-byte aligned).
-pub(crate) fn camera_words(camera: &Camera, pixel_count: u32) -> Words {
+fn camera_words(camera: &Camera, pixel_count: u32) -> Words {
     let mut w = Words::default();
     let c2w = camera.camera_to_world();
     w.vec4(c2w.x_axis.to_array());
@@ -99,7 +100,7 @@ pub(crate) fn pipeline(ctx: &GpuContext, label: &str, source: String) -> Result<
 /// One dispatch over `pixels`: binding 0 the uniform `params`, 1 the pixel list, then
 /// `tables` in order, then the output of `floats_per_pixel` floats per pixel, which is read
 /// back and returned.
-pub(crate) fn run(
+fn run(
     ctx: &GpuContext,
     pipeline: &wgpu::ComputePipeline,
     params: &[u32],
@@ -178,7 +179,7 @@ pub(crate) fn run(
 
 /// Renders one pixel so that the driver compiles the pipeline now (most compile at the
 /// first dispatch) and not inside the first batch's deadline.
-pub(crate) fn warm_up(kernel: &dyn nephele_kernels::kernel::RayKernel) -> Result<(), GpuError> {
+pub(crate) fn warm_up(kernel: &dyn RayKernel) -> Result<(), GpuError> {
     let b = kernel.bounds();
     let camera = Camera::look_at(
         1,
@@ -194,18 +195,34 @@ pub(crate) fn warm_up(kernel: &dyn nephele_kernels::kernel::RayKernel) -> Result
 
 /// Floats each kernel writes per pixel: r, g, b, opacity, depth, then one kernel-specific
 /// value (a hit flag, a sample count).
-pub(crate) const OUT_FLOATS: usize = 6;
+const OUT_FLOATS: usize = 6;
 
-/// Splits the read-back floats into per-pixel results and the kernel-specific column.
-pub(crate) fn results(values: &[f32]) -> (nephele_kernels::kernel::PixelResults, Vec<f32>) {
-    let n = values.len() / OUT_FLOATS;
-    let mut out = nephele_kernels::kernel::PixelResults::with_len(n);
-    let mut extra = Vec::with_capacity(n);
+/// One batch of any kernel: checks the pixels, runs the dispatch with the camera followed by
+/// the kernel's constant uniform words (`kernel_params`), and splits the read-back floats
+/// into per-pixel results and the kernel-specific column.
+pub(crate) fn render(
+    ctx: &GpuContext,
+    pipeline: &wgpu::ComputePipeline,
+    camera: &Camera,
+    pixels: &[u32],
+    kernel_params: &[u32],
+    tables: &[&wgpu::Buffer],
+) -> Result<(PixelResults, Vec<f32>), KernelError> {
+    validate_pixels(camera, pixels)?;
+    if pixels.is_empty() {
+        return Ok((PixelResults::with_len(0), Vec::new()));
+    }
+    let mut params = camera_words(camera, pixels.len() as u32);
+    params.0.extend_from_slice(kernel_params);
+    let values =
+        run(ctx, pipeline, &params.0, pixels, tables, OUT_FLOATS).map_err(|e| KernelError::Failed(e.to_string()))?;
+    let mut out = PixelResults::with_len(pixels.len());
+    let mut extra = Vec::with_capacity(pixels.len());
     for (i, v) in values.chunks_exact(OUT_FLOATS).enumerate() {
         out.color[i] = [v[0], v[1], v[2]];
         out.opacity[i] = v[3];
         out.depth[i] = v[4];
         extra.push(v[5]);
     }
-    (out, extra)
+    Ok((out, extra))
 }

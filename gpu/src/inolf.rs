@@ -5,13 +5,13 @@ use std::fmt;
 use std::sync::Arc;
 
 use crate::context::{GpuContext, GpuError};
-use crate::dispatch::{OUT_FLOATS, Words, camera_words, pipeline, results, run, upload, warm_up};
+use crate::dispatch::{Words, pipeline, render, upload, warm_up};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::inolf::cubes::{BLOCK, DensityCubes, MIN_TRANSMITTANCE, SparseCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::kernel::{DiffuseSource, HIT_OPACITY, HitSource, InolfKernel, RAY_NEAR};
 use nephele_kernels::inolf::model::SPECULAR_OUT;
-use nephele_kernels::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
+use nephele_kernels::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel};
 use nephele_nn::{Mlp, sh_coefficient_count};
 
 /// Floats of the specular MLP that fit workgroup memory (WebGPU's 16 KiB minimum).
@@ -25,8 +25,9 @@ pub struct GpuInolfKernel {
     diffuse: wgpu::Buffer,
     psh: wgpu::Buffer,
     specular: wgpu::Buffer,
-    /// Uniform words that do not depend on the camera (asset tables and their offsets).
-    asset_params: AssetParams,
+    /// The uniform words after the camera (`Params` in `inolf.wgsl`): ray constants, table
+    /// sizes and offsets.
+    params: Words,
     bounds: Bounds,
     bytes: u64,
 }
@@ -36,10 +37,6 @@ impl fmt::Debug for GpuInolfKernel {
         f.debug_struct("GpuInolfKernel").field("device", &self.ctx).field("bytes", &self.bytes).finish()
     }
 }
-
-/// The asset half of the shader's `Params` (layout in `inolf.wgsl`).
-#[derive(Clone)]
-struct AssetParams(Words);
 
 fn density_tables(d: &DensityCubes) -> (Words, [u32; 5]) {
     let c = d.cubes();
@@ -76,14 +73,13 @@ fn shader_source(mlp: &Mlp, psh_dim: u32, sh_degree: u32) -> String {
     let c = mlp.config();
     format!(
         "const S_IN: u32 = {}u;\nconst S_HIDDEN: u32 = {}u;\nconst S_LAYERS: u32 = {}u;\nconst S_OUT_ACT: u32 = {}u;\n\
-         const S_PARAMS: u32 = {}u;\nconst PSH_DIM: u32 = {}u;\nconst SH_DEGREE: u32 = {}u;\nconst SH_COUNT: u32 = {}u;\n{}",
+         const S_PARAMS: u32 = {}u;\nconst PSH_DIM: u32 = {}u;\nconst SH_COUNT: u32 = {}u;\n{}",
         c.input,
         c.hidden.max(1),
         c.hidden_layers,
         c.output_activation.code(),
         mlp.num_params(),
         psh_dim,
-        sh_degree,
         sh_coefficient_count(sh_degree),
         include_str!("inolf.wgsl")
     )
@@ -130,6 +126,8 @@ impl GpuInolfKernel {
 
         let c = density.cubes();
         let mut a = Words::default();
+        a.f32s([RAY_NEAR, HIT_OPACITY]);
+        a.u32s([0, 0]);
         a.vec4([c.min().x, c.min().y, c.min().z, c.cell()]);
         let (block_dims, _) = density.block_flags();
         let (voxel_words, _) = density.voxel_bits();
@@ -160,7 +158,7 @@ impl GpuInolfKernel {
             diffuse: diffuse_buf,
             psh: psh_buf,
             specular: specular_buf,
-            asset_params: AssetParams(a),
+            params: a,
             bytes,
         };
         warm_up(&kernel)?;
@@ -170,19 +168,6 @@ impl GpuInolfKernel {
     /// Bytes of the asset resident on the device.
     pub fn device_bytes(&self) -> u64 {
         self.bytes
-    }
-
-    /// The device it runs on.
-    pub fn context(&self) -> &Arc<GpuContext> {
-        &self.ctx
-    }
-
-    fn params(&self, camera: &Camera, pixel_count: u32) -> Vec<u32> {
-        let mut w = camera_words(camera, pixel_count);
-        w.f32s([RAY_NEAR, HIT_OPACITY]);
-        w.u32s([0, 0]);
-        w.0.extend_from_slice(&self.asset_params.0.0);
-        w.0
     }
 }
 
@@ -196,17 +181,9 @@ impl RayKernel for GpuInolfKernel {
     }
 
     fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
-        validate_pixels(camera, pixels)?;
-        let n = pixels.len();
-        if n == 0 {
-            return Ok((PixelResults::with_len(0), KernelStats::default()));
-        }
-        let params = self.params(camera, n as u32);
         let tables = [&self.density, &self.diffuse, &self.psh, &self.specular];
-        let values = run(&self.ctx, &self.pipeline, &params, pixels, &tables, OUT_FLOATS)
-            .map_err(|e| KernelError::Failed(e.to_string()))?;
-        let (out, hit) = results(&values);
+        let (out, hit) = render(&self.ctx, &self.pipeline, camera, pixels, &self.params.0, &tables)?;
         let rays_hit = hit.iter().filter(|&&h| h > 0.5).count() as u64;
-        Ok((out, KernelStats { rays: n as u64, rays_hit, queries: rays_hit }))
+        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries: rays_hit }))
     }
 }

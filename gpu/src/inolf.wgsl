@@ -7,7 +7,7 @@
 // The host prepends `common.wgsl` (camera, rays, SH) and the sizes of the asset's specular
 // MLP as constants:
 //   S_IN, S_HIDDEN, S_LAYERS (hidden layers), S_OUT_ACT (activation code), S_PARAMS,
-//   PSH_DIM, SH_DEGREE, SH_COUNT.
+//   PSH_DIM, SH_COUNT.
 //
 // Tables arrive as arrays of u32 (bytes packed four to a word, floats as bit patterns),
 // in four read-only buffers (density, diffuse, PSH, specular weights) so that each stays

@@ -5,9 +5,9 @@ use std::fmt;
 use std::sync::Arc;
 
 use crate::context::{GpuContext, GpuError};
-use crate::dispatch::{OUT_FLOATS, Words, camera_words, pipeline, results, run, upload, warm_up};
+use crate::dispatch::{Words, pipeline, render, upload, warm_up};
 use nephele_geometry::camera::Camera;
-use nephele_kernels::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
+use nephele_kernels::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel};
 use nephele_kernels::ngp::field::EARLY_STOP_TRANSMITTANCE;
 use nephele_kernels::ngp::{NgpKernel, RadianceField};
 use nephele_nn::{Activation, sh_coefficient_count};
@@ -117,19 +117,10 @@ impl RayKernel for GpuNgpKernel {
     /// `queries` counts density-network evaluations, as the CPU kernel's; the GPU stops
     /// counting at the early-stop sample, the CPU at the end of its 16-sample chunk.
     fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
-        validate_pixels(camera, pixels)?;
-        let n = pixels.len();
-        if n == 0 {
-            return Ok((PixelResults::with_len(0), KernelStats::default()));
-        }
-        let mut params = camera_words(camera, n as u32);
-        params.0.extend_from_slice(&self.field_params.0);
         let tables = [&self.occupancy, &self.grid, &self.mlp];
-        let values = run(&self.ctx, &self.pipeline, &params.0, pixels, &tables, OUT_FLOATS)
-            .map_err(|e| KernelError::Failed(e.to_string()))?;
-        let (out, samples) = results(&values);
+        let (out, samples) = render(&self.ctx, &self.pipeline, camera, pixels, &self.field_params.0, &tables)?;
         let rays_hit = samples.iter().filter(|&&s| s > 0.0).count() as u64;
         let queries = samples.iter().map(|&s| s as u64).sum();
-        Ok((out, KernelStats { rays: n as u64, rays_hit, queries }))
+        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries }))
     }
 }
