@@ -158,6 +158,25 @@ fn check_rigid(m: Mat4, matrix: &'static str) -> Result<Mat4, CameraError> {
     Ok(Affine3A::from_mat3_translation(r, m.w_axis.truncate()).into())
 }
 
+/// Camera-to-world matrix of a camera at `eye` looking at `target` (OpenGL axes: the camera
+/// looks down its -Z, +Y is up in the image, +X right), with `up` showing as up in the image
+/// and no roll. The workspace's one look-at: [`Camera::look_at`], the load generator's orbit
+/// (which inverts it into a view matrix) and the dataset cameras all call it. Errors if a
+/// value is not finite, `eye == target`, or `up` is zero or parallel to the view.
+pub fn look_at_camera_to_world(eye: Vec3, target: Vec3, up: Vec3) -> Result<Mat4, CameraError> {
+    if !(eye.is_finite() && target.is_finite() && up.is_finite()) {
+        return Err(CameraError::NonFinite("look-at eye, target or up"));
+    }
+    let forward = (target - eye).try_normalize().ok_or(CameraError::DegenerateLookAt("eye and target coincide"))?;
+    let right = forward.cross(up.normalize_or_zero());
+    if right.length() <= 1e-6 {
+        return Err(CameraError::DegenerateLookAt("up zero or parallel to the view"));
+    }
+    let right = right.normalize();
+    let true_up = right.cross(forward);
+    Ok(Mat4::from_cols(right.extend(0.0), true_up.extend(0.0), (-forward).extend(0.0), eye.extend(1.0)))
+}
+
 impl Camera {
     /// Validates intrinsics and builds the camera; `world_to_camera` must be the inverse of the
     /// (already validated) `camera_to_world`.
@@ -214,19 +233,7 @@ impl Camera {
     ) -> Result<Camera, CameraError> {
         check_image_size(width, height)?;
         check_fov(fov_y)?;
-        if !(eye.is_finite() && target.is_finite() && up.is_finite()) {
-            return Err(CameraError::NonFinite("look-at eye, target or up"));
-        }
-        let forward = (target - eye).try_normalize().ok_or(CameraError::DegenerateLookAt("eye and target coincide"))?;
-        let right = forward.cross(up.normalize_or_zero());
-        if right.length() <= 1e-6 {
-            return Err(CameraError::DegenerateLookAt("up zero or parallel to the view"));
-        }
-        let right = right.normalize();
-        let true_up = right.cross(forward);
-        let camera_to_world =
-            Mat4::from_cols(right.extend(0.0), true_up.extend(0.0), (-forward).extend(0.0), eye.extend(1.0));
-        Self::from_fov_y(width, height, fov_y, camera_to_world)
+        Self::from_fov_y(width, height, fov_y, look_at_camera_to_world(eye, target, up)?)
     }
 
     /// Camera from pixel intrinsics: focal lengths `fx, fy` and principal point `cx, cy`.

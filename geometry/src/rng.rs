@@ -27,6 +27,16 @@ impl SplitMix64 {
         (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
     }
 
+    /// Uniform in `[0, 1)` with 53 random bits.
+    pub fn next_f64(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
+    }
+
+    /// Uniform in `0..n` (`0` when `n` is 0), from [`Self::next_f64`].
+    pub fn below(&mut self, n: u64) -> u64 {
+        (self.next_f64() * n as f64) as u64 % n.max(1)
+    }
+
     /// A direction uniformly distributed on the unit sphere.
     pub fn unit_vector(&mut self) -> Vec3 {
         let z = 1.0 - 2.0 * self.next_f32();

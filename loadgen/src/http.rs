@@ -1,41 +1,39 @@
-//! The master's signalling API over plain HTTP/1.1 (one request per connection): enough for
-//! `POST /v1/sessions` and `DELETE /v1/sessions/{id}` without an HTTP stack.
+//! The master's signalling API (`POST /v1/sessions`, `DELETE /v1/sessions/{id}`) through the
+//! workspace's one HTTP client, `ureq` (http:// and, with rustls, https:// masters). `ureq`
+//! blocks, so each request runs on tokio's blocking pool; it is one request per session
+//! start and end, not a hot path.
 
 use std::time::Duration;
 
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
-
 use crate::LoadError;
 
-/// `http://HOST:PORT[/PREFIX]`, split.
+/// The master's URL, `http[s]://HOST[:PORT][/PREFIX]`, without query or trailing slash.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct BaseUrl {
-    /// `host:port`, as for `TcpStream::connect`.
-    pub authority: String,
-    /// Path prefix without a trailing slash (`""` at the root).
-    pub prefix: String,
+    /// `scheme://authority[/prefix]`: the API paths are appended to it.
+    pub root: String,
 }
 
 impl BaseUrl {
     pub fn parse(url: &str) -> Result<BaseUrl, LoadError> {
         let bad = |why: &str| LoadError::Url(format!("{url}: {why}"));
-        let rest = url.strip_prefix("http://").ok_or_else(|| bad("only http:// URLs are supported"))?;
+        let (scheme, rest) = url.split_once("://").ok_or_else(|| bad("not a URL (expected http://HOST:PORT)"))?;
+        if scheme != "http" && scheme != "https" {
+            return Err(bad("only http:// and https:// URLs are supported"));
+        }
         // The page URL may carry a query (`?width=...`): signalling ignores it.
         let rest = rest.split(['?', '#']).next().unwrap_or("");
-        let (authority, path) = rest.split_once('/').map_or((rest, ""), |(a, p)| (a, p));
-        if authority.is_empty() {
+        let (authority, path) = rest.split_once('/').unwrap_or((rest, ""));
+        if authority.is_empty() || authority.starts_with(':') {
             return Err(bad("no host"));
         }
-        let authority =
-            if authority.rsplit_once(':').is_some_and(|(_, p)| p.parse::<u16>().is_ok()) && !authority.ends_with(']') {
-                authority.to_string()
-            } else {
-                format!("{authority}:80")
-            };
         let prefix = path.trim_end_matches('/');
-        let prefix = if prefix.is_empty() { String::new() } else { format!("/{prefix}") };
-        Ok(BaseUrl { authority, prefix })
+        let root = if prefix.is_empty() {
+            format!("{scheme}://{authority}")
+        } else {
+            format!("{scheme}://{authority}/{prefix}")
+        };
+        Ok(BaseUrl { root })
     }
 }
 
@@ -53,7 +51,42 @@ impl Response {
     }
 }
 
-/// One request on a fresh connection (`Connection: close`), with an overall timeout.
+/// One JSON request to `url` with an overall timeout, blocking (for threads that are not on
+/// a runtime: `nephele up`'s readiness probe, tests). Every status is an answer (the caller
+/// decides what a 503 means); only transport failures are errors.
+pub fn request_blocking(
+    url: &str,
+    method: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+    timeout: Duration,
+) -> Result<Response, LoadError> {
+    let what = format!("{method} {url}");
+    let mut builder = ureq::http::Request::builder().method(method).uri(url).header("Content-Type", "application/json");
+    for (k, v) in headers {
+        builder = builder.header(*k, *v);
+    }
+    let request = builder.body(body.to_owned()).map_err(|e| LoadError::Http(format!("{what}: {e}")))?;
+    let agent: ureq::Agent =
+        ureq::Agent::config_builder().http_status_as_error(false).timeout_global(Some(timeout)).build().into();
+    let send = || -> Result<Response, ureq::Error> {
+        let mut response = agent.run(request)?;
+        let status = response.status().as_u16();
+        let headers = response
+            .headers()
+            .iter()
+            .map(|(k, v)| (k.as_str().to_ascii_lowercase(), String::from_utf8_lossy(v.as_bytes()).into_owned()))
+            .collect();
+        let body = response.body_mut().read_to_string()?;
+        Ok(Response { status, headers, body })
+    };
+    send().map_err(|e| match e {
+        ureq::Error::Timeout(_) => LoadError::Http(format!("{what}: no answer within {timeout:?}")),
+        e => LoadError::Http(format!("{what}: {e}")),
+    })
+}
+
+/// [`request_blocking`] of `path` under `base`, on tokio's blocking pool.
 pub async fn request(
     base: &BaseUrl,
     method: &str,
@@ -62,84 +95,79 @@ pub async fn request(
     body: &str,
     timeout: Duration,
 ) -> Result<Response, LoadError> {
-    let work = async {
-        let mut stream = TcpStream::connect(&base.authority).await?;
-        let mut head = format!(
-            "{method} {}{path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\nContent-Type: application/json\r\nContent-Length: {}\r\n",
-            base.prefix,
-            base.authority,
-            body.len()
-        );
-        for (k, v) in headers {
-            head.push_str(&format!("{k}: {v}\r\n"));
-        }
-        head.push_str("\r\n");
-        stream.write_all(head.as_bytes()).await?;
-        stream.write_all(body.as_bytes()).await?;
-        let mut raw = Vec::new();
-        stream.read_to_end(&mut raw).await?;
-        Ok::<_, std::io::Error>(raw)
-    };
-    let raw = tokio::time::timeout(timeout, work)
-        .await
-        .map_err(|_| LoadError::Http(format!("{method} {path}: no answer within {timeout:?}")))?
-        .map_err(|e| LoadError::Http(format!("{method} {path} to {}: {e}", base.authority)))?;
-    parse_response(&raw).ok_or_else(|| LoadError::Http(format!("{method} {path}: malformed HTTP response")))
-}
-
-fn parse_response(raw: &[u8]) -> Option<Response> {
-    let split = raw.windows(4).position(|w| w == b"\r\n\r\n")?;
-    let head = std::str::from_utf8(&raw[..split]).ok()?;
-    let mut lines = head.split("\r\n");
-    let status = lines.next()?.split_whitespace().nth(1)?.parse().ok()?;
-    let headers: Vec<(String, String)> = lines
-        .filter_map(|l| l.split_once(':'))
-        .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
-        .collect();
-    let mut body = raw[split + 4..].to_vec();
-    if headers.iter().any(|(k, v)| k == "transfer-encoding" && v.contains("chunked")) {
-        body = dechunk(&body)?;
-    }
-    Some(Response { status, headers, body: String::from_utf8_lossy(&body).into_owned() })
-}
-
-fn dechunk(mut rest: &[u8]) -> Option<Vec<u8>> {
-    let mut out = Vec::new();
-    loop {
-        let end = rest.windows(2).position(|w| w == b"\r\n")?;
-        let size = usize::from_str_radix(std::str::from_utf8(&rest[..end]).ok()?.split(';').next()?.trim(), 16).ok()?;
-        rest = &rest[end + 2..];
-        if size == 0 {
-            return Some(out);
-        }
-        out.extend_from_slice(rest.get(..size)?);
-        rest = rest.get(size + 2..)?;
-    }
+    let url = format!("{}{path}", base.root);
+    let (method, body) = (method.to_owned(), body.to_owned());
+    let headers: Vec<(String, String)> = headers.iter().map(|(k, v)| ((*k).to_owned(), (*v).to_owned())).collect();
+    let what = format!("{method} {url}");
+    tokio::task::spawn_blocking(move || {
+        let headers: Vec<(&str, &str)> = headers.iter().map(|(k, v)| (k.as_str(), v.as_str())).collect();
+        request_blocking(&url, &method, &headers, &body, timeout)
+    })
+    .await
+    .map_err(|e| LoadError::Http(format!("{what}: the request task failed: {e}")))?
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
     #[test]
     fn urls_parse_or_fail_clearly() {
         let u = BaseUrl::parse("http://127.0.0.1:8080/").expect("url");
-        assert_eq!((u.authority.as_str(), u.prefix.as_str()), ("127.0.0.1:8080", ""));
-        let u = BaseUrl::parse("http://farm.example/nephele/?width=64").expect("url");
-        assert_eq!((u.authority.as_str(), u.prefix.as_str()), ("farm.example:80", "/nephele"));
-        assert!(BaseUrl::parse("https://x:1").is_err());
+        assert_eq!(u.root, "http://127.0.0.1:8080");
+        let u = BaseUrl::parse("https://farm.example/nephele/?width=64").expect("url");
+        assert_eq!(u.root, "https://farm.example/nephele");
+        assert!(BaseUrl::parse("ftp://x:1").is_err());
         assert!(BaseUrl::parse("http:///x").is_err());
         assert!(BaseUrl::parse("localhost:8080").is_err());
     }
 
-    #[test]
-    fn responses_parse_with_and_without_chunks() {
-        let r = parse_response(b"HTTP/1.1 503 Service Unavailable\r\nRetry-After: 2\r\ncontent-length: 2\r\n\r\n{}")
-            .expect("response");
+    /// A one-shot server on loopback answering `answer` to the first request it reads.
+    async fn serve_once(answer: &'static [u8]) -> (BaseUrl, tokio::task::JoinHandle<String>) {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
+        let base = BaseUrl::parse(&format!("http://{}/api", listener.local_addr().expect("addr"))).expect("url");
+        let server = tokio::spawn(async move {
+            let (mut socket, _) = listener.accept().await.expect("accept");
+            let mut seen = Vec::new();
+            let mut buf = [0u8; 4096];
+            while !seen.windows(4).any(|w| w == b"\r\n\r\n") {
+                let n = socket.read(&mut buf).await.expect("read");
+                if n == 0 {
+                    break;
+                }
+                seen.extend_from_slice(&buf[..n]);
+            }
+            socket.write_all(answer).await.expect("write");
+            socket.shutdown().await.ok();
+            String::from_utf8_lossy(&seen).into_owned()
+        });
+        (base, server)
+    }
+
+    #[tokio::test]
+    async fn error_statuses_are_answers_with_headers_and_chunked_bodies() {
+        let (base, server) =
+            serve_once(b"HTTP/1.1 503 Service Unavailable\r\nRetry-After: 2\r\nTransfer-Encoding: chunked\r\n\r\n2\r\n{}\r\n0\r\n\r\n")
+                .await;
+        let r =
+            request(&base, "DELETE", "/v1/sessions/7", &[("Authorization", "Bearer t")], "", Duration::from_secs(5))
+                .await
+                .expect("an answer");
         assert_eq!((r.status, r.header("retry-after"), r.body.as_str()), (503, Some("2"), "{}"));
-        let r = parse_response(b"HTTP/1.1 201 Created\r\nTransfer-Encoding: chunked\r\n\r\n2\r\n{}\r\n0\r\n\r\n")
-            .expect("response");
-        assert_eq!((r.status, r.body.as_str()), (201, "{}"));
-        assert!(parse_response(b"nonsense").is_none());
+        let seen = server.await.expect("server");
+        assert!(seen.starts_with("DELETE /api/v1/sessions/7 HTTP/1.1"), "{seen}");
+        assert!(seen.to_ascii_lowercase().contains("authorization: bearer t"), "{seen}");
+    }
+
+    #[tokio::test]
+    async fn a_silent_server_times_out_and_a_closed_port_fails() {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
+        let base = BaseUrl::parse(&format!("http://{}", listener.local_addr().expect("addr"))).expect("url");
+        let e =
+            request(&base, "POST", "/v1/sessions", &[], "{}", Duration::from_millis(300)).await.expect_err("timeout");
+        assert!(e.to_string().contains("no answer within"), "{e}");
+        drop(listener);
+        assert!(request(&base, "POST", "/v1/sessions", &[], "{}", Duration::from_secs(2)).await.is_err());
     }
 }

@@ -38,7 +38,7 @@ impl ScriptedOrbit {
         let offset = self.eye - self.target;
         let turned = glam::Quat::from_rotation_z(self.speed * t) * offset;
         (
-            look_at(self.target + turned, self.target, Vec3::Z),
+            world_to_camera(self.target + turned, self.target),
             perspective(self.fov_y_deg.to_radians(), aspect, 0.05, 1000.0),
         )
     }
@@ -62,30 +62,15 @@ impl ScriptedOrbit {
     }
 }
 
-/// World-to-camera matrix of an OpenGL camera at `eye` looking at `target` (as the browser
-/// client's `mat4.lookAt`).
-pub fn look_at(eye: Vec3, target: Vec3, up: Vec3) -> Mat4 {
-    let f = (target - eye).normalize();
-    let r = f.cross(up).normalize();
-    let u = r.cross(f);
-    Mat4::from_cols_array(&[
-        r.x,
-        u.x,
-        -f.x,
-        0.0,
-        r.y,
-        u.y,
-        -f.y,
-        0.0,
-        r.z,
-        u.z,
-        -f.z,
-        0.0,
-        -r.dot(eye),
-        -u.dot(eye),
-        f.dot(eye),
-        1.0,
-    ])
+/// World-to-camera (view) matrix of an OpenGL camera at `eye` looking at `target` with
+/// world +Z up, as the browser client's `mat4.lookAt` gives: the inverse of the workspace's
+/// one look-at. A camera looking straight down or up takes +Y as its up instead; `eye ==
+/// target` (no direction at all) keeps the world axes.
+pub fn world_to_camera(eye: Vec3, target: Vec3) -> Mat4 {
+    use nephele_geometry::camera::look_at_camera_to_world;
+    look_at_camera_to_world(eye, target, Vec3::Z)
+        .or_else(|_| look_at_camera_to_world(eye, target, Vec3::Y))
+        .map_or(Mat4::from_translation(-eye), |camera_to_world| camera_to_world.inverse())
 }
 
 /// OpenGL perspective projection (clip z in [-1, 1]), as WebXR and the browser client give.

@@ -1,5 +1,6 @@
 //! Neural building blocks for the learned kernels: the multiresolution hash-grid encoding,
-//! small fully-connected networks, input encodings and the Adam optimiser.
+//! small fully-connected networks, input encodings, image convolutions and the small U-Net
+//! of the global-illumination model ([`conv`], [`unet`]), and the Adam optimiser.
 //!
 //! `nephele-nn` depends on `nephele-geometry` only (its SplitMix64 seeds the weights); no
 //! kernel, asset format or trainer lives here: those compose these blocks.
@@ -25,16 +26,19 @@
 //! tests of each module.
 
 pub mod adam;
+pub mod conv;
 pub mod encoding;
 pub mod hashgrid;
 pub mod mlp;
 pub mod simd;
+pub mod unet;
 
 pub use adam::{Adam, AdamConfig};
 pub use encoding::{frequency_encode, frequency_encoded_len, sh_coefficient_count, sh_encode};
 pub use hashgrid::{FEATURES_PER_LEVEL, HashGrid, HashGridConfig};
 pub use mlp::{Activation, Mlp, MlpConfig, MlpWorkspace};
 pub use simd::SimdMode;
+pub use unet::{UNet, UNetConfig, UNetWorkspace};
 
 /// Invalid network configurations and mismatched buffers.
 #[derive(Debug, thiserror::Error, PartialEq)]

@@ -3,8 +3,8 @@
 //! [`Browser::start`] runs `chromedriver --port=P` as a child process (killed on drop), opens a
 //! WebDriver session with headless Chromium, and offers the few commands the tests need:
 //! navigate, run (async) scripts, tabs, the browser console, screenshots. The WebDriver
-//! calls are plain HTTP/1.1 on loopback, spoken here over `std::net` (a dozen JSON requests
-//! do not need an HTTP stack).
+//! calls are JSON over HTTP on loopback, through the workspace's one HTTP client
+//! (`nephele_loadgen::http`, on `ureq`).
 //!
 //! When a test panics while a [`Browser`] is alive, its drop saves a screenshot of every tab,
 //! the console log and chromedriver's log into the test's artifact folder and keeps that
@@ -14,8 +14,7 @@
 //! (the README's test command) installs them. `NEPHELE_CHROMIUM` and `NEPHELE_CHROMEDRIVER`
 //! override the binaries. A missing one is an error that says so, never a skipped test.
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::{SocketAddr, TcpListener};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -56,6 +55,8 @@ pub enum BrowserError {
     DriverStart(String),
     #[error("WebDriver I/O with chromedriver: {0}")]
     Io(#[from] std::io::Error),
+    #[error("WebDriver HTTP: {0}")]
+    Http(#[from] nephele_loadgen::LoadError),
     #[error("malformed WebDriver response: {0}")]
     Protocol(String),
     #[error("WebDriver {command}: {error}: {message}")]
@@ -236,18 +237,9 @@ impl Browser {
     /// One WebDriver command; returns its `value`.
     fn request(&self, method: &str, path: &str, body: Option<&Value>) -> Result<Value> {
         let body = body.map(|b| b.to_string()).unwrap_or_default();
-        let mut stream = TcpStream::connect_timeout(&self.addr, Duration::from_secs(5))?;
-        stream.set_read_timeout(Some(self.timeout))?;
-        stream.set_write_timeout(Some(self.timeout))?;
-        let head = format!(
-            "{method} {path} HTTP/1.1\r\nHost: {}\r\nContent-Type: application/json; charset=utf-8\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
-            self.addr,
-            body.len()
-        );
-        stream.write_all(head.as_bytes())?;
-        stream.write_all(body.as_bytes())?;
-        let raw = read_http_response(&mut stream)?;
-        let (status, response) = parse_http_response(&raw)?;
+        let url = format!("http://{}{path}", self.addr);
+        let answer = nephele_loadgen::http::request_blocking(&url, method, &[], &body, self.timeout)?;
+        let (status, response) = (answer.status, answer.body.into_bytes());
         let value: Value = serde_json::from_slice(&response).map_err(|e| {
             BrowserError::Protocol(format!("{method} {path}: {e}: {}", String::from_utf8_lossy(&response)))
         })?;
@@ -368,7 +360,10 @@ impl Browser {
     pub fn screenshot(&self) -> Result<Vec<u8>> {
         let value = self.request("GET", &self.session_path("/screenshot"), None)?;
         let text = value.as_str().ok_or_else(|| BrowserError::Protocol("screenshot is not a string".into()))?;
-        decode_base64(text).ok_or_else(|| BrowserError::Protocol("screenshot is not base64".into()))
+        use base64::Engine as _;
+        base64::engine::general_purpose::STANDARD
+            .decode(text)
+            .map_err(|e| BrowserError::Protocol(format!("screenshot is not base64: {e}")))
     }
 
     /// Saves screenshots of every tab and the console log into the artifact folder, keeps the
@@ -416,133 +411,9 @@ fn handles(value: &Value) -> Result<Vec<String>> {
         .ok_or_else(|| BrowserError::Protocol(format!("window handles {value}")))
 }
 
-/// Reads one HTTP/1.1 response: chromedriver keeps the connection open, so the end is found
-/// from `Content-Length` or the last chunk, not from EOF.
-fn read_http_response(stream: &mut impl Read) -> Result<Vec<u8>> {
-    let mut raw = Vec::new();
-    let mut buf = [0u8; 16 * 1024];
-    loop {
-        if let Some(split) = raw.windows(4).position(|w| w == b"\r\n\r\n") {
-            let head = String::from_utf8_lossy(&raw[..split]).to_ascii_lowercase();
-            let length = head
-                .split("\r\n")
-                .find_map(|l| l.strip_prefix("content-length:"))
-                .and_then(|v| v.trim().parse::<usize>().ok());
-            let chunked = head.split("\r\n").any(|l| l.starts_with("transfer-encoding:") && l.contains("chunked"));
-            let body = raw.len() - split - 4;
-            match (length, chunked) {
-                (Some(n), false) if body >= n => return Ok(raw),
-                (_, true) if raw.ends_with(b"0\r\n\r\n") => return Ok(raw),
-                _ => {}
-            }
-        }
-        let n = stream.read(&mut buf)?;
-        if n == 0 {
-            return Ok(raw);
-        }
-        raw.extend_from_slice(&buf[..n]);
-    }
-}
-
-/// Splits an HTTP/1.1 response into status and body (identity or chunked).
-fn parse_http_response(raw: &[u8]) -> Result<(u16, Vec<u8>)> {
-    let split = raw
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .ok_or_else(|| BrowserError::Protocol("no HTTP header end".into()))?;
-    let head = String::from_utf8_lossy(&raw[..split]);
-    let body = &raw[split + 4..];
-    let mut lines = head.split("\r\n");
-    let status = lines
-        .next()
-        .and_then(|l| l.split_whitespace().nth(1))
-        .and_then(|s| s.parse::<u16>().ok())
-        .ok_or_else(|| BrowserError::Protocol(format!("bad status line in {head:?}")))?;
-    let chunked = lines.any(|l| {
-        let l = l.to_ascii_lowercase();
-        l.starts_with("transfer-encoding:") && l.contains("chunked")
-    });
-    if !chunked {
-        return Ok((status, body.to_vec()));
-    }
-    let mut out = Vec::new();
-    let mut rest = body;
-    loop {
-        let line_end =
-            rest.windows(2).position(|w| w == b"\r\n").ok_or_else(|| BrowserError::Protocol("bad chunk".into()))?;
-        let size_text = String::from_utf8_lossy(&rest[..line_end]);
-        let size = usize::from_str_radix(size_text.split(';').next().unwrap_or("").trim(), 16)
-            .map_err(|_| BrowserError::Protocol(format!("bad chunk size {size_text:?}")))?;
-        rest = &rest[line_end + 2..];
-        if size == 0 {
-            return Ok((status, out));
-        }
-        if rest.len() < size + 2 {
-            return Err(BrowserError::Protocol("truncated chunk".into()));
-        }
-        out.extend_from_slice(&rest[..size]);
-        rest = &rest[size + 2..];
-    }
-}
-
-/// Standard base64 (with padding), as WebDriver screenshots come.
-fn decode_base64(text: &str) -> Option<Vec<u8>> {
-    let value = |c: u8| -> Option<u32> {
-        Some(match c {
-            b'A'..=b'Z' => c - b'A',
-            b'a'..=b'z' => c - b'a' + 26,
-            b'0'..=b'9' => c - b'0' + 52,
-            b'+' => 62,
-            b'/' => 63,
-            _ => return None,
-        } as u32)
-    };
-    let bytes: Vec<u8> = text.bytes().filter(|c| !c.is_ascii_whitespace()).collect();
-    if !bytes.len().is_multiple_of(4) {
-        return None;
-    }
-    let mut out = Vec::with_capacity(bytes.len() / 4 * 3);
-    for quad in bytes.chunks(4) {
-        let pad = quad.iter().rev().take_while(|&&c| c == b'=').count();
-        if pad > 2 {
-            return None;
-        }
-        let mut n = 0u32;
-        for &c in &quad[..4 - pad] {
-            n = (n << 6) | value(c)?;
-        }
-        n <<= 6 * pad as u32;
-        let three = [(n >> 16) as u8, (n >> 8) as u8, n as u8];
-        out.extend_from_slice(&three[..3 - pad]);
-    }
-    Some(out)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn base64_round_trips_known_values() {
-        assert_eq!(decode_base64("aGVsbG8=").as_deref(), Some(&b"hello"[..]));
-        assert_eq!(decode_base64("aGVsbG8h").as_deref(), Some(&b"hello!"[..]));
-        assert_eq!(decode_base64("aGk=").as_deref(), Some(&b"hi"[..]));
-        assert_eq!(decode_base64("aA==").as_deref(), Some(&b"h"[..]));
-        assert_eq!(decode_base64(""), Some(Vec::new()));
-        assert_eq!(decode_base64("a$=="), None);
-        assert_eq!(decode_base64("abc"), None);
-    }
-
-    #[test]
-    fn http_responses_parse_identity_and_chunked() {
-        let identity = b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\n{}";
-        assert_eq!(parse_http_response(identity).ok(), Some((200, b"{}".to_vec())));
-        let chunked =
-            b"HTTP/1.1 404 Not Found\r\nTransfer-Encoding: chunked\r\n\r\n3\r\n{\"a\r\n4\r\n\":1}\r\n0\r\n\r\n";
-        assert_eq!(parse_http_response(chunked).ok(), Some((404, br#"{"a":1}"#.to_vec())));
-        assert!(parse_http_response(b"garbage").is_err());
-        assert!(parse_http_response(b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\nzz\r\n").is_err());
-    }
 
     #[test]
     fn a_missing_driver_is_a_clear_error_that_names_the_fix() {

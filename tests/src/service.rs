@@ -168,21 +168,15 @@ impl Drop for UpService {
     }
 }
 
-/// A blocking `GET` of a JSON endpoint on loopback (`Connection: close`).
+/// A blocking `GET` of a JSON endpoint on loopback.
 pub fn get_json(addr: SocketAddr, path: &str) -> Result<serde_json::Value, String> {
-    use std::io::{Read, Write};
-    let mut stream = std::net::TcpStream::connect_timeout(&addr, Duration::from_secs(2))
-        .map_err(|e| format!("connecting to {addr}: {e}"))?;
-    stream.set_read_timeout(Some(Duration::from_secs(5))).map_err(|e| e.to_string())?;
-    write!(stream, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n").map_err(|e| e.to_string())?;
-    let mut raw = Vec::new();
-    stream.read_to_end(&mut raw).map_err(|e| format!("reading {path}: {e}"))?;
-    let text = String::from_utf8_lossy(&raw);
-    let (head, body) = text.split_once("\r\n\r\n").ok_or_else(|| format!("{path}: no HTTP header end"))?;
-    if !head.starts_with("HTTP/1.1 200") {
-        return Err(format!("{path}: {}", head.lines().next().unwrap_or_default()));
+    let url = format!("http://{addr}{path}");
+    let r = nephele_loadgen::http::request_blocking(&url, "GET", &[], "", Duration::from_secs(5))
+        .map_err(|e| e.to_string())?;
+    if r.status != 200 {
+        return Err(format!("{path}: status {}", r.status));
     }
-    serde_json::from_str(body).map_err(|e| format!("{path}: {e}"))
+    serde_json::from_str(&r.body).map_err(|e| format!("{path}: {e}"))
 }
 
 impl UpService {

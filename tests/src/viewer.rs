@@ -10,8 +10,6 @@ use std::time::Duration;
 use bytes::Bytes;
 use openh264::formats::YUVSource;
 use thiserror::Error;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
 use tokio::sync::mpsc;
 use webrtc::api::setting_engine::SettingEngine;
 use webrtc::data_channel::RTCDataChannel;
@@ -68,7 +66,8 @@ pub struct ClientOptions {
     pub mdns_candidates: bool,
 }
 
-/// Minimal HTTP/1.1 request on a fresh connection; returns (status, body).
+/// One request to the service's HTTP API through the workspace's one client; returns
+/// (status, body).
 pub async fn http_request(
     addr: SocketAddr,
     method: &str,
@@ -76,26 +75,12 @@ pub async fn http_request(
     headers: &[(&str, &str)],
     body: &str,
 ) -> Result<(u16, String), ClientError> {
-    let io = |e: std::io::Error| ClientError::Http(format!("{method} {path}: {e}"));
-    let mut s = TcpStream::connect(addr).await.map_err(io)?;
-    let mut req =
-        format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
-    for (k, v) in headers {
-        req.push_str(&format!("{k}: {v}\r\n"));
-    }
-    req.push_str("Content-Type: application/json\r\n\r\n");
-    req.push_str(body);
-    s.write_all(req.as_bytes()).await.map_err(io)?;
-    let mut out = Vec::new();
-    s.read_to_end(&mut out).await.map_err(io)?;
-    let out = String::from_utf8_lossy(&out);
-    let status = out
-        .split_whitespace()
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .ok_or_else(|| ClientError::Http(format!("bad response: {out}")))?;
-    let body = out.split_once("\r\n\r\n").map(|x| x.1.to_string()).unwrap_or_default();
-    Ok((status, body))
+    let base = nephele_loadgen::http::BaseUrl::parse(&format!("http://{addr}"))
+        .map_err(|e| ClientError::Http(e.to_string()))?;
+    let r = nephele_loadgen::http::request(&base, method, path, headers, body, Duration::from_secs(30))
+        .await
+        .map_err(|e| ClientError::Http(e.to_string()))?;
+    Ok((r.status, r.body))
 }
 
 /// A connected headless viewer.

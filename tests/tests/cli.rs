@@ -189,3 +189,32 @@ fn bench_reference_runs_on_a_tiny_image() {
     ]);
     assert!(text.contains("tri/ray") && text.contains("furnace"), "{text}");
 }
+
+/// `nephele dataset gi` for both lightings, then again: the second run finds every frame and
+/// renders none; other settings in the same folder are refused with a clear message.
+#[test]
+fn dataset_gi_renders_both_lightings_and_resumes() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("gi");
+    let out_str = out.to_str().expect("utf-8 path");
+    let args =
+        ["dataset", "gi", "--single", "2", "--stereo-pairs", "1", "--size", "16x12", "--spp", "2", "--out", out_str];
+    let first = nephele_ok(&args);
+    assert!(first.contains("day: 4 frames rendered, 0 already there"), "{first}");
+    assert!(first.contains("night: 4 frames rendered, 0 already there"), "{first}");
+    for lighting in ["day", "night"] {
+        let manifest = nephele_train::gi::data::read_manifest(&out.join(lighting)).expect("manifest");
+        assert_eq!(manifest.spec.scene, format!("room-{lighting}"));
+        for frame in &manifest.frames {
+            let buffers = nephele_train::gi::data::load_frame(&out.join(lighting), frame).expect("frame loads");
+            assert_eq!((buffers.width, buffers.height), (16, 12));
+        }
+    }
+    let again = nephele_ok(&args);
+    assert!(again.contains("day: 0 frames rendered, 4 already there"), "{again}");
+    let err =
+        nephele_err(&["dataset", "gi", "--lighting", "day", "--single", "3", "--size", "16x12", "--out", out_str]);
+    assert!(err.contains("other settings"), "{err}");
+    let err = nephele_err(&["dataset", "gi", "--lighting", "dusk", "--out", out_str]);
+    assert!(err.contains("dusk"), "{err}");
+}

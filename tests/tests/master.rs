@@ -12,7 +12,7 @@
 //!   and recovery once it leaves.
 
 use std::collections::{HashMap, HashSet};
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, BufReader};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdout, Command, ExitStatus, Stdio};
@@ -129,7 +129,7 @@ fn start_worker(farm: SocketAddr, assets: &Path, name: &str, log: &Path) -> Proc
 }
 
 // ---------------------------------------------------------------------------------------
-// HTTP/1.1 over a plain socket
+// HTTP through the workspace's one client
 
 struct Response {
     status: u16,
@@ -138,32 +138,10 @@ struct Response {
 }
 
 fn http(addr: SocketAddr, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> Response {
-    let mut stream = TcpStream::connect(addr).expect("connect to the master's HTTP port");
-    stream.set_read_timeout(Some(WAIT)).expect("timeout");
-    let mut request =
-        format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n", body.len());
-    if !body.is_empty() {
-        request.push_str("Content-Type: application/json\r\n");
-    }
-    for (name, value) in headers {
-        request.push_str(&format!("{name}: {value}\r\n"));
-    }
-    request.push_str("\r\n");
-    request.push_str(body);
-    stream.write_all(request.as_bytes()).expect("send request");
-    let mut raw = Vec::new();
-    stream.read_to_end(&mut raw).expect("read response");
-    let text = String::from_utf8_lossy(&raw);
-    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
-    let mut lines = head.lines();
-    let status =
-        lines.next().and_then(|l| l.split_whitespace().nth(1)).and_then(|s| s.parse().ok()).expect("status line");
-    let headers = lines
-        .filter_map(|l| l.split_once(':'))
-        .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
-        .collect();
-    let body = serde_json::from_str(body).unwrap_or(Value::Null);
-    Response { status, headers, body }
+    let url = format!("http://{addr}{path}");
+    let r = nephele_loadgen::http::request_blocking(&url, method, headers, body, WAIT).expect("an HTTP answer");
+    let body = serde_json::from_str(&r.body).unwrap_or(Value::Null);
+    Response { status: r.status, headers: r.headers.into_iter().collect(), body }
 }
 
 fn farm_state(master: &MasterProcess) -> Value {

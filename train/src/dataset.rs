@@ -34,6 +34,8 @@ use glam::{DVec3, Mat4, Vec3, Vec4};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use nephele_geometry::SplitMix64;
+use nephele_geometry::camera::look_at_camera_to_world;
 use nephele_imaging::image::{FloatImage, ImageError, RgbaImage};
 
 /// Tolerance on the last row of a `transform_matrix` being `(0, 0, 0, 1)`.
@@ -497,45 +499,10 @@ pub fn write_split(dir: &Path, split: &str, camera_angle_x: f32, views: &[View])
     write_transforms(&json, &transforms)
 }
 
-/// SplitMix64 (Steele, Lea and Flood), enough for reproducible view sampling.
-#[derive(Debug, Clone)]
-struct SplitMix64(u64);
-
-impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `[0, 1)` with 53 random bits.
-    fn next_f64(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
-    }
-}
-
 /// Largest `|cos|` of the angle between a sampled view direction and the world Z axis:
 /// directions are kept about 0.8 degrees away from the poles so that the world up vector is
 /// never parallel to the view direction and the camera's horizontal axis stays defined.
 const MAX_ABS_Z: f64 = 0.9999;
-
-/// Camera-to-world matrix of a camera at `eye` looking at `target` with no roll: camera +X
-/// is horizontal (perpendicular to world +Z), camera +Y points upwards. `eye - target` must
-/// not be parallel to Z.
-fn look_at_z_up(eye: DVec3, target: DVec3) -> Mat4 {
-    // Camera +Z points from the target to the eye (the camera looks down -Z).
-    let back = (eye - target).normalize();
-    let right = DVec3::Z.cross(back).normalize();
-    let up = back.cross(right);
-    Mat4::from_cols(
-        right.as_vec3().extend(0.0),
-        up.as_vec3().extend(0.0),
-        back.as_vec3().extend(0.0),
-        eye.as_vec3().extend(1.0),
-    )
-}
 
 /// `count` camera-to-world matrices of cameras at distance `radius` (positive) from `target`,
 /// looking at it with no roll (OpenGL camera, world +Z up), their directions independently
@@ -549,7 +516,7 @@ pub fn sample_views_on_sphere(
     upper_hemisphere_only: bool,
     seed: u64,
 ) -> Vec<Mat4> {
-    let mut rng = SplitMix64(seed);
+    let mut rng = SplitMix64::new(seed);
     let target = target.as_dvec3();
     let radius = f64::from(radius);
     (0..count)
@@ -560,7 +527,10 @@ pub fn sample_views_on_sphere(
             let phi = std::f64::consts::TAU * rng.next_f64();
             let s = (1.0 - z * z).max(0.0).sqrt();
             let dir = DVec3::new(s * phi.cos(), s * phi.sin(), z);
-            look_at_z_up(target + radius * dir, target)
+            let eye = (target + radius * dir).as_vec3();
+            // Not parallel to +Z (clamped above); a zero radius (eye == target) keeps the
+            // world axes.
+            look_at_camera_to_world(eye, target.as_vec3(), Vec3::Z).unwrap_or(Mat4::from_translation(eye))
         })
         .collect()
 }
@@ -897,12 +867,10 @@ mod tests {
     #[test]
     fn poles_are_avoided() {
         // Directions right at the pole would leave +X undefined; they are clamped instead.
-        let m = look_at_z_up(
-            DVec3::new(0.0, 0.0, 1.0) * MAX_ABS_Z + DVec3::X * (1.0 - MAX_ABS_Z * MAX_ABS_Z).sqrt(),
-            DVec3::ZERO,
-        );
+        let eye = DVec3::new(0.0, 0.0, 1.0) * MAX_ABS_Z + DVec3::X * (1.0 - MAX_ABS_Z * MAX_ABS_Z).sqrt();
+        let m = look_at_camera_to_world(eye.as_vec3(), Vec3::ZERO, Vec3::Z).expect("defined at the clamp");
         assert!(m.is_finite());
-        let mut rng = SplitMix64(0);
+        let mut rng = SplitMix64::new(0);
         assert!((0..1000).all(|_| (0.0..1.0).contains(&rng.next_f64())));
     }
 }

@@ -4,12 +4,14 @@
 //! * [`synth`]: datasets of a scene rendered by the reference path tracer;
 //! * [`ngp`]: training the i-NGP-style radiance field (the baseline, and the density field
 //!   i-NOLF caches);
-//! * [`inolf`]: training the i-NOLF heads and baking the asset.
+//! * [`inolf`]: training the i-NOLF heads and baking the asset;
+//! * [`gi`]: G-buffer datasets for the stereo global-illumination model.
 //!
 //! Depends on every library below it (geometry, imaging, the path tracer, the neural
 //! blocks, the kernels); nothing at run time (worker, master, composer) depends on it.
 
 pub mod dataset;
+pub mod gi;
 pub mod inolf;
 pub mod ngp;
 pub mod synth;

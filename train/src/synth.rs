@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use glam::{Mat4, Vec3};
-use nephele_geometry::camera::{Camera, CameraError};
+use nephele_geometry::camera::{Camera, CameraError, look_at_camera_to_world};
 use nephele_imaging::image::ImageError;
 use nephele_pathtracer::integrator::Aov;
 use nephele_pathtracer::sampling::Rng;
@@ -132,19 +132,16 @@ pub fn view_poses(scene: &BuiltinScene, count: usize, allow_hemisphere: bool, se
                     let spread = Vec3::new(rng.next_f32() - 0.5, rng.next_f32() - 0.5, 0.3 * (rng.next_f32() - 0.5))
                         * (max - min);
                     let target = look_at + spread;
-                    look_at_matrix(eye, if (target - eye).length() < 0.1 { look_at } else { target })
+                    let target = if (target - eye).length() < 0.1 { look_at } else { target };
+                    // A view straight up or down (a spread that lines up with +Z) keeps
+                    // +Y as its up; eye == target cannot happen (checked just above).
+                    look_at_camera_to_world(eye, target, Vec3::Z)
+                        .or_else(|_| look_at_camera_to_world(eye, target, Vec3::Y))
+                        .unwrap_or(Mat4::from_translation(eye))
                 })
                 .collect()
         }
     }
-}
-
-/// Camera-to-world for a camera at `eye` looking at `target` with +Z up (OpenGL camera axes).
-fn look_at_matrix(eye: Vec3, target: Vec3) -> Mat4 {
-    let forward = (target - eye).normalize_or(Vec3::Y);
-    let right = forward.cross(Vec3::Z).normalize_or(Vec3::X);
-    let up = right.cross(forward);
-    Mat4::from_cols(right.extend(0.0), up.extend(0.0), (-forward).extend(0.0), eye.extend(1.0))
 }
 
 #[cfg(test)]

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use nephele_pathtracer::scenes::BuiltinScene;
 use nephele_train::dataset;
+use nephele_train::gi::data::{GiSpec, render_gi_dataset};
 use nephele_train::synth::{DatasetSpec, render_dataset};
 
 use crate::progress::Progress;
@@ -17,6 +18,44 @@ pub enum Command {
     Render(RenderArgs),
     /// Load a dataset (as training would) and summarise it.
     Info(InfoArgs),
+    /// Render a dataset for the stereo global-illumination model of the room: per frame the
+    /// G-buffer a rasteriser would have (position, normal, albedo, depth), the direct light
+    /// (shadow rays) and the path-traced global illumination as the target, as float EXRs
+    /// with a gi.json manifest. Single-eye frames train the model; stereo pairs (IPD drawn
+    /// from 55-70 mm) are for evaluation only. The floor ball rolls: each frame is a moment
+    /// of the animation. Resumes an interrupted run of the same settings.
+    Gi(GiArgs),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct GiArgs {
+    /// Lighting: `day` (room-day), `night` (room-night) or `both` (one subfolder each).
+    #[arg(long, default_value = "both", value_parser = ["day", "night", "both"])]
+    lighting: String,
+    /// Single-eye training frames per lighting.
+    #[arg(long, default_value_t = 160)]
+    single: usize,
+    /// Stereo pairs per lighting, for evaluation.
+    #[arg(long, default_value_t = 16)]
+    stereo_pairs: usize,
+    /// Image size per eye.
+    #[arg(long, default_value = "128x128", value_parser = super::parse_size)]
+    size: (u32, u32),
+    /// Vertical field of view, degrees.
+    #[arg(long, default_value_t = 70.0)]
+    fov_deg: f32,
+    /// Samples per pixel of the path-traced target.
+    #[arg(long, default_value_t = 256)]
+    spp: u32,
+    /// Longest path in bounces.
+    #[arg(long, default_value_t = 6)]
+    bounces: u32,
+    /// Seed of the views, the animation times, the IPDs and the path tracer.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output folder (created; `day/` and `night/` inside it).
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Debug, clap::Args)]
@@ -69,6 +108,7 @@ pub fn run(command: Command, progress: &Progress) -> Result<()> {
     match command {
         Command::Render(args) => render(args, progress),
         Command::Info(args) => info(args),
+        Command::Gi(args) => gi(args, progress),
     }
 }
 
@@ -121,6 +161,46 @@ pub(crate) fn render_into(
         spec.spp,
         out.display()
     );
+    Ok(())
+}
+
+fn gi(args: GiArgs, progress: &Progress) -> Result<()> {
+    let lightings: &[&str] = match args.lighting.as_str() {
+        "day" => &["day"],
+        "night" => &["night"],
+        _ => &["day", "night"],
+    };
+    for lighting in lightings {
+        let spec = GiSpec {
+            scene: format!("room-{lighting}"),
+            single: args.single,
+            stereo_pairs: args.stereo_pairs,
+            width: args.size.0,
+            height: args.size.1,
+            fov_y: args.fov_deg.to_radians(),
+            spp: args.spp,
+            bounces: args.bounces,
+            seed: args.seed,
+        };
+        spec.validate()?;
+        let out = args.out.join(lighting);
+        let frames = (spec.single + 2 * spec.stereo_pairs) as u64;
+        let bar = progress.bar(frames * u64::from(spec.height), &format!("GI dataset, {lighting}"), "rows");
+        let report = render_gi_dataset(&spec, &out, &|rows| bar.inc(u64::from(rows)))
+            .with_context(|| format!("rendering the {lighting} GI dataset into {}", out.display()))?;
+        bar.finish_and_clear();
+        println!(
+            "{lighting}: {} frames rendered, {} already there: {} single-eye and {} stereo pairs at {}x{}, {} spp, in {}",
+            report.rendered,
+            report.skipped,
+            spec.single,
+            spec.stereo_pairs,
+            spec.width,
+            spec.height,
+            spec.spp,
+            out.display()
+        );
+    }
     Ok(())
 }
 

@@ -1,7 +1,6 @@
 //! `nephele up`: the whole service on one machine, as child processes of this executable.
 
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::net::{SocketAddr, TcpListener};
 use std::path::PathBuf;
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -66,18 +65,14 @@ fn free_port() -> Result<SocketAddr> {
     listener.local_addr().context("finding a free port")
 }
 
-/// A minimal blocking `GET`, enough for the master's JSON endpoints.
+/// A blocking `GET` of one of the master's JSON endpoints (the workspace's one HTTP client).
 fn http_get(addr: SocketAddr, path: &str) -> Result<String> {
-    let mut stream = TcpStream::connect_timeout(&addr, Duration::from_secs(2))?;
-    stream.set_read_timeout(Some(Duration::from_secs(5)))?;
-    write!(stream, "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n")?;
-    let mut text = String::new();
-    stream.read_to_string(&mut text)?;
-    let (head, body) = text.split_once("\r\n\r\n").context("malformed HTTP answer")?;
-    if !head.starts_with("HTTP/1.1 200") {
-        bail!("{path}: {}", head.lines().next().unwrap_or_default());
+    let url = format!("http://{addr}{path}");
+    let response = nephele_loadgen::http::request_blocking(&url, "GET", &[], "", Duration::from_secs(5))?;
+    if response.status != 200 {
+        bail!("GET {path}: status {}", response.status);
     }
-    Ok(body.to_owned())
+    Ok(response.body)
 }
 
 /// `(composer registered, workers registered)` from the master's `GET /v1/farm`.

@@ -23,6 +23,7 @@
 //! Each slot stores its voxel's key, so a query for an unoccupied voxel is rejected instead
 //! of aliasing onto some occupied voxel's data.
 
+use nephele_geometry::SplitMix64;
 use thiserror::Error;
 
 /// Largest grid side the keys can hold (10 bits per axis).
@@ -144,20 +145,6 @@ fn admissible_r(mut r: u32, m: u32, u: u32) -> u32 {
     r
 }
 
-/// SplitMix64, for the deterministic search start positions.
-#[derive(Debug)]
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-}
-
 impl PshTable {
     /// Builds the perfect hash of `points` (voxels of a `u^3` grid; duplicates are ignored).
     pub fn build(u: u32, points: &[[u32; 3]], options: &PshOptions) -> Result<(PshTable, PshBuildStats), PshError> {
@@ -185,7 +172,7 @@ impl PshTable {
         }
         let mut r = admissible_r((f64::from(options.sigma) * n as f64).cbrt().ceil() as u32, m, u);
         let mut stats = PshBuildStats::default();
-        let mut rng = Rng(options.seed);
+        let mut rng = SplitMix64::new(options.seed);
         for attempt in 1..=options.max_attempts.max(1) {
             if r > MAX_TABLE_SIDE {
                 return Err(PshError::TooLarge(r));
@@ -208,7 +195,7 @@ impl PshTable {
         r: u32,
         points: &[[u32; 3]],
         options: &PshOptions,
-        rng: &mut Rng,
+        rng: &mut SplitMix64,
         stats: &mut PshBuildStats,
     ) -> Option<PshTable> {
         let (mu, ru) = (m as usize, r as usize);
@@ -293,7 +280,7 @@ impl PshTable {
                 if len == 0 {
                     return None;
                 }
-                let first = (rng.next() % len as u64) as usize;
+                let first = (rng.next_u64() % len as u64) as usize;
                 for i in 0..len {
                     let s = free[(first + i) % len] as usize;
                     if slots[s] != EMPTY_KEY {
@@ -506,10 +493,10 @@ mod tests {
             seed in any::<u64>(),
             factor in 1.0f32..1.6,
         ) {
-            let mut rng = Rng(seed);
+            let mut rng = SplitMix64::new(seed);
             let mut points = Vec::new();
             for z in 0..u { for y in 0..u { for x in 0..u {
-                if (rng.next() >> 11) as f64 / (1u64 << 53) as f64 <= density * density {
+                if rng.next_f64() <= density * density {
                     points.push([x, y, z]);
                 }
             }}}
@@ -523,9 +510,9 @@ mod tests {
 
         #[test]
         fn random_sparse_points_in_large_grid(seed in any::<u64>(), n in 0usize..3000) {
-            let mut rng = Rng(seed);
+            let mut rng = SplitMix64::new(seed);
             let points: Vec<[u32; 3]> = (0..n).map(|_| {
-                let v = rng.next();
+                let v = rng.next_u64();
                 [(v % 1024) as u32, ((v >> 10) % 1024) as u32, ((v >> 20) % 1024) as u32]
             }).collect();
             let (table, _) = PshTable::build(1024, &points, &PshOptions { seed, ..PshOptions::default() }).expect("build");

@@ -203,6 +203,26 @@ pub fn load(name_or_path: &str) -> Result<BuiltinScene, SceneLookupError> {
     builtin(name_or_path)
 }
 
+/// Names of the built-in scenes that move ([`builtin_at`] gives them at a time).
+pub const ANIMATED: [&str; 2] = ["room-day", "room-night"];
+
+/// The built-in scene `name` at `time` seconds into its animation: in the rooms the floor
+/// ball rolls around a loop ([`BALL_PERIOD_S`] seconds); the other scenes are still and
+/// ignore `time`. `builtin_at(name, 0.0)` is `builtin(name)`.
+pub fn builtin_at(name: &str, time: f32) -> Result<BuiltinScene, SceneLookupError> {
+    match CATALOGUE.iter().find(|(n, _)| *n == name) {
+        Some(&(name, description)) if time != 0.0 && ANIMATED.contains(&name) => {
+            let scene = room::room(name == "room-night", time)
+                .map_err(|e| SceneLookupError::Build { name, reason: e.to_string() })?;
+            Ok(BuiltinScene { name, description, scene, framing: room::framing() })
+        }
+        _ => builtin(name),
+    }
+}
+
+/// Seconds the rooms' floor ball takes to roll once around its loop.
+pub const BALL_PERIOD_S: f32 = room::BALL_PERIOD_S;
+
 /// Builds the built-in scene called `name` (see [`names`]).
 pub fn builtin(name: &str) -> Result<BuiltinScene, SceneLookupError> {
     let Some(&(name, description)) = CATALOGUE.iter().find(|(n, _)| *n == name) else {
@@ -221,8 +241,8 @@ fn build(name: &str) -> Result<(Scene, Framing), BuildFailure> {
             objects::FUR_CORE_RADIUS + objects::FUR.max_length + 0.03,
         ),
         "shell" => object(objects::glass_shell()?, objects::SHELL_RADIUS + 0.05),
-        "room-day" => Ok((room::room(false)?, room::framing())),
-        "room-night" => Ok((room::room(true)?, room::framing())),
+        "room-day" => Ok((room::room(false, 0.0)?, room::framing())),
+        "room-night" => Ok((room::room(true, 0.0)?, room::framing())),
         "assembly" => {
             let framing = Framing::Object {
                 center: ASSEMBLY_CENTER,
@@ -552,6 +572,36 @@ mod tests {
         let t = (-2.0 - start.y) / sun.direction.y;
         let exit = start + sun.direction * t;
         assert!(room::WINDOWS.iter().any(|w| exit.x > w[0] && exit.x < w[1] && exit.z > w[2] && exit.z < w[3]));
+    }
+
+    #[test]
+    fn the_rooms_ball_rolls_and_the_rest_stays() {
+        let still = builtin("room-day").expect("ok");
+        let at_zero = builtin_at("room-day", 0.0).expect("ok");
+        assert_eq!(still.scene.mesh.positions, at_zero.scene.mesh.positions);
+        let later = builtin_at("room-day", 1.5).expect("ok");
+        let (a, b) = (&still.scene.mesh.positions, &later.scene.mesh.positions);
+        assert_eq!(a.len(), b.len(), "same triangles, moved");
+        let moved = a.iter().zip(b).filter(|(p, q)| p != q).count();
+        let ball_vertices = shapes::icosphere(0.25, 4).expect("ball").positions.len();
+        assert_eq!(moved, ball_vertices, "only the ball moves ({} vertices in all)", a.len());
+        // Every moved vertex lies on the ball at its new centre; all along the loop the ball
+        // stays on the floor, inside the walls and clear of the table legs (6 cm square
+        // posts at (0.3 +- 0.62, 0.3 +- 0.32)).
+        let centre = room::ball_centre(1.5);
+        assert!(b.iter().zip(a).filter(|(q, p)| p != q).all(|(q, _)| ((*q - centre).length() - 0.25).abs() < 0.01));
+        for i in 0..64 {
+            let c = room::ball_centre(i as f32 * BALL_PERIOD_S / 64.0);
+            assert!(c.z - 0.25 >= 0.0 && c.y - 0.25 > -room::HALF_Y && c.x.abs() + 0.25 < room::HALF_X);
+            for (sx, sy) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)] {
+                let leg = glam::Vec2::new(0.3 + sx * 0.62, 0.3 + sy * 0.32);
+                assert!((c.truncate() - leg).length() > 0.25 + 0.045, "touches a leg at {c}");
+            }
+        }
+        // Periodic, and the still scenes do not move.
+        assert!((room::ball_centre(BALL_PERIOD_S + 0.3) - room::ball_centre(0.3)).length() < 1e-4);
+        let knot = builtin_at("diffuse", 2.0).expect("ok");
+        assert_eq!(knot.scene.mesh.positions, builtin("diffuse").expect("ok").scene.mesh.positions);
     }
 
     #[test]

@@ -97,8 +97,19 @@ fn turned(angle_z: f32, x: f32, y: f32, z: f32) -> Affine3A {
 /// Height of the table top.
 const TABLE_TOP: f32 = 0.76;
 
-/// Furniture that is the same by day and by night.
-fn furniture() -> Result<Vec<(Mesh, Affine3A, Material)>, ShapeError> {
+/// Seconds the floor ball takes to roll once around its loop.
+pub(crate) const BALL_PERIOD_S: f32 = 8.0;
+
+/// Centre of the floor ball `time` seconds into the animation: an ellipse on the sunny part
+/// of the floor (0.6 m by 0.5 m half-axes, clear of the table legs), passing through the
+/// still scene's ball position at `time = 0`.
+pub(crate) fn ball_centre(time: f32) -> Vec3 {
+    let phase = std::f32::consts::TAU * (time / BALL_PERIOD_S).fract();
+    Vec3::new(0.3 + 0.6 * phase.cos(), -0.7 + 0.5 * phase.sin(), 0.25)
+}
+
+/// Furniture that is the same by day and by night; the floor ball where it is at `time`.
+fn furniture(time: f32) -> Result<Vec<(Mesh, Affine3A, Material)>, ShapeError> {
     let wood = Material::lambertian(Vec3::new(0.42, 0.25, 0.12));
     let (tx, ty) = (0.3, 0.3);
     let mut items = vec![(shapes::cuboid(Vec3::new(1.4, 0.8, 0.05))?, at(tx, ty, TABLE_TOP - 0.025), wood)];
@@ -129,7 +140,12 @@ fn furniture() -> Result<Vec<(Mesh, Affine3A, Material)>, ShapeError> {
         turned(-0.35, -1.8, 1.28, 0.8),
         Material::lambertian(Vec3::new(0.25, 0.42, 0.6)),
     ));
-    items.push((shapes::icosphere(0.25, 4)?, at(0.9, -0.7, 0.25), Material::lambertian(Vec3::new(0.85, 0.65, 0.15))));
+    let ball = ball_centre(time);
+    items.push((
+        shapes::icosphere(0.25, 4)?,
+        at(ball.x, ball.y, ball.z),
+        Material::lambertian(Vec3::new(0.85, 0.65, 0.15)),
+    ));
     // The ceiling lamp's housing and the table lamp's base and stem.
     items.push((
         shapes::cuboid(Vec3::new(0.7, 0.5, 0.06))?,
@@ -147,11 +163,13 @@ pub(crate) const CEILING_LAMP: Vec3 = Vec3::new(20.0, 18.0, 14.0);
 /// Radiance of the table lamp's bulb by night.
 pub(crate) const TABLE_LAMP: Vec3 = Vec3::new(12.0, 9.0, 5.0);
 
-pub(crate) fn room(night: bool) -> Result<Scene, BuildFailure> {
+/// The room by day or by night, `time` seconds into its animation (the floor ball rolls; the
+/// still scenes are `time = 0`).
+pub(crate) fn room(night: bool, time: f32) -> Result<Scene, BuildFailure> {
     let mut b = SceneBuilder::new();
     let shell: Parts = shell()?.into();
     add_parts(&mut b, &shell, Affine3A::IDENTITY);
-    for (mesh, transform, material) in furniture()? {
+    for (mesh, transform, material) in furniture(time)? {
         b.add(&mesh, transform, material);
     }
     // The lamps are diffusers by day and area lights (front faces only) by night: the

@@ -1,5 +1,11 @@
 //! End to end on an analytic object: density cubes of a sphere, views rendered
 //! analytically, training, baking, the asset round trip and the kernel's hard cases.
+//!
+//! Most tests here put the chain together from its stages on purpose: an analytic density
+//! stands in for the radiance field, so that what the heads learn and what the asset renders
+//! can be checked against a known answer. The library's whole bake, [`super::pipeline::bake`]
+//! (what `nephele bake` and the first start call), has its own test at the end on a small
+//! path-traced dataset.
 
 use std::sync::OnceLock;
 
@@ -326,4 +332,94 @@ fn meta_that_disagrees_with_the_weights_is_rejected() {
     garbage.meta = "{\"format\": \"something else\"}".into();
     assert!(InolfKernel::from_asset(garbage).is_err());
     assert!(InolfKernel::from_asset(asset).is_ok());
+}
+
+/// Stages a bake reported, in order, and whether the trained field was handed over.
+#[derive(Debug, Default)]
+struct Recorder {
+    stages: Vec<String>,
+    summaries: Vec<String>,
+    field_handed_over: bool,
+}
+
+impl super::pipeline::BakeProgress for Recorder {
+    fn stage(&mut self, name: &str, _: u64, _: &str) {
+        self.stages.push(name.to_string());
+    }
+    fn advance(&mut self, done: u64, total: u64, _: &str) {
+        assert!(done <= total, "progress {done} of {total}");
+    }
+    fn finished(&mut self, summary: String) {
+        self.summaries.push(summary);
+    }
+    fn field_trained(&mut self, _: &nephele_kernels::ngp::RadianceField) {
+        self.field_handed_over = true;
+    }
+}
+
+/// `bake(dataset, recipe)` as the CLI calls it, on a small path-traced dataset of a built-in
+/// object: every stage reports, the asset renders the views it was baked from much better
+/// than an empty frame does, and a second bake from the returned field trains no field.
+#[test]
+fn the_library_bake_turns_posed_images_into_an_asset() {
+    use super::pipeline::{BakeRecipe, bake};
+    use crate::synth::{DatasetSpec, render_dataset};
+    use nephele_imaging::metrics::psnr;
+    use nephele_kernels::kernel::frame_to_image;
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    let scene = nephele_pathtracer::scenes::builtin("diffuse").expect("scene");
+    let spec = DatasetSpec {
+        views: 16,
+        test_views: 0,
+        width: 32,
+        height: 32,
+        spp: 2,
+        bounces: 2,
+        seed: 0,
+        full_sphere: false,
+        depth: false,
+    };
+    render_dataset(scene, &spec, dir.path(), &|_| {}).expect("dataset");
+    let data = crate::dataset::load_split(dir.path(), "train", 1).expect("load");
+    let recipe = BakeRecipe {
+        field_steps: 60,
+        field_table_log2: 12,
+        field_levels: 6,
+        field_finest: 64,
+        field_samples: 1 << 12,
+        head_steps: 80,
+        batch: 512,
+        cubes: 16,
+        cube_res: 4,
+        psh_res: 48,
+        ..BakeRecipe::default()
+    };
+    let mut progress = Recorder::default();
+    let baked = bake(&data, "tiny diffuse", &recipe, None, &mut progress).expect("bake");
+    assert_eq!(progress.stages, ["radiance field", "density cubes", "i-NOLF heads"]);
+    assert_eq!(progress.summaries.len(), 5, "{:?}", progress.summaries);
+    assert!(progress.field_handed_over);
+
+    let meta: serde_json::Value = serde_json::from_str(&baked.asset.meta).expect("meta is JSON");
+    assert_eq!(meta["bake"]["field_steps"], 60, "{meta}");
+    let kernel = InolfKernel::from_asset(baked.asset).expect("kernel");
+    let (mut baked_db, mut empty_db) = (0.0, 0.0);
+    for view in &data.views {
+        let camera = Camera::from_fov_x(32, 32, data.camera_angle_x, view.camera_to_world).expect("camera");
+        let (out, _) = kernel.render_pixels(&camera, &all_pixels(&camera)).expect("render");
+        let image = frame_to_image(32, 32, &out).expect("image");
+        let empty = frame_to_image(32, 32, &nephele_kernels::kernel::PixelResults::with_len(32 * 32)).expect("empty");
+        baked_db += psnr(&image, &view.image, [1.0; 3]).expect("psnr");
+        empty_db += psnr(&empty, &view.image, [1.0; 3]).expect("psnr");
+    }
+    let n = data.views.len() as f64;
+    eprintln!("bake of 16 views: {:.2} dB against {:.2} dB for an empty frame", baked_db / n, empty_db / n);
+    assert!(baked_db / n > empty_db / n + 5.0, "{} vs {}", baked_db / n, empty_db / n);
+
+    let mut again = Recorder::default();
+    let rebaked = bake(&data, "tiny diffuse", &recipe, Some(baked.field), &mut again).expect("bake from the field");
+    assert!(!again.stages.iter().any(|s| s == "radiance field") && !again.field_handed_over);
+    let meta: serde_json::Value = serde_json::from_str(&rebaked.asset.meta).expect("meta is JSON");
+    assert_eq!(meta["bake"]["field_steps"], 0, "{meta}");
 }

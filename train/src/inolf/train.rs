@@ -11,6 +11,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::dataset::Dataset;
+use nephele_geometry::SplitMix64;
 use nephele_geometry::camera::{Camera, CameraError};
 use nephele_imaging::image::srgb_to_linear;
 use nephele_kernels::inolf::cubes::{DensityCubes, MarchHit};
@@ -114,25 +115,6 @@ pub struct TrainReport {
     pub rays_hit: u64,
 }
 
-#[derive(Debug)]
-struct Rng(u64);
-
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn unit(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn below(&mut self, n: u64) -> u64 {
-        (self.unit() * n as f64) as u64 % n.max(1)
-    }
-}
-
 /// Tiles of all views with a running loss each.
 #[derive(Debug)]
 struct ErrorMap {
@@ -172,12 +154,12 @@ impl ErrorMap {
             .collect();
     }
 
-    fn draw(&self, rng: &mut Rng, uniform: bool) -> (usize, u32, u32, u32) {
+    fn draw(&self, rng: &mut SplitMix64, uniform: bool) -> (usize, u32, u32, u32) {
         let t = if uniform {
             rng.below(self.tiles.len() as u64) as usize
         } else {
             let total = self.cdf.last().copied().unwrap_or(1.0);
-            let u = rng.unit() * total;
+            let u = rng.next_f64() * total;
             self.cdf.partition_point(|&c| c <= u).min(self.tiles.len() - 1)
         };
         let (view, x0, y0, w, h) = self.tiles[t];
@@ -196,7 +178,7 @@ pub fn train(
     if views.is_empty() || options.batch == 0 {
         return Err(ModelError::Shape("no views or an empty batch".into()));
     }
-    let mut rng = Rng(options.seed);
+    let mut rng = SplitMix64::new(options.seed);
     let mut map = ErrorMap::new(views, options.tile);
     let adam = |lr: f32, decay: f32, len: usize| {
         Adam::new(AdamConfig { learning_rate: lr, weight_decay: decay, ..AdamConfig::default() }, len)
@@ -236,7 +218,7 @@ pub fn train(
         }
         let draws: Vec<(usize, u32, u32, u32)> = (0..options.batch)
             .map(|_| {
-                let uniform = rng.unit() < f64::from(options.uniform_fraction);
+                let uniform = rng.next_f64() < f64::from(options.uniform_fraction);
                 map.draw(&mut rng, uniform)
             })
             .collect();

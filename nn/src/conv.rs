@@ -1,0 +1,417 @@
+//! Image layers for convolutional networks (the stereo global-illumination U-Net): a square
+//! `k x k` convolution (k = 1 or 3, zero padding, stride 1) with an optional ReLU fused in,
+//! 2x2 average pooling, nearest-neighbour 2x upsampling and channel concatenation, each with
+//! its backward pass.
+//!
+//! Images are channels-last (`[(y * width + x) * channels + c]`) so that a pixel's channels
+//! are contiguous; weights are stored `[((ky * k + kx) * inputs + i) * outputs + o]`, so the
+//! inner loop of the forward pass and of the weight gradient is a contiguous `y[o] += x * w[o]`
+//! over the output channels that the compiler vectorises (the same choice as [`crate::Mlp`]).
+//! Rows run in parallel on the rayon pool; the weight gradient is accumulated per row chunk
+//! and reduced, so the result does not depend on the thread count beyond float summation order.
+
+use rayon::prelude::*;
+
+use crate::{InitRng, NnError, check_len};
+
+/// Shape of one convolution.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConvShape {
+    pub inputs: usize,
+    pub outputs: usize,
+    /// Kernel side: 1 or 3.
+    pub kernel: usize,
+    /// ReLU after the convolution.
+    pub relu: bool,
+}
+
+impl ConvShape {
+    pub fn validate(&self) -> Result<(), NnError> {
+        if self.inputs == 0 || self.outputs == 0 || !(self.kernel == 1 || self.kernel == 3) {
+            return Err(NnError::Config(format!(
+                "convolution {} -> {} channels, kernel {} (channels > 0, kernel 1 or 3)",
+                self.inputs, self.outputs, self.kernel
+            )));
+        }
+        Ok(())
+    }
+
+    pub fn weight_count(&self) -> usize {
+        self.kernel * self.kernel * self.inputs * self.outputs
+    }
+
+    /// Weights and biases.
+    pub fn param_count(&self) -> usize {
+        self.weight_count() + self.outputs
+    }
+
+    /// Multiply-adds per output pixel.
+    pub fn macs_per_pixel(&self) -> usize {
+        self.weight_count()
+    }
+
+    /// He-uniform weights (ReLU networks), zero biases, appended to `params`.
+    pub(crate) fn init(&self, rng: &mut InitRng, params: &mut Vec<f32>) {
+        let fan_in = (self.kernel * self.kernel * self.inputs) as f32;
+        let bound = (6.0 / fan_in).sqrt();
+        params.extend((0..self.weight_count()).map(|_| rng.uniform(bound)));
+        params.extend(std::iter::repeat_n(0.0, self.outputs));
+    }
+}
+
+/// Rows per parallel task (enough work per task for small images).
+const ROWS_PER_TASK: usize = 4;
+
+/// `output = act(conv(input))` for an image of `width x height`. `params` holds the weights
+/// then the biases ([`ConvShape::param_count`]).
+pub fn conv_forward(
+    shape: &ConvShape,
+    params: &[f32],
+    width: usize,
+    height: usize,
+    input: &[f32],
+    output: &mut [f32],
+) -> Result<(), NnError> {
+    shape.validate()?;
+    check_len("convolution parameters", shape.param_count(), params.len())?;
+    check_len("convolution input", width * height * shape.inputs, input.len())?;
+    check_len("convolution output", width * height * shape.outputs, output.len())?;
+    let (weights, bias) = params.split_at(shape.weight_count());
+    let (ci, co, k) = (shape.inputs, shape.outputs, shape.kernel);
+    let pad = (k / 2) as isize;
+    output.par_chunks_mut(width * co * ROWS_PER_TASK).enumerate().for_each(|(task, rows)| {
+        for (r, row) in rows.chunks_mut(width * co).enumerate() {
+            let y = (task * ROWS_PER_TASK + r) as isize;
+            for (x, out) in row.chunks_exact_mut(co).enumerate() {
+                out.copy_from_slice(bias);
+                for ky in 0..k {
+                    let sy = y + ky as isize - pad;
+                    if sy < 0 || sy >= height as isize {
+                        continue;
+                    }
+                    for kx in 0..k {
+                        let sx = x as isize + kx as isize - pad;
+                        if sx < 0 || sx >= width as isize {
+                            continue;
+                        }
+                        let src = &input[(sy as usize * width + sx as usize) * ci..][..ci];
+                        let w = &weights[(ky * k + kx) * ci * co..][..ci * co];
+                        for (&v, wrow) in src.iter().zip(w.chunks_exact(co)) {
+                            if v != 0.0 {
+                                out.iter_mut().zip(wrow).for_each(|(o, &w)| *o += v * w);
+                            }
+                        }
+                    }
+                }
+                if shape.relu {
+                    out.iter_mut().for_each(|o| *o = o.max(0.0));
+                }
+            }
+        }
+    });
+    Ok(())
+}
+
+/// Backward pass of [`conv_forward`]. `output` is the forward's output (for the ReLU's
+/// derivative); `d_output` its gradient, overwritten with the gradient before the ReLU.
+/// Adds the parameter gradient into `d_params`; writes the input gradient into `d_input`
+/// when given (the first layer of a network needs none).
+#[allow(clippy::too_many_arguments)]
+pub fn conv_backward(
+    shape: &ConvShape,
+    params: &[f32],
+    width: usize,
+    height: usize,
+    input: &[f32],
+    output: &[f32],
+    d_output: &mut [f32],
+    d_params: &mut [f32],
+    d_input: Option<&mut [f32]>,
+) -> Result<(), NnError> {
+    shape.validate()?;
+    let pixels = width * height;
+    check_len("convolution parameters", shape.param_count(), params.len())?;
+    check_len("convolution parameter gradient", shape.param_count(), d_params.len())?;
+    check_len("convolution input", pixels * shape.inputs, input.len())?;
+    check_len("convolution output", pixels * shape.outputs, output.len())?;
+    check_len("convolution output gradient", pixels * shape.outputs, d_output.len())?;
+    let (ci, co, k) = (shape.inputs, shape.outputs, shape.kernel);
+    let pad = (k / 2) as isize;
+    if shape.relu {
+        d_output.par_iter_mut().zip(output.par_iter()).for_each(|(d, &o)| {
+            if o <= 0.0 {
+                *d = 0.0;
+            }
+        });
+    }
+    let d_output: &[f32] = d_output;
+    let weights = &params[..shape.weight_count()];
+
+    // Parameter gradient: per task of rows, then summed.
+    let partial = d_output
+        .par_chunks(width * co * ROWS_PER_TASK)
+        .enumerate()
+        .fold(
+            || vec![0.0f32; shape.param_count()],
+            |mut acc, (task, rows)| {
+                let (dw, db) = acc.split_at_mut(shape.weight_count());
+                for (r, row) in rows.chunks(width * co).enumerate() {
+                    let y = (task * ROWS_PER_TASK + r) as isize;
+                    for (x, d) in row.chunks_exact(co).enumerate() {
+                        if d.iter().all(|&v| v == 0.0) {
+                            continue;
+                        }
+                        db.iter_mut().zip(d).for_each(|(b, &g)| *b += g);
+                        for ky in 0..k {
+                            let sy = y + ky as isize - pad;
+                            if sy < 0 || sy >= height as isize {
+                                continue;
+                            }
+                            for kx in 0..k {
+                                let sx = x as isize + kx as isize - pad;
+                                if sx < 0 || sx >= width as isize {
+                                    continue;
+                                }
+                                let src = &input[(sy as usize * width + sx as usize) * ci..][..ci];
+                                let w = &mut dw[(ky * k + kx) * ci * co..][..ci * co];
+                                for (&v, wrow) in src.iter().zip(w.chunks_exact_mut(co)) {
+                                    if v != 0.0 {
+                                        wrow.iter_mut().zip(d).for_each(|(w, &g)| *w += v * g);
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+                acc
+            },
+        )
+        .reduce(
+            || vec![0.0f32; shape.param_count()],
+            |mut a, b| {
+                a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
+                a
+            },
+        );
+    d_params.iter_mut().zip(&partial).for_each(|(d, p)| *d += p);
+
+    // Input gradient: d_in[y, x, i] = sum over taps and outputs of d_out[y', x', o] * w.
+    if let Some(d_input) = d_input {
+        check_len("convolution input gradient", pixels * ci, d_input.len())?;
+        d_input.par_chunks_mut(width * ci * ROWS_PER_TASK).enumerate().for_each(|(task, rows)| {
+            for (r, row) in rows.chunks_mut(width * ci).enumerate() {
+                let y = (task * ROWS_PER_TASK + r) as isize;
+                for (x, din) in row.chunks_exact_mut(ci).enumerate() {
+                    din.fill(0.0);
+                    for ky in 0..k {
+                        // The output pixel whose tap (ky, kx) reads this input pixel.
+                        let oy = y - ky as isize + pad;
+                        if oy < 0 || oy >= height as isize {
+                            continue;
+                        }
+                        for kx in 0..k {
+                            let ox = x as isize - kx as isize + pad;
+                            if ox < 0 || ox >= width as isize {
+                                continue;
+                            }
+                            let d = &d_output[(oy as usize * width + ox as usize) * co..][..co];
+                            let w = &weights[(ky * k + kx) * ci * co..][..ci * co];
+                            for (g, wrow) in din.iter_mut().zip(w.chunks_exact(co)) {
+                                *g += wrow.iter().zip(d).map(|(w, d)| w * d).sum::<f32>();
+                            }
+                        }
+                    }
+                }
+            }
+        });
+    }
+    Ok(())
+}
+
+/// 2x2 average pooling of a `width x height` image (both even) of `channels`.
+pub fn pool_forward(width: usize, height: usize, channels: usize, input: &[f32], output: &mut [f32]) {
+    let (w2, h2) = (width / 2, height / 2);
+    debug_assert!(input.len() == width * height * channels && output.len() == w2 * h2 * channels);
+    output.par_chunks_mut(w2 * channels).enumerate().for_each(|(y, row)| {
+        for (x, out) in row.chunks_exact_mut(channels).enumerate() {
+            let at = |dy: usize, dx: usize| &input[((2 * y + dy) * width + 2 * x + dx) * channels..][..channels];
+            let (a, b, c, d) = (at(0, 0), at(0, 1), at(1, 0), at(1, 1));
+            for i in 0..channels {
+                out[i] = 0.25 * (a[i] + b[i] + c[i] + d[i]);
+            }
+        }
+    });
+}
+
+/// Backward of [`pool_forward`]: each input pixel gets a quarter of its block's gradient.
+pub fn pool_backward(width: usize, height: usize, channels: usize, d_output: &[f32], d_input: &mut [f32]) {
+    let w2 = width / 2;
+    debug_assert!(d_input.len() == width * height * channels);
+    d_input.par_chunks_mut(width * channels).enumerate().for_each(|(y, row)| {
+        for (x, din) in row.chunks_exact_mut(channels).enumerate() {
+            let d = &d_output[((y / 2) * w2 + x / 2) * channels..][..channels];
+            din.iter_mut().zip(d).for_each(|(a, &g)| *a = 0.25 * g);
+        }
+    });
+}
+
+/// Nearest-neighbour 2x upsampling of a `width x height` image to `2 width x 2 height`.
+pub fn upsample_forward(width: usize, height: usize, channels: usize, input: &[f32], output: &mut [f32]) {
+    debug_assert!(input.len() == width * height * channels && output.len() == 4 * width * height * channels);
+    output.par_chunks_mut(2 * width * channels).enumerate().for_each(|(y, row)| {
+        for (x, out) in row.chunks_exact_mut(channels).enumerate() {
+            out.copy_from_slice(&input[((y / 2) * width + x / 2) * channels..][..channels]);
+        }
+    });
+}
+
+/// Backward of [`upsample_forward`]: each small pixel sums its 2x2 block's gradient.
+pub fn upsample_backward(width: usize, height: usize, channels: usize, d_output: &[f32], d_input: &mut [f32]) {
+    debug_assert!(d_input.len() == width * height * channels);
+    d_input.par_chunks_mut(width * channels).enumerate().for_each(|(y, row)| {
+        for (x, din) in row.chunks_exact_mut(channels).enumerate() {
+            let at = |dy: usize, dx: usize| &d_output[((2 * y + dy) * 2 * width + 2 * x + dx) * channels..][..channels];
+            let (a, b, c, d) = (at(0, 0), at(0, 1), at(1, 0), at(1, 1));
+            for i in 0..channels {
+                din[i] = a[i] + b[i] + c[i] + d[i];
+            }
+        }
+    });
+}
+
+/// Per pixel, `a`'s `ca` channels then `b`'s `cb`.
+pub fn concat(pixels: usize, a: &[f32], ca: usize, b: &[f32], cb: usize, out: &mut [f32]) {
+    debug_assert!(a.len() == pixels * ca && b.len() == pixels * cb && out.len() == pixels * (ca + cb));
+    out.par_chunks_mut(ca + cb).zip(a.par_chunks(ca)).zip(b.par_chunks(cb)).for_each(|((o, a), b)| {
+        o[..ca].copy_from_slice(a);
+        o[ca..].copy_from_slice(b);
+    });
+}
+
+/// Backward of [`concat`]: splits the gradient.
+pub fn split(pixels: usize, d: &[f32], ca: usize, cb: usize, da: &mut [f32], db: &mut [f32]) {
+    debug_assert!(d.len() == pixels * (ca + cb));
+    da.par_chunks_mut(ca).zip(db.par_chunks_mut(cb)).zip(d.par_chunks(ca + cb)).for_each(|((a, b), d)| {
+        a.copy_from_slice(&d[..ca]);
+        b.copy_from_slice(&d[ca..]);
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn random(n: usize, seed: u64) -> Vec<f32> {
+        let mut rng = InitRng::new(seed);
+        (0..n).map(|_| rng.uniform(1.0)).collect()
+    }
+
+    /// Loss = sum(output * probe); its gradient with respect to the output is `probe`.
+    fn loss(shape: &ConvShape, params: &[f32], w: usize, h: usize, input: &[f32], probe: &[f32]) -> f64 {
+        let mut out = vec![0.0; w * h * shape.outputs];
+        conv_forward(shape, params, w, h, input, &mut out).expect("forward");
+        out.iter().zip(probe).map(|(o, p)| f64::from(o * p)).sum()
+    }
+
+    #[test]
+    fn gradients_match_finite_differences() {
+        for (kernel, relu) in [(3, false), (3, true), (1, false)] {
+            let shape = ConvShape { inputs: 3, outputs: 4, kernel, relu };
+            let (w, h) = (5, 4);
+            let mut params = Vec::new();
+            shape.init(&mut InitRng::new(1), &mut params);
+            params.iter_mut().skip(shape.weight_count()).for_each(|b| *b = 0.05);
+            let input = random(w * h * 3, 2);
+            let probe = random(w * h * 4, 3);
+            let mut out = vec![0.0; w * h * 4];
+            conv_forward(&shape, &params, w, h, &input, &mut out).expect("forward");
+            let mut d_out = probe.clone();
+            let mut d_params = vec![0.0; shape.param_count()];
+            let mut d_input = vec![0.0; input.len()];
+            conv_backward(&shape, &params, w, h, &input, &out, &mut d_out, &mut d_params, Some(&mut d_input))
+                .expect("backward");
+            let eps = 1e-3;
+            for i in (0..params.len()).step_by(5) {
+                let (mut plus, mut minus) = (params.clone(), params.clone());
+                plus[i] += eps;
+                minus[i] -= eps;
+                let numeric = (loss(&shape, &plus, w, h, &input, &probe) - loss(&shape, &minus, w, h, &input, &probe))
+                    / (2.0 * f64::from(eps));
+                assert!(
+                    (numeric - f64::from(d_params[i])).abs() < 3e-3,
+                    "k{kernel} relu {relu} param {i}: {numeric} vs {}",
+                    d_params[i]
+                );
+            }
+            for i in (0..input.len()).step_by(3) {
+                let (mut plus, mut minus) = (input.clone(), input.clone());
+                plus[i] += eps;
+                minus[i] -= eps;
+                let numeric = (loss(&shape, &params, w, h, &plus, &probe)
+                    - loss(&shape, &params, w, h, &minus, &probe))
+                    / (2.0 * f64::from(eps));
+                assert!(
+                    (numeric - f64::from(d_input[i])).abs() < 3e-3,
+                    "k{kernel} relu {relu} input {i}: {numeric} vs {}",
+                    d_input[i]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_centred_identity_kernel_copies_and_borders_are_zero_padded() {
+        let shape = ConvShape { inputs: 2, outputs: 2, kernel: 3, relu: false };
+        let mut params = vec![0.0; shape.param_count()];
+        // Tap (1, 1) is the centre: identity there.
+        for c in 0..2 {
+            params[(4 * 2 + c) * 2 + c] = 1.0;
+        }
+        let (w, h) = (4, 3);
+        let input = random(w * h * 2, 9);
+        let mut out = vec![0.0; input.len()];
+        conv_forward(&shape, &params, w, h, &input, &mut out).expect("forward");
+        assert_eq!(out, input);
+        // A kernel reading the left neighbour: column 0 reads the zero padding.
+        params.fill(0.0);
+        for c in 0..2 {
+            params[(3 * 2 + c) * 2 + c] = 1.0;
+        }
+        conv_forward(&shape, &params, w, h, &input, &mut out).expect("forward");
+        for y in 0..h {
+            assert_eq!(&out[(y * w) * 2..][..2], &[0.0, 0.0]);
+            assert_eq!(&out[(y * w + 1) * 2..][..2], &input[(y * w) * 2..][..2]);
+        }
+        assert!(conv_forward(&shape, &params, w, h, &input[1..], &mut out).is_err());
+        assert!(ConvShape { kernel: 2, ..shape }.validate().is_err());
+    }
+
+    #[test]
+    fn pooling_upsampling_and_concatenation_are_adjoint_to_their_backward() {
+        // <forward(x), y> == <x, backward(y)> for the linear layers.
+        let (w, h, c) = (6, 4, 3);
+        let x = random(w * h * c, 4);
+        let y = random(w * h * c / 4, 5);
+        let mut fx = vec![0.0; y.len()];
+        pool_forward(w, h, c, &x, &mut fx);
+        let mut by = vec![0.0; x.len()];
+        pool_backward(w, h, c, &y, &mut by);
+        let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(a, b)| f64::from(a * b)).sum::<f64>();
+        assert!((dot(&fx, &y) - dot(&x, &by)).abs() < 1e-4);
+
+        let small = random(3 * 2 * c, 6);
+        let big = random(6 * 4 * c, 7);
+        let mut up = vec![0.0; big.len()];
+        upsample_forward(3, 2, c, &small, &mut up);
+        let mut down = vec![0.0; small.len()];
+        upsample_backward(3, 2, c, &big, &mut down);
+        assert!((dot(&up, &big) - dot(&small, &down)).abs() < 1e-4);
+
+        let (a, b) = (random(10 * 2, 8), random(10 * 3, 9));
+        let mut ab = vec![0.0; 50];
+        concat(10, &a, 2, &b, 3, &mut ab);
+        let (mut da, mut db) = (vec![0.0; 20], vec![0.0; 30]);
+        split(10, &ab, 2, 3, &mut da, &mut db);
+        assert_eq!((da, db), (a, b));
+    }
+}
