@@ -39,6 +39,16 @@ struct Cli {
 }
 
 #[derive(Debug, Subcommand)]
+enum TrainCommand {
+    /// Train an i-NGP-style radiance field on a NeRF-synthetic dataset (CPU), save it (`.ngp`),
+    /// and print the test PSNR/SSIM.
+    Ngp(commands::train::Args),
+    /// Train the single-eye global-illumination U-Net (the stereo model's teacher) on a
+    /// dataset of `nephele dataset gi`, with checkpoints it resumes from; save it (`.ngi`).
+    Gi(commands::train_gi::Args),
+}
+
+#[derive(Debug, Subcommand)]
 enum Command {
     /// List the built-in scenes.
     Scenes,
@@ -49,9 +59,10 @@ enum Command {
     Dataset(commands::dataset::Command),
     /// Compare predicted images against ground truth: per-image and mean PSNR and SSIM.
     Eval(commands::eval::Args),
-    /// Train an i-NGP-style radiance field on a NeRF-synthetic dataset (CPU), save it, and
-    /// print the test PSNR/SSIM.
-    Train(commands::train::Args),
+    /// Train a model: `ngp` (an i-NGP-style radiance field on a NeRF-synthetic dataset) or
+    /// `gi` (the global-illumination U-Net on a `nephele dataset gi` dataset).
+    #[command(subcommand)]
+    Train(TrainCommand),
     /// Render every pose of a transforms file with a trained asset to PNG (for `nephele eval`).
     Render(commands::render::Args),
     /// Print performance figures (see BENCHMARKS.md).
@@ -120,7 +131,8 @@ fn run(cli: Cli) -> Result<()> {
         Command::Simulate(args) => commands::simulate::run(args, &progress),
         Command::Loadgen(args) => commands::loadgen::run(args, &progress),
         Command::Bake(args) => commands::bake::run(args, &progress),
-        Command::Train(args) => commands::train::run(args, &progress),
+        Command::Train(TrainCommand::Ngp(args)) => commands::train::run(args, &progress),
+        Command::Train(TrainCommand::Gi(args)) => commands::train_gi::run(args, &progress),
         Command::Render(args) => commands::render::run(args, &progress),
         Command::Master(args) => commands::master::run(args),
         Command::Up(args) => commands::up::run(args, &progress),

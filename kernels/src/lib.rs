@@ -6,6 +6,8 @@
 //!   skipping and file format;
 //! * [`inolf`]: i-NOLF (NEPHELE section 4): density and diffuse texture cubes, perfect
 //!   spatial hashing, the heads, the `.nolf` asset and its kernel;
+//! * [`gi`]: the stereo global-illumination model (a U-Net over G-buffers) and its `.ngi`
+//!   file;
 //! * [`assets`]: the one registry of asset formats, shared by the worker and `nephele render`.
 //!
 //! Depends on `nephele-geometry`, `nephele-imaging`, `nephele-nn` and `nephele-pathtracer`
@@ -13,6 +15,7 @@
 //! links this crate and nothing that trains.
 
 pub mod assets;
+pub mod gi;
 pub mod inolf;
 pub mod kernel;
 pub mod ngp;

@@ -57,6 +57,17 @@ impl Adam {
         self.steps
     }
 
+    /// The first and second moment estimates (for checkpoints).
+    pub fn moments(&self) -> (&[f32], &[f32]) {
+        (&self.m, &self.v)
+    }
+
+    /// An optimiser resumed from a checkpoint's moments and step count.
+    pub fn from_moments(config: AdamConfig, m: Vec<f32>, v: Vec<f32>, steps: u64) -> Result<Self, NnError> {
+        check_len("Adam second moments", m.len(), v.len())?;
+        Ok(Adam { config, m, v, steps })
+    }
+
     /// One update of `params` from `grads` (same length as at construction). Runs on the
     /// rayon pool in chunks.
     pub fn step(&mut self, params: &mut [f32], grads: &[f32]) -> Result<(), NnError> {

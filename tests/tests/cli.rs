@@ -217,4 +217,38 @@ fn dataset_gi_renders_both_lightings_and_resumes() {
     assert!(err.contains("other settings"), "{err}");
     let err = nephele_err(&["dataset", "gi", "--lighting", "dusk", "--out", out_str]);
     assert!(err.contains("dusk"), "{err}");
+
+    // The single-eye teacher trains on it, checkpoints, and a second run resumes.
+    let day = out.join("day");
+    let model = dir.path().join("day.ngi");
+    let (day_str, model_str) = (day.to_str().expect("utf-8"), model.to_str().expect("utf-8"));
+    let train = [
+        "train",
+        "gi",
+        "--data",
+        day_str,
+        "--out",
+        model_str,
+        "--steps",
+        "20",
+        "--batch",
+        "1",
+        "--crop",
+        "8",
+        "--channels",
+        "4,8",
+        "--checkpoint-every",
+        "10",
+    ];
+    let report = nephele_ok(&train);
+    assert!(report.contains("after 20 steps") && report.contains("dB on the training frames"), "{report}");
+    let loaded = nephele_kernels::gi::GiModel::load(&model).expect("the model loads");
+    assert_eq!(loaded.network.config().channels, vec![4, 8]);
+    assert!(dir.path().join("day.ckpt").is_file());
+    let again = nephele_ok(&train);
+    assert!(again.contains("resuming from") && again.contains("at step 20"), "{again}");
+    let mut other = train.to_vec();
+    other[7] = "30";
+    let err = nephele_err(&other);
+    assert!(err.contains("--restart"), "{err}");
 }

@@ -1,4 +1,4 @@
-//! `nephele train` and `nephele render` as a user runs them, on a tiny dataset: the trained
+//! `nephele train ngp` and `nephele render` as a user runs them, on a tiny dataset: the trained
 //! field renders held-out poses that `nephele eval` can score.
 
 use nephele_tests::{nephele_err, nephele_ok};
@@ -28,6 +28,7 @@ fn train_render_eval_round_trip() {
     let asset_str = asset.to_str().expect("utf-8 path");
     let report = nephele_ok(&[
         "train",
+        "ngp",
         "--dataset",
         data_str,
         "--out",

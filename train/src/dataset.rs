@@ -286,7 +286,7 @@ pub struct View {
 
 /// Splits `views` into the kept ones and a held-out set of every `every`-th view (views
 /// `every - 1`, `2 every - 1`, ...), for datasets without a test split (`every` <= 1 holds
-/// nothing out). `nephele train`, `bake` and `bench inolf` share this rule, so a bake with
+/// nothing out). `nephele train ngp`, `bake` and `bench inolf` share this rule, so a bake with
 /// `--holdout-every N` never sees the views `bench inolf --holdout-every N` scores.
 pub fn split_holdout(views: Vec<View>, every: usize) -> (Vec<View>, Vec<View>) {
     if every <= 1 {

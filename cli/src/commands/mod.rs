@@ -12,6 +12,7 @@ pub mod render;
 pub mod scenes;
 pub mod simulate;
 pub mod train;
+pub mod train_gi;
 pub mod up;
 pub mod worker;
 

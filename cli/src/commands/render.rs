@@ -14,7 +14,7 @@ use crate::progress::Progress;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// A trained asset: a radiance field from `nephele train` or an i-NOLF asset from
+    /// A trained asset: a radiance field from `nephele train ngp` or an i-NOLF asset from
     /// `nephele bake` (the format is recognised by the file's first bytes).
     #[arg(long)]
     asset: PathBuf,
@@ -28,7 +28,7 @@ pub struct Args {
     /// (divided by --downscale), or 800x800 if it cannot be read.
     #[arg(long, value_parser = super::parse_size)]
     size: Option<(u32, u32)>,
-    /// Divide the default size by this factor (as `nephele train --downscale`).
+    /// Divide the default size by this factor (as `nephele train ngp --downscale`).
     #[arg(long, default_value_t = 1)]
     downscale: u32,
     /// Render only the first N poses.

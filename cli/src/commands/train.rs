@@ -1,4 +1,4 @@
-//! `nephele train`: fit an i-NGP-style radiance field to a NeRF-synthetic dataset on the CPU.
+//! `nephele train ngp`: fit an i-NGP-style radiance field to a NeRF-synthetic dataset on the CPU.
 
 use std::path::PathBuf;
 use std::time::Instant;
