@@ -23,6 +23,7 @@ use serde_json::json;
 
 pub mod device;
 pub mod encode;
+pub mod gi;
 pub mod heap;
 pub mod inolf;
 pub mod scheduler;
@@ -70,6 +71,11 @@ pub enum Command {
     /// run (orbit views): ms per frame, the ratio, and the GPU frames' difference from the CPU
     /// frames. A software Vulkan adapter (Mesa's lavapipe) is accepted and labelled as such.
     Device(crate::device::DeviceArgs),
+    /// The stereo global-illumination model against its single-eye teacher in one run: one
+    /// stereo pass against two single-eye passes (multiply-adds and time), PSNR/SSIM of both
+    /// eyes against path tracing, and the inter-eye coherence error with and without the
+    /// coherence loss.
+    Gi(crate::gi::GiArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -103,6 +109,7 @@ pub fn run(command: Command, progress: &dyn Progress) -> Result<()> {
         Command::PshCache(args) => crate::inolf::psh_cache(args, progress),
         Command::Inolf(args) => crate::inolf::inolf(args, progress),
         Command::Device(args) => crate::device::device(args, progress),
+        Command::Gi(args) => crate::gi::run(args, progress),
     }
 }
 

@@ -197,11 +197,25 @@ fn dataset_gi_renders_both_lightings_and_resumes() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("gi");
     let out_str = out.to_str().expect("utf-8 path");
-    let args =
-        ["dataset", "gi", "--single", "2", "--stereo-pairs", "1", "--size", "16x12", "--spp", "2", "--out", out_str];
+    let args = [
+        "dataset",
+        "gi",
+        "--single",
+        "2",
+        "--stereo-pairs",
+        "1",
+        "--train-pairs",
+        "1",
+        "--size",
+        "16x12",
+        "--spp",
+        "2",
+        "--out",
+        out_str,
+    ];
     let first = nephele_ok(&args);
-    assert!(first.contains("day: 4 frames rendered, 0 already there"), "{first}");
-    assert!(first.contains("night: 4 frames rendered, 0 already there"), "{first}");
+    assert!(first.contains("day: 6 frames rendered, 0 already there"), "{first}");
+    assert!(first.contains("night: 6 frames rendered, 0 already there"), "{first}");
     for lighting in ["day", "night"] {
         let manifest = nephele_train::gi::data::read_manifest(&out.join(lighting)).expect("manifest");
         assert_eq!(manifest.spec.scene, format!("room-{lighting}"));
@@ -211,7 +225,7 @@ fn dataset_gi_renders_both_lightings_and_resumes() {
         }
     }
     let again = nephele_ok(&args);
-    assert!(again.contains("day: 0 frames rendered, 4 already there"), "{again}");
+    assert!(again.contains("day: 0 frames rendered, 6 already there"), "{again}");
     let err =
         nephele_err(&["dataset", "gi", "--lighting", "day", "--single", "3", "--size", "16x12", "--out", out_str]);
     assert!(err.contains("other settings"), "{err}");
@@ -251,4 +265,37 @@ fn dataset_gi_renders_both_lightings_and_resumes() {
     other[7] = "30";
     let err = nephele_err(&other);
     assert!(err.contains("--restart"), "{err}");
+
+    // Its stereo student, with and without the coherence loss, then the benchmark.
+    let student = dir.path().join("day-stereo.ngi");
+    let plain = dir.path().join("day-stereo-plain.ngi");
+    for (path, weight) in [(&student, "1"), (&plain, "0")] {
+        let mut args = train.to_vec();
+        args[5] = path.to_str().expect("utf-8");
+        args.extend(["--teacher", model_str, "--coherence-weight", weight]);
+        let report = nephele_ok(&args);
+        assert!(report.contains("1 training pairs") && report.contains("on 1 evaluation pairs"), "{report}");
+    }
+    let bench = nephele_ok(&[
+        "bench",
+        "gi",
+        "--data",
+        day_str,
+        "--teacher",
+        model_str,
+        "--stereo",
+        student.to_str().expect("utf-8"),
+        "--stereo-no-coherence",
+        plain.to_str().expect("utf-8"),
+        "--size",
+        "32x32",
+        "--repeats",
+        "1",
+    ]);
+    for needle in ["one stereo pass", "ratio", "single-eye model, run twice", "coherence error with the loss / without"]
+    {
+        assert!(bench.contains(needle), "{needle}: {bench}");
+    }
+    let err = nephele_err(&["bench", "gi", "--data", day_str, "--teacher", model_str, "--stereo", model_str]);
+    assert!(err.contains("not a stereo model"), "{err}");
 }

@@ -35,9 +35,13 @@ pub struct GiArgs {
     /// Single-eye training frames per lighting.
     #[arg(long, default_value_t = 160)]
     single: usize,
-    /// Stereo pairs per lighting, for evaluation.
+    /// Stereo pairs per lighting for evaluation (their path-traced GI is the ground truth).
     #[arg(long, default_value_t = 16)]
     stereo_pairs: usize,
+    /// Stereo pairs per lighting for training the stereo student (only their G-buffers are
+    /// used: the targets come from the single-eye teacher).
+    #[arg(long, default_value_t = 48)]
+    train_pairs: usize,
     /// Image size per eye.
     #[arg(long, default_value = "128x128", value_parser = super::parse_size)]
     size: (u32, u32),
@@ -175,6 +179,7 @@ fn gi(args: GiArgs, progress: &Progress) -> Result<()> {
             scene: format!("room-{lighting}"),
             single: args.single,
             stereo_pairs: args.stereo_pairs,
+            train_pairs: args.train_pairs,
             width: args.size.0,
             height: args.size.1,
             fov_y: args.fov_deg.to_radians(),
@@ -184,17 +189,18 @@ fn gi(args: GiArgs, progress: &Progress) -> Result<()> {
         };
         spec.validate()?;
         let out = args.out.join(lighting);
-        let frames = (spec.single + 2 * spec.stereo_pairs) as u64;
+        let frames = (spec.single + 2 * (spec.stereo_pairs + spec.train_pairs)) as u64;
         let bar = progress.bar(frames * u64::from(spec.height), &format!("GI dataset, {lighting}"), "rows");
         let report = render_gi_dataset(&spec, &out, &|rows| bar.inc(u64::from(rows)))
             .with_context(|| format!("rendering the {lighting} GI dataset into {}", out.display()))?;
         bar.finish_and_clear();
         println!(
-            "{lighting}: {} frames rendered, {} already there: {} single-eye and {} stereo pairs at {}x{}, {} spp, in {}",
+            "{lighting}: {} frames rendered, {} already there: {} single-eye frames, {} evaluation and {} training stereo pairs at {}x{}, {} spp, in {}",
             report.rendered,
             report.skipped,
             spec.single,
             spec.stereo_pairs,
+            spec.train_pairs,
             spec.width,
             spec.height,
             spec.spp,

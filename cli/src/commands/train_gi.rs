@@ -1,10 +1,13 @@
 //! `nephele train gi`: the single-eye global-illumination U-Net (the stereo GI model's
-//! teacher) on a dataset of `nephele dataset gi`, with a progress bar, checkpoints and resume.
+//! teacher) on a dataset of `nephele dataset gi`, or with `--teacher` the stereo student of
+//! such a teacher; with a progress bar, checkpoints and resume.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
+use nephele_kernels::gi::GiModel;
+use nephele_train::gi::stereo::{evaluate_pairs, load_pairs, shade_pairs, train_stereo};
 use nephele_train::gi::train::{GiCheckpoint, GiTrainOptions, evaluate_single_eye, load_single_eye, train_single_eye};
 
 use crate::progress::Progress;
@@ -45,6 +48,14 @@ pub struct Args {
     /// Start afresh even if a checkpoint exists (it is overwritten).
     #[arg(long)]
     restart: bool,
+    /// Train the stereo student of this single-eye model (`.ngi`) instead: one pass for both
+    /// eyes, on the dataset's training pairs, from the teacher's output (no stereo ground
+    /// truth). --channels must be the teacher's.
+    #[arg(long)]
+    teacher: Option<PathBuf>,
+    /// Weight of the spatial coherence loss for the stereo student (0 turns it off).
+    #[arg(long, default_value_t = 1.0)]
+    coherence_weight: f32,
 }
 
 pub fn run(args: Args, progress: &Progress) -> Result<()> {
@@ -57,6 +68,9 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         seed: args.seed,
     };
     options.validate()?;
+    if let Some(teacher) = &args.teacher {
+        return student(&args, &options, teacher, progress);
+    }
     let start = Instant::now();
     let (train, held_out, features, non_finite) =
         load_single_eye(&args.data).with_context(|| format!("loading the GI dataset {}", args.data.display()))?;
@@ -74,20 +88,12 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         config.param_count(),
         config.macs_per_pixel()
     );
-    let checkpoint_path = args.checkpoint.clone().unwrap_or_else(|| args.out.with_extension("ckpt"));
-    let resume = if checkpoint_path.exists() && !args.restart {
-        let c = GiCheckpoint::load(&checkpoint_path)?;
-        if c.state.options != options || c.state.features != features {
-            bail!(
-                "{} was made with other settings or data; pass the same settings to resume, or --restart",
-                checkpoint_path.display()
-            );
-        }
-        println!("resuming from {} at step {}", checkpoint_path.display(), c.state.step);
-        Some(c)
-    } else {
-        None
-    };
+    let (checkpoint_path, resume) = resume_from(&args, &options)?;
+    if let Some(c) = &resume
+        && c.state.features != features
+    {
+        bail!("{} was made on other data; pass the same data to resume, or --restart", checkpoint_path.display());
+    }
     let bar = progress.bar(u64::from(options.steps), "GI teacher", "steps");
     if let Some(c) = &resume {
         bar.set_position(u64::from(c.state.step));
@@ -122,5 +128,73 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         "loss curve (step, mean loss): {:?}",
         state.curve.iter().map(|(s, l)| (*s, (l * 1e5).round() / 1e5)).collect::<Vec<_>>()
     );
+    Ok(())
+}
+
+/// The resumable checkpoint of this run, or `None` (absent, or `--restart`).
+fn resume_from(args: &Args, options: &GiTrainOptions) -> Result<(PathBuf, Option<GiCheckpoint>)> {
+    let path = args.checkpoint.clone().unwrap_or_else(|| args.out.with_extension("ckpt"));
+    if !path.exists() || args.restart {
+        return Ok((path, None));
+    }
+    let c = GiCheckpoint::load(&path)?;
+    if c.state.options != *options {
+        bail!("{} was made with other settings; pass the same settings to resume, or --restart", path.display());
+    }
+    println!("resuming from {} at step {}", path.display(), c.state.step);
+    Ok((path, Some(c)))
+}
+
+fn student(args: &Args, options: &GiTrainOptions, teacher_path: &std::path::Path, progress: &Progress) -> Result<()> {
+    let start = Instant::now();
+    let teacher =
+        GiModel::load(teacher_path).with_context(|| format!("loading the teacher {}", teacher_path.display()))?;
+    if teacher.eyes() != 1 {
+        bail!("{} is a stereo model; the teacher is a single-eye model", teacher_path.display());
+    }
+    let features = teacher.header.features;
+    let pairs = load_pairs(&args.data, &features, true).with_context(|| format!("loading {}", args.data.display()))?;
+    let eval = load_pairs(&args.data, &features, false)?;
+    println!(
+        "train gi (stereo student of {}): {} training pairs, coherence weight {}",
+        teacher_path.display(),
+        pairs.len(),
+        args.coherence_weight
+    );
+    let (checkpoint_path, resume) = resume_from(args, options)?;
+    let bar = progress.bar(u64::from(options.steps), "GI stereo student", "steps");
+    let mut smoothed = None::<f32>;
+    let (model, state) = train_stereo(
+        &teacher,
+        &pairs,
+        options,
+        args.coherence_weight,
+        resume,
+        args.checkpoint_every,
+        &mut |s| {
+            let loss = smoothed.map_or(s.loss, |l| 0.95 * l + 0.05 * s.loss);
+            smoothed = Some(loss);
+            bar.set_position(u64::from(s.step));
+            bar.set_message(format!("GI stereo student, loss {loss:.5}"));
+        },
+        &mut |c| c.save(&checkpoint_path),
+    )?;
+    bar.finish_and_clear();
+    model.save(&args.out).with_context(|| format!("writing {}", args.out.display()))?;
+    println!("wrote {} after {} steps in {:.0} s", args.out.display(), state.step, start.elapsed().as_secs_f64());
+    if !eval.is_empty() {
+        let stereo = evaluate_pairs(&eval, &shade_pairs(&model, &eval)?);
+        let twice = evaluate_pairs(&eval, &shade_pairs(&teacher, &eval)?);
+        println!(
+            "on {} evaluation pairs: stereo {:.2} / {:.2} dB (left / right), teacher run twice {:.2} / {:.2} dB; inter-eye coherence error {:.5} (teacher twice {:.5})",
+            eval.len(),
+            stereo.psnr[0],
+            stereo.psnr[1],
+            twice.psnr[0],
+            twice.psnr[1],
+            stereo.coherence,
+            twice.coherence
+        );
+    }
     Ok(())
 }

@@ -16,10 +16,12 @@
 //! and `gi.json`, the manifest: the scene, the render settings and every frame's camera,
 //! animation time and, for stereo frames, its pair, eye and interpupillary distance.
 //!
-//! Two sets: `single` frames (one eye, random standpoint and time) train the single-eye
-//! model; `stereo` pairs (left and right eye of one head at one moment, IPD drawn from 55-70
-//! mm, parallel eyes as WebXR gives them) are for evaluating the stereo model only: the
-//! stereo model trains on the single-eye teacher's output, never on their ground truth.
+//! Three sets: `single` frames (`s_N`: one eye, random standpoint and time) train the
+//! single-eye model; stereo pairs (left and right eye of one head at one moment, IPD drawn
+//! from 55-70 mm, parallel eyes as WebXR gives them) either evaluate (`p_N_left/right`: their
+//! path-traced GI is the ground truth of both eyes) or train the stereo student (`t_N_...`:
+//! only their G-buffers are read; the student learns from the single-eye teacher's output
+//! and the coherence loss, never from stereo ground truth).
 //!
 //! Resumable: the manifest is written first with every planned frame (deterministic from the
 //! seed); each frame's files are written under temporary names and renamed, the G-buffer
@@ -57,8 +59,12 @@ pub struct GiSpec {
     pub scene: String,
     /// Single-eye training frames.
     pub single: usize,
-    /// Stereo pairs for evaluation.
+    /// Stereo pairs for evaluation (their path-traced GI is the ground truth of both eyes).
     pub stereo_pairs: usize,
+    /// Stereo pairs for training the stereo student: only their G-buffers are used (the
+    /// targets come from the single-eye teacher), never their path-traced GI.
+    #[serde(default)]
+    pub train_pairs: usize,
     pub width: u32,
     pub height: u32,
     /// Vertical field of view, radians.
@@ -79,7 +85,8 @@ impl GiSpec {
                 self.scene
             )));
         }
-        if self.single + 2 * self.stereo_pairs == 0 || self.single + 2 * self.stereo_pairs > 100_000 {
+        let frames = self.single + 2 * (self.stereo_pairs + self.train_pairs);
+        if frames == 0 || frames > 100_000 {
             return Err(GiDataError::Spec("between 1 and 100000 frames".into()));
         }
         if self.width < 8 || self.height < 8 || self.width > 4096 || self.height > 4096 {
@@ -97,24 +104,28 @@ impl GiSpec {
     /// then the stereo pairs (left, right).
     pub fn plan(&self) -> Result<Vec<GiFrame>, GiDataError> {
         let scene = scenes::builtin(&self.scene)?;
-        let heads = view_poses(&scene, self.single + self.stereo_pairs, true, self.seed);
+        let pairs = self.train_pairs + self.stereo_pairs;
+        let heads = view_poses(&scene, self.single + pairs, true, self.seed);
         let mut rng = SplitMix64::new(self.seed ^ 0x005E_ED0F_71E5);
-        let mut frames = Vec::with_capacity(self.single + 2 * self.stereo_pairs);
+        let mut frames = Vec::with_capacity(self.single + 2 * pairs);
         for (i, head) in heads[..self.single].iter().enumerate() {
             let time = rng.next_f32() * scenes::BALL_PERIOD_S;
             frames.push(GiFrame { name: format!("s_{i}"), camera_to_world: head.to_cols_array(), time, stereo: None });
         }
-        for (pair, head) in heads[self.single..].iter().enumerate() {
+        for (index, head) in heads[self.single..].iter().enumerate() {
             let time = rng.next_f32() * scenes::BALL_PERIOD_S;
             let ipd = IPD_RANGE_M.0 + rng.next_f32() * (IPD_RANGE_M.1 - IPD_RANGE_M.0);
+            // Evaluation pairs first (their names do not depend on the training pairs).
+            let (pair, train) =
+                if index < self.stereo_pairs { (index, false) } else { (index - self.stereo_pairs, true) };
             for (eye, side) in [(Eye::Left, -0.5), (Eye::Right, 0.5)] {
                 // Parallel eyes: the head's orientation, shifted along its own right axis.
                 let camera_to_world = *head * Mat4::from_translation(Vec3::new(side * ipd, 0.0, 0.0));
                 frames.push(GiFrame {
-                    name: format!("p_{pair}_{}", eye.name()),
+                    name: format!("{}_{pair}_{}", if train { "t" } else { "p" }, eye.name()),
                     camera_to_world: camera_to_world.to_cols_array(),
                     time,
-                    stereo: Some(StereoEye { pair, eye, ipd }),
+                    stereo: Some(StereoEye { pair, eye, ipd, train }),
                 });
             }
         }
@@ -150,6 +161,9 @@ pub struct StereoEye {
     pub eye: Eye,
     /// Interpupillary distance of the pair, metres.
     pub ipd: f32,
+    /// A pair for training the stereo student (its ground truth unused), not for evaluation.
+    #[serde(default)]
+    pub train: bool,
 }
 
 /// One frame of the manifest.
@@ -362,6 +376,7 @@ mod tests {
             scene: scene.into(),
             single: 2,
             stereo_pairs: 1,
+            train_pairs: 0,
             width: 12,
             height: 10,
             fov_y: 1.0,
@@ -373,11 +388,15 @@ mod tests {
 
     #[test]
     fn the_plan_is_deterministic_and_pairs_are_parallel_eyes_apart_by_the_ipd() {
-        let spec = GiSpec { single: 5, stereo_pairs: 20, ..tiny("room-day") };
+        let spec = GiSpec { single: 5, stereo_pairs: 20, train_pairs: 3, ..tiny("room-day") };
         let plan = spec.plan().expect("plan");
         assert_eq!(plan, spec.plan().expect("plan"));
         assert_ne!(plan, GiSpec { seed: 6, ..spec.clone() }.plan().expect("plan"));
-        assert_eq!(plan.len(), 45);
+        assert_eq!(plan.len(), 51);
+        assert_eq!(plan.iter().filter(|f| f.stereo.is_some_and(|s| s.train)).count(), 6);
+        assert!(
+            plan[45..].iter().all(|f| f.name.starts_with("t_")) && plan[5..45].iter().all(|f| f.name.starts_with("p_"))
+        );
         assert!(plan[..5].iter().all(|f| f.stereo.is_none() && f.name.starts_with("s_")));
         for pair in plan[5..].chunks(2) {
             let (l, r) = (&pair[0], &pair[1]);

@@ -399,6 +399,7 @@ mod tests {
             scene: "room-day".into(),
             single: 9,
             stereo_pairs: 0,
+            train_pairs: 0,
             width: 16,
             height: 16,
             fov_y: 1.2,

@@ -1,0 +1,135 @@
+//! `nephele bench gi`: the stereo global-illumination model against its single-eye teacher,
+//! in one run. Cost: one stereo pass for both eyes against two single-eye passes at a given
+//! size per eye (the networks' multiply-adds per pixel, and the measured ratio). Quality on
+//! the dataset's evaluation pairs: PSNR and SSIM of both eyes against path tracing, and the
+//! inter-eye coherence error, for the teacher run twice, the stereo student, and a student
+//! trained without the coherence loss when given.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail, ensure};
+use nephele_kernels::gi::{GI_INPUTS, GiModel};
+use nephele_nn::UNetWorkspace;
+use nephele_train::gi::stereo::{StereoEvaluation, evaluate_pairs, load_pairs, shade_pairs};
+
+use crate::Progress;
+
+#[derive(Debug, clap::Args)]
+pub struct GiArgs {
+    /// A dataset of one lighting from `nephele dataset gi` (with evaluation pairs).
+    #[arg(long)]
+    data: PathBuf,
+    /// The single-eye model (`nephele train gi`).
+    #[arg(long)]
+    teacher: PathBuf,
+    /// Its stereo student (`nephele train gi --teacher`).
+    #[arg(long)]
+    stereo: PathBuf,
+    /// A student trained with `--coherence-weight 0`, for the coherence loss's effect.
+    #[arg(long)]
+    stereo_no_coherence: Option<PathBuf>,
+    /// Image size per eye of the timed passes (the paper: 512x512).
+    #[arg(long, default_value = "512x512", value_parser = nephele_geometry::camera::parse_size)]
+    size: (u32, u32),
+    /// Timed repetitions of each (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    repeats: usize,
+}
+
+fn load(path: &std::path::Path) -> Result<GiModel> {
+    GiModel::load(path).with_context(|| format!("loading {}", path.display()))
+}
+
+pub fn run(args: GiArgs, _progress: &dyn Progress) -> Result<()> {
+    let teacher = load(&args.teacher)?;
+    let stereo = load(&args.stereo)?;
+    ensure!(teacher.eyes() == 1, "{} is not a single-eye model", args.teacher.display());
+    ensure!(stereo.eyes() == 2, "{} is not a stereo model", args.stereo.display());
+    let features = teacher.header.features;
+    let pairs = load_pairs(&args.data, &features, false).with_context(|| format!("loading {}", args.data.display()))?;
+    if pairs.is_empty() {
+        bail!("{} has no evaluation pairs (nephele dataset gi --stereo-pairs)", args.data.display());
+    }
+
+    // Cost: the networks' arithmetic, then one stereo pass against two single-eye passes.
+    let (w, h) = (args.size.0 as usize, args.size.1 as usize);
+    stereo.header.network.check_size(w, h)?;
+    let (single_macs, stereo_macs) = (teacher.header.network.macs_per_pixel(), stereo.header.network.macs_per_pixel());
+    println!(
+        "networks: single-eye {} parameters, {single_macs:.0} multiply-adds per pixel; stereo {} parameters, {stereo_macs:.0} per pixel of both eyes ({:.3} of two single-eye passes)",
+        teacher.network.params().len(),
+        stereo.network.params().len(),
+        stereo_macs / (2.0 * single_macs)
+    );
+    // Inputs: an evaluation pair scaled to the timed size (nearest), so the activations (and
+    // the zero-skipping of the convolutions) are those of real frames.
+    let p = &pairs[0];
+    let resize = |src: &[f32], channels: usize| -> Vec<f32> {
+        let mut out = Vec::with_capacity(w * h * channels);
+        for y in 0..h {
+            for x in 0..w {
+                let (sx, sy) = (x * p.width / w, y * p.height / h);
+                out.extend_from_slice(&src[(sy * p.width + sx) * channels..][..channels]);
+            }
+        }
+        out
+    };
+    let (left, right, both) =
+        (resize(&p.eyes[0], GI_INPUTS), resize(&p.eyes[1], GI_INPUTS), resize(&p.stacked, 2 * GI_INPUTS));
+    let mut ws = UNetWorkspace::new();
+    let (mut two_single, mut one_stereo) = (Vec::new(), Vec::new());
+    for _ in 0..args.repeats.max(1) + 1 {
+        // Alternated, so both see the same machine load; the first round warms up.
+        let t = Instant::now();
+        teacher.network.forward(w, h, &left, &mut ws)?;
+        teacher.network.forward(w, h, &right, &mut ws)?;
+        two_single.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        stereo.network.forward(w, h, &both, &mut ws)?;
+        one_stereo.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.remove(0);
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let (single_ms, stereo_ms) = (median(&mut two_single), median(&mut one_stereo));
+    println!(
+        "CPU, {w}x{h} per eye, {} threads: two single-eye passes {single_ms:.1} ms, one stereo pass {stereo_ms:.1} ms: ratio {:.3} (paper 0.53 on a GPU)",
+        rayon::current_num_threads(),
+        stereo_ms / single_ms
+    );
+    println!("GPU backend: the U-Net has no WGSL kernel yet; no GPU ratio");
+
+    // Quality on the evaluation pairs.
+    let row = |name: &str, e: &StereoEvaluation| {
+        println!(
+            "{name:<34} PSNR {:.2} / {:.2} dB  SSIM {:.4} / {:.4}  coherence error {:.6}",
+            e.psnr[0], e.psnr[1], e.ssim[0], e.ssim[1], e.coherence
+        );
+    };
+    println!("{} evaluation pairs of {}x{} (left / right eye, displayed images):", pairs.len(), p.width, p.height);
+    let twice = evaluate_pairs(&pairs, &shade_pairs(&teacher, &pairs)?);
+    row("single-eye model, run twice", &twice);
+    let student = evaluate_pairs(&pairs, &shade_pairs(&stereo, &pairs)?);
+    row("stereo model, one pass", &student);
+    println!(
+        "stereo against single-eye: {:+.2} / {:+.2} dB",
+        student.psnr[0] - twice.psnr[0],
+        student.psnr[1] - twice.psnr[1]
+    );
+    if let Some(path) = &args.stereo_no_coherence {
+        let plain = load(path)?;
+        ensure!(plain.eyes() == 2, "{} is not a stereo model", path.display());
+        let without = evaluate_pairs(&pairs, &shade_pairs(&plain, &pairs)?);
+        row("stereo model, no coherence loss", &without);
+        println!(
+            "coherence error with the loss / without: {:.6} / {:.6} = {:.3} (paper 0.00538 / 0.00804 = 0.669)",
+            student.coherence,
+            without.coherence,
+            student.coherence / without.coherence
+        );
+    }
+    Ok(())
+}
