@@ -110,6 +110,17 @@ pub fn run(args: GiArgs, _progress: &dyn Progress) -> Result<()> {
         );
     };
     println!("{} evaluation pairs of {}x{} (left / right eye, displayed images):", pairs.len(), p.width, p.height);
+    // What the rasteriser has without the model: its direct light (input channels 10..13
+    // hold ln(1 + direct)).
+    let direct: Vec<[Vec<[f32; 3]>; 2]> = pairs
+        .iter()
+        .map(|p| {
+            p.eyes.clone().map(|inputs| {
+                inputs.chunks_exact(GI_INPUTS).map(|c| [c[10].exp_m1(), c[11].exp_m1(), c[12].exp_m1()]).collect()
+            })
+        })
+        .collect();
+    row("direct light only (no GI model)", &evaluate_pairs(&pairs, &direct));
     let twice = evaluate_pairs(&pairs, &shade_pairs(&teacher, &pairs)?);
     row("single-eye model, run twice", &twice);
     let student = evaluate_pairs(&pairs, &shade_pairs(&stereo, &pairs)?);

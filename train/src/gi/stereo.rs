@@ -14,7 +14,7 @@ use nephele_kernels::gi::{GI_INPUTS, GI_OUTPUTS, GiFeatures, GiModel, decode_out
 use nephele_nn::{Adam, AdamConfig, UNet, UNetWorkspace};
 
 use super::data::{Eye, GiFrame, load_frame, read_manifest};
-use super::train::{GiCheckpoint, GiStep, GiTrainError, GiTrainOptions, GiTrainState, sample_of};
+use super::train::{GiCheckpoint, GiStep, GiTrainError, GiTrainOptions, GiTrainState, displayed, sample_of};
 use super::warp::Warp;
 
 /// One stereo pair ready for training or evaluation.
@@ -273,20 +273,18 @@ pub fn shade_pairs(model: &GiModel, pairs: &[StereoSample]) -> Result<Vec<[Vec<[
 /// evaluation `pairs`. Images are compared as displayed: linear radiance clamped to [0, 1]
 /// and sRGB-encoded.
 pub fn evaluate_pairs(pairs: &[StereoSample], images: &[[Vec<[f32; 3]>; 2]]) -> StereoEvaluation {
-    let show = |v: f32| nephele_imaging::image::linear_to_srgb(v.clamp(0.0, 1.0));
-    let flat = |img: &[[f32; 3]]| img.iter().flat_map(|c| c.map(show)).collect::<Vec<f32>>();
     let (mut psnr, mut ssim, mut coherence) = ([0.0; 2], [0.0; 2], 0.0);
     for (p, eyes) in pairs.iter().zip(images) {
         if let Some(gi) = &p.gi {
             for eye in 0..2 {
-                let (a, b) = (flat(&eyes[eye]), flat(&gi[eye]));
+                let (a, b) = (displayed(&eyes[eye]), displayed(&gi[eye]));
                 psnr[eye] +=
                     nephele_imaging::metrics::psnr_rgb(p.width as u32, p.height as u32, &a, &b).unwrap_or(f64::NAN);
                 ssim[eye] +=
                     nephele_imaging::metrics::ssim_rgb(p.width as u32, p.height as u32, &a, &b).unwrap_or(f64::NAN);
             }
         }
-        coherence += p.warp.coherence(&flat(&eyes[0]), &flat(&eyes[1]), 3).0;
+        coherence += p.warp.coherence(&displayed(&eyes[0]), &displayed(&eyes[1]), 3).0;
     }
     let n = pairs.len().max(1) as f64;
     StereoEvaluation { psnr: psnr.map(|v| v / n), ssim: ssim.map(|v| v / n), coherence: coherence / n }

@@ -115,7 +115,7 @@ pub fn g_buffer_pixels(b: &GiBuffers) -> Vec<GBufferPixel> {
 }
 
 /// Feature scales from the data: the box of every position the frames see.
-pub fn features_of(frames: &[GiBuffers]) -> GiFeatures {
+pub fn features_of<'a>(frames: impl IntoIterator<Item = &'a GiBuffers>) -> GiFeatures {
     let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
     for b in frames {
         for (p, &d) in b.position.iter().zip(&b.depth) {
@@ -172,8 +172,7 @@ pub fn load_single_eye(dir: &Path) -> Result<(Vec<GiSample>, Vec<GiSample>, GiFe
     };
     let (train, held_out) = (load(&train)?, load(&held_out)?);
     let non_finite = train.iter().chain(&held_out).map(|(_, b)| b.non_finite).sum();
-    let buffers: Vec<GiBuffers> = train.iter().map(|(_, b)| b.clone()).collect();
-    let features = features_of(&buffers);
+    let features = features_of(train.iter().map(|(_, b)| b));
     let samples = |v: &[(GiFrame, GiBuffers)]| v.iter().map(|(f, b)| sample_of(f, b, &features)).collect::<Vec<_>>();
     Ok((samples(&train), samples(&held_out), features, non_finite))
 }
@@ -375,18 +374,17 @@ pub fn evaluate_single_eye(model: &GiModel, samples: &[GiSample]) -> Result<f64,
         let output = model.network.forward(s.width, s.height, &s.inputs, &mut ws)?[0].to_vec();
         let predicted: Vec<[f32; 3]> =
             output.chunks_exact(3).map(|c| [0, 1, 2].map(|i| nephele_kernels::gi::decode_output(c[i]))).collect();
-        total += display_psnr(&predicted, &s.gi);
+        let (w, h) = (s.width as u32, s.height as u32);
+        total += nephele_imaging::metrics::psnr_rgb(w, h, &displayed(&predicted), &displayed(&s.gi))
+            .map_err(|e| GiTrainError::Options(format!("frame {}: {e}", s.name)))?;
     }
     Ok(total / samples.len().max(1) as f64)
 }
 
-/// PSNR of two linear images as displayed (clamped to [0, 1], sRGB-encoded).
-pub fn display_psnr(a: &[[f32; 3]], b: &[[f32; 3]]) -> f64 {
-    let show = |v: f32| nephele_imaging::image::linear_to_srgb(v.clamp(0.0, 1.0));
-    let se: f64 =
-        a.iter().zip(b).flat_map(|(x, y)| (0..3).map(move |i| f64::from(show(x[i]) - show(y[i])).powi(2))).sum();
-    let mse = se / (3 * a.len().max(1)) as f64;
-    if mse <= 0.0 { f64::INFINITY } else { -10.0 * mse.log10() }
+/// A linear RGB image as displayed: clamped to [0, 1], sRGB-encoded, interleaved (what
+/// the PSNR and SSIM of the GI models compare).
+pub fn displayed(image: &[[f32; 3]]) -> Vec<f32> {
+    image.iter().flat_map(|c| c.map(|v| nephele_imaging::image::linear_to_srgb(v.clamp(0.0, 1.0)))).collect()
 }
 
 #[cfg(test)]
