@@ -8,7 +8,9 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use nephele_kernels::gi::GiModel;
 use nephele_train::gi::stereo::{evaluate_pairs, load_pairs, shade_pairs, train_stereo};
-use nephele_train::gi::train::{GiCheckpoint, GiTrainOptions, evaluate_single_eye, load_single_eye, train_single_eye};
+use nephele_train::gi::train::{
+    GiCheckpoint, GiStep, GiTrainOptions, evaluate_single_eye, load_single_eye, train_single_eye,
+};
 
 use crate::progress::Progress;
 
@@ -98,19 +100,13 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     if let Some(c) = &resume {
         bar.set_position(u64::from(c.state.step));
     }
-    let mut smoothed = None::<f32>;
     let (model, state) = train_single_eye(
         &train,
         features,
         &options,
         resume,
         args.checkpoint_every,
-        &mut |s| {
-            let loss = smoothed.map_or(s.loss, |l| 0.95 * l + 0.05 * s.loss);
-            smoothed = Some(loss);
-            bar.set_position(u64::from(s.step));
-            bar.set_message(format!("GI teacher, loss {loss:.5}"));
-        },
+        &mut show_progress(&bar, "GI teacher"),
         &mut |c| c.save(&checkpoint_path),
     )?;
     bar.finish_and_clear();
@@ -163,7 +159,6 @@ fn student(args: &Args, options: &GiTrainOptions, teacher_path: &std::path::Path
     );
     let (checkpoint_path, resume) = resume_from(args, options)?;
     let bar = progress.bar(u64::from(options.steps), "GI stereo student", "steps");
-    let mut smoothed = None::<f32>;
     let (model, state) = train_stereo(
         &teacher,
         &pairs,
@@ -171,12 +166,7 @@ fn student(args: &Args, options: &GiTrainOptions, teacher_path: &std::path::Path
         args.coherence_weight,
         resume,
         args.checkpoint_every,
-        &mut |s| {
-            let loss = smoothed.map_or(s.loss, |l| 0.95 * l + 0.05 * s.loss);
-            smoothed = Some(loss);
-            bar.set_position(u64::from(s.step));
-            bar.set_message(format!("GI stereo student, loss {loss:.5}"));
-        },
+        &mut show_progress(&bar, "GI stereo student"),
         &mut |c| c.save(&checkpoint_path),
     )?;
     bar.finish_and_clear();
@@ -197,4 +187,15 @@ fn student(args: &Args, options: &GiTrainOptions, teacher_path: &std::path::Path
         );
     }
     Ok(())
+}
+
+/// A step callback that moves `bar` and shows the smoothed loss.
+fn show_progress<'b>(bar: &'b indicatif::ProgressBar, name: &'static str) -> impl FnMut(GiStep) + 'b {
+    let mut smoothed = None::<f32>;
+    move |s| {
+        let loss = smoothed.map_or(s.loss, |l| 0.95 * l + 0.05 * s.loss);
+        smoothed = Some(loss);
+        bar.set_position(u64::from(s.step));
+        bar.set_message(format!("{name}, loss {loss:.5}"));
+    }
 }

@@ -14,7 +14,9 @@ use nephele_kernels::gi::{GI_INPUTS, GI_OUTPUTS, GiFeatures, GiModel, decode_out
 use nephele_nn::{Adam, AdamConfig, UNet, UNetWorkspace};
 
 use super::data::{Eye, GiFrame, load_frame, read_manifest};
-use super::train::{GiCheckpoint, GiStep, GiTrainError, GiTrainOptions, GiTrainState, displayed, sample_of};
+use super::train::{
+    GiCheckpoint, GiStep, GiTrainError, GiTrainOptions, GiTrainState, displayed, finish_step, sample_of,
+};
 use super::warp::Warp;
 
 /// One stereo pair ready for training or evaluation.
@@ -162,7 +164,7 @@ pub fn train_stereo(
     let per_pixel = 2 * GI_INPUTS;
     let mut input = vec![0.0f32; crop * crop * per_pixel];
     let mut target = [vec![0.0f32; crop * crop * GI_OUTPUTS], vec![0.0f32; crop * crop * GI_OUTPUTS]];
-    let (mut window_loss, mut window_steps) = (0.0f64, 0u32);
+    let mut window = (0.0f64, 0u32);
     while state.step < options.steps {
         grads.fill(0.0);
         let mut loss = 0.0f64;
@@ -207,27 +209,18 @@ pub fn train_stereo(
             }
             network.backward(&input, &mut ws, &mut d_heads, &mut grads)?;
         }
-        adam.set_learning_rate(options.learning_rate_at(state.step));
-        adam.step(network.params_mut(), &grads)?;
-        state.step += 1;
-        window_loss += loss;
-        window_steps += 1;
-        if state.step % 50 == 0 || state.step == options.steps {
-            state.curve.push((state.step, (window_loss / f64::from(window_steps)) as f32));
-            (window_loss, window_steps) = (0.0, 0);
-        }
-        on_step(GiStep { step: state.step, steps: options.steps, loss: loss as f32 });
-        if (checkpoint_every > 0 && state.step % checkpoint_every == 0) || state.step == options.steps {
-            state.adam_steps = adam.steps();
-            state.rng = rng.state();
-            let (m, v) = adam.moments();
-            checkpoint(&GiCheckpoint {
-                state: state.clone(),
-                params: network.params().to_vec(),
-                m: m.to_vec(),
-                v: v.to_vec(),
-            })?;
-        }
+        finish_step(
+            &mut network,
+            &mut adam,
+            &grads,
+            loss,
+            &mut state,
+            &mut window,
+            &rng,
+            checkpoint_every,
+            on_step,
+            checkpoint,
+        )?;
     }
     let training = serde_json::json!({
         "student_of": teacher.header.training, "steps": state.step, "batch": options.batch, "crop": crop,

@@ -314,7 +314,7 @@ pub fn train_single_eye(
     let mut grads = vec![0.0f32; network.params().len()];
     let mut input = vec![0.0f32; crop * crop * GI_INPUTS];
     let mut target = vec![0.0f32; crop * crop * GI_OUTPUTS];
-    let (mut window_loss, mut window_steps) = (0.0f64, 0u32);
+    let mut window = (0.0f64, 0u32);
     while state.step < options.steps {
         grads.fill(0.0);
         let mut loss = 0.0f64;
@@ -336,33 +336,64 @@ pub fn train_single_eye(
                 / (target.len() * options.batch) as f64;
             network.backward(&input, &mut ws, std::slice::from_mut(&mut d_out), &mut grads)?;
         }
-        adam.set_learning_rate(options.learning_rate_at(state.step));
-        adam.step(network.params_mut(), &grads)?;
-        state.step += 1;
-        window_loss += loss;
-        window_steps += 1;
-        if state.step % 50 == 0 || state.step == options.steps {
-            state.curve.push((state.step, (window_loss / f64::from(window_steps)) as f32));
-            (window_loss, window_steps) = (0.0, 0);
-        }
-        on_step(GiStep { step: state.step, steps: options.steps, loss: loss as f32 });
-        if (checkpoint_every > 0 && state.step % checkpoint_every == 0) || state.step == options.steps {
-            state.adam_steps = adam.steps();
-            state.rng = rng.state();
-            let (m, v) = adam.moments();
-            checkpoint(&GiCheckpoint {
-                state: state.clone(),
-                params: network.params().to_vec(),
-                m: m.to_vec(),
-                v: v.to_vec(),
-            })?;
-        }
+        finish_step(
+            &mut network,
+            &mut adam,
+            &grads,
+            loss,
+            &mut state,
+            &mut window,
+            &rng,
+            checkpoint_every,
+            on_step,
+            checkpoint,
+        )?;
     }
     let training = serde_json::json!({
         "steps": state.step, "batch": options.batch, "crop": options.crop, "frames": train.len(),
         "final_loss": state.curve.last().map(|c| c.1),
     });
     Ok((GiModel::new(network, features, training)?, state))
+}
+
+/// The end of one optimisation step, shared by the teacher's and the student's loops: the
+/// Adam update at the scheduled rate, the loss curve, progress, and a checkpoint when due.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn finish_step(
+    network: &mut UNet,
+    adam: &mut Adam,
+    grads: &[f32],
+    loss: f64,
+    state: &mut GiTrainState,
+    window: &mut (f64, u32),
+    rng: &SplitMix64,
+    checkpoint_every: u32,
+    on_step: &mut dyn FnMut(GiStep),
+    checkpoint: &mut dyn FnMut(&GiCheckpoint) -> Result<(), GiTrainError>,
+) -> Result<(), GiTrainError> {
+    let steps = state.options.steps;
+    adam.set_learning_rate(state.options.learning_rate_at(state.step));
+    adam.step(network.params_mut(), grads)?;
+    state.step += 1;
+    window.0 += loss;
+    window.1 += 1;
+    if state.step.is_multiple_of(50) || state.step == steps {
+        state.curve.push((state.step, (window.0 / f64::from(window.1)) as f32));
+        *window = (0.0, 0);
+    }
+    on_step(GiStep { step: state.step, steps, loss: loss as f32 });
+    if (checkpoint_every > 0 && state.step.is_multiple_of(checkpoint_every)) || state.step == steps {
+        state.adam_steps = adam.steps();
+        state.rng = rng.state();
+        let (m, v) = adam.moments();
+        checkpoint(&GiCheckpoint {
+            state: state.clone(),
+            params: network.params().to_vec(),
+            m: m.to_vec(),
+            v: v.to_vec(),
+        })?;
+    }
+    Ok(())
 }
 
 /// Mean PSNR (dB) of the model's single-eye output against the path-traced GI of `samples`,
