@@ -43,7 +43,12 @@ pub struct DeviceArgs {
     simd: SimdMode,
 }
 
-fn orbit(kernel: &dyn RayKernel, (width, height): (u32, u32), views: usize, distance: f32) -> Result<Vec<Camera>> {
+pub(crate) fn orbit(
+    kernel: &dyn RayKernel,
+    (width, height): (u32, u32),
+    views: usize,
+    distance: f32,
+) -> Result<Vec<Camera>> {
     let b = kernel.bounds();
     let (centre, radius) = (b.center(), 0.5 * b.size().length().max(1e-3));
     (0..views.max(1))
@@ -56,7 +61,7 @@ fn orbit(kernel: &dyn RayKernel, (width, height): (u32, u32), views: usize, dist
 }
 
 /// Renders every camera once; returns ms per frame, rays hit per frame and the frames.
-fn run(
+pub(crate) fn run(
     kernel: &dyn RayKernel,
     cameras: &[Camera],
     bar: &indicatif::ProgressBar,

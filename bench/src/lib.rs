@@ -26,6 +26,7 @@ pub mod encode;
 pub mod gi;
 pub mod heap;
 pub mod inolf;
+pub mod kernel;
 pub mod scheduler;
 pub mod wire;
 
@@ -71,6 +72,10 @@ pub enum Command {
     /// run (orbit views): ms per frame, the ratio, and the GPU frames' difference from the CPU
     /// frames. A software Vulkan adapter (Mesa's lavapipe) is accepted and labelled as such.
     Device(crate::device::DeviceArgs),
+    /// The i-NOLF CPU kernel against its variants in one run (orbit views of one or more
+    /// assets): square ray tiles against the batch's row order, AVX2+FMA against scalar code;
+    /// ms per frame, the ratios, and the largest difference of the results.
+    Kernel(crate::kernel::KernelArgs),
     /// The stereo global-illumination model against its single-eye teacher in one run: one
     /// stereo pass against two single-eye passes (multiply-adds and time), PSNR/SSIM of both
     /// eyes against path tracing, and the inter-eye coherence error with and without the
@@ -109,6 +114,7 @@ pub fn run(command: Command, progress: &dyn Progress) -> Result<()> {
         Command::PshCache(args) => crate::inolf::psh_cache(args, progress),
         Command::Inolf(args) => crate::inolf::inolf(args, progress),
         Command::Device(args) => crate::device::device(args, progress),
+        Command::Kernel(args) => crate::kernel::run_kernel(args, progress),
         Command::Gi(args) => crate::gi::run(args, progress),
     }
 }

@@ -94,6 +94,10 @@ enum Command {
     /// Run the whole service locally: master, composer and render workers as child
     /// processes; prints the URL to open; Ctrl-C stops everything.
     ///
+    /// A worker or the composer that dies is started again with backoff and rejoins the
+    /// farm (the master re-issues its batches; viewers keep streaming through a worker's
+    /// death). The master's death, or a crash loop, stops the service with a message.
+    ///
     /// The scene's built-in objects are served as i-NOLF assets: the first start bakes them
     /// (about 7 minutes for the default scene on two cores, with progress bars) into a
     /// cache folder that later starts reuse. `--bake quick` bakes in seconds (blurry),

@@ -38,6 +38,21 @@ pub fn children_of(pid: u32) -> Vec<u32> {
     String::from_utf8_lossy(&out.stdout).lines().filter_map(|l| l.trim().parse().ok()).collect()
 }
 
+/// The command line of `pid`, arguments separated by spaces (empty once it is gone).
+pub fn command_line(pid: u32) -> String {
+    std::fs::read(format!("/proc/{pid}/cmdline"))
+        .map(|raw| {
+            raw.split(|&b| b == 0).map(|a| String::from_utf8_lossy(a).into_owned()).collect::<Vec<_>>().join(" ")
+        })
+        .unwrap_or_default()
+}
+
+/// Live child processes of `pid` whose second argument (the subcommand) is `role`
+/// (`worker`, `composer`, `master`).
+pub fn children_in_role(pid: u32, role: &str) -> Vec<u32> {
+    children_of(pid).into_iter().filter(|&c| alive(c) && command_line(c).split(' ').nth(1) == Some(role)).collect()
+}
+
 /// Whether `pid` is a live (not zombie) process.
 pub fn alive(pid: u32) -> bool {
     std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| !s.contains(") Z "))

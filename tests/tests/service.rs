@@ -2,13 +2,14 @@
 //! workers) on a first start, which bakes the default scene's objects into i-NOLF assets
 //! (`--bake quick`: small, blurry, seconds each); a WebRTC client that opens its session
 //! through the MASTER's `POST /v1/sessions`, sends poses in the browser client's format and
-//! receives H.264 rendered by the farm from those assets; then DELETE and SIGINT stop
+//! receives H.264 rendered by the farm from those assets; a worker killed with SIGKILL
+//! mid-stream is started again while the frames keep coming; then DELETE and SIGINT stop
 //! everything with no child left behind.
 
 use std::time::{Duration, Instant};
 
 use nephele_composer::pose::look_at_pose;
-use nephele_tests::service::{UpService, alive, children_of};
+use nephele_tests::service::{UpService, alive, children_in_role, children_of};
 use nephele_tests::viewer::{Client, ClientOptions, http_request};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -89,6 +90,41 @@ async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_
     }
     let total = latency["pose_to_sent"]["p50"].as_f64().unwrap_or(0.0);
     assert!(total >= latency["encode"]["p50"].as_f64().unwrap_or(0.0), "{latency}");
+
+    // A worker killed mid-stream: the frames keep coming (the master re-issues its batches
+    // to the other worker), and `nephele up` starts it again; it rejoins the farm.
+    let workers = children_in_role(up.pid(), "worker");
+    assert_eq!(workers.len(), 2, "{workers:?}");
+    let victim = workers[0];
+    let killed = std::process::Command::new("kill").args(["-KILL", &victim.to_string()]).status().expect("kill");
+    assert!(killed.success());
+    let started = Instant::now();
+    let (mut while_down, mut after_back, mut back_after) = (0u32, 0u32, None);
+    while started.elapsed() < Duration::from_secs(90) && (back_after.is_none() || after_back < 3) {
+        seq += 1;
+        let pose = look_at_pose(seq, w, h, 0.8, eye, target).expect("a valid pose");
+        client.send_pose(&pose).await.expect("sending a pose");
+        if client.next_picture(Duration::from_millis(50), |_| true).await.is_ok() {
+            if back_after.is_some() { after_back += 1 } else { while_down += 1 }
+        }
+        if back_after.is_none() && seq % 10 == 0 {
+            let now = children_in_role(up.pid(), "worker");
+            let (_, farm) = http_request(http, "GET", "/v1/farm", &[], "").await.expect("GET /v1/farm");
+            let farm: serde_json::Value = serde_json::from_str(&farm).expect("JSON");
+            if now.len() == 2 && !now.contains(&victim) && farm["workers"].as_array().map(Vec::len) == Some(2) {
+                back_after = Some(started.elapsed());
+            }
+        }
+    }
+    let log = up.log_text();
+    assert!(back_after.is_some(), "the killed worker did not rejoin within 90 s");
+    assert!(log.contains("restarted"), "no restart in the log");
+    assert!(
+        while_down >= 1 && after_back >= 3,
+        "frames while the worker was down {while_down}, after it was back {after_back}"
+    );
+    println!("worker {victim} killed: back in the farm after {back_after:?}; {while_down} frames meanwhile");
+    let children: Vec<u32> = children.into_iter().chain(children_of(up.pid())).collect();
 
     let auth = format!("Bearer {}", client.token);
     let (status, body) = http_request(http, "DELETE", &format!("/v1/sessions/{name}"), &[("authorization", &auth)], "")

@@ -9,13 +9,16 @@ use anyhow::{Context, Result, bail};
 
 use super::first_start::{BakeQuality, default_asset_dir, ensure_baked};
 use crate::progress::Progress;
-use crate::supervise::Supervisor;
+use crate::supervise::{Restart, Supervisor, WatchEnd};
 use nephele_shutdown::Shutdown;
 
 /// Runs the service locally: one `nephele master`, one `nephele composer --master ...` and
 /// `--workers` × `nephele worker --master ...`, on free loopback ports (the master's HTTP
 /// address excepted), waits until the master sees the composer and every worker, prints the
-/// URL to open, and stops everything on Ctrl-C (or as soon as any process dies).
+/// URL to open, and stops everything on Ctrl-C. A worker or the composer that dies is
+/// started again (backoff from 0.5 s, doubling to 10 s) and rejoins the farm, whose master
+/// re-issues the lost batches; the master's death, or a process crashing more than 5 times
+/// in 2 minutes, stops everything with a message saying which.
 ///
 /// The scene's objects are served as baked i-NOLF assets (one small-network query per
 /// ray). None ship with Nephele: the first start bakes the scene's built-in objects (a
@@ -127,7 +130,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let mut supervisor = Supervisor::new();
     let mut master = Command::new(&exe);
     master.args(["master", "--http", &args.http.to_string(), "--farm-listen", &farm.to_string()]);
-    supervisor.spawn("master", master)?;
+    supervisor.spawn("master", master, Restart::Never)?;
     let mut composer = Command::new(&exe);
     composer.args([
         "composer",
@@ -138,7 +141,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         "--results",
         &composer_results.to_string(),
     ]);
-    supervisor.spawn("composer", composer)?;
+    supervisor.spawn("composer", composer, Restart::OnExit)?;
     for i in 0..args.workers {
         let mut worker = Command::new(&exe);
         worker.args([
@@ -160,7 +163,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         if let Some(object) = baked.first() {
             worker.args(["--calibration-asset", &object.name]);
         }
-        supervisor.spawn(&format!("worker-{i}"), worker)?;
+        supervisor.spawn(&format!("worker-{i}"), worker, Restart::OnExit)?;
     }
     // Wait until the farm is whole (workers calibrate before they register).
     let started = Instant::now();
@@ -201,10 +204,20 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     }
     println!("composer counters and latency: http://{composer_http}/v1/sessions");
     println!("open http://{}/?scene={}", args.http, args.scene);
-    let exited = supervisor.watch(&stop)?;
+    let end = supervisor.watch(&stop)?;
+    for (name, restarts) in supervisor.restart_counts() {
+        println!("nephele up: {name} was restarted {restarts} time(s)");
+    }
     let killed = supervisor.shutdown(Duration::from_secs(10));
-    if let Some((name, status)) = exited {
-        bail!("{name} exited ({status}); stopped the others");
+    match end {
+        WatchEnd::Stopped => {}
+        WatchEnd::Exited { name, status } => {
+            bail!("{name} exited ({status}); the service cannot go on without it, stopped the others")
+        }
+        WatchEnd::CrashLoop { name, status, restarts, window } => bail!(
+            "{name} keeps crashing (last exit: {status}; restarted {restarts} times within {} s); stopped the service",
+            window.as_secs()
+        ),
     }
     if !killed.is_empty() {
         bail!("had to kill {} after the grace period", killed.join(", "));

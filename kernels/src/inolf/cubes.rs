@@ -615,10 +615,14 @@ impl DensityCubes {
         }
         let step = cubes.sample_step();
         let inv_step = 1.0 / step;
+        let inv_cell = 1.0 / cubes.cell;
+        // Reciprocals once per ray: the loop below only multiplies (a division costs as much
+        // as a dozen multiplications in latency, and the DDA's steps depend on each other).
+        let inv_dir = Vec3::ONE / dir;
         let d = cubes.dims;
         // DDA set-up from the entry point.
         let entry = origin + dir * t0;
-        let f = (entry - lo) / cubes.cell;
+        let f = (entry - lo) * inv_cell;
         let mut c = [0i64; 3];
         let mut t_next = [f32::INFINITY; 3];
         let mut t_delta = [f32::INFINITY; 3];
@@ -627,12 +631,12 @@ impl DensityCubes {
             c[a] = floor_i64(f[a]).clamp(0, i64::from(d[a]) - 1);
             if dir[a] > 0.0 {
                 stepdir[a] = 1;
-                t_next[a] = (lo[a] + (c[a] + 1) as f32 * cubes.cell - origin[a]) / dir[a];
-                t_delta[a] = cubes.cell / dir[a];
+                t_next[a] = (lo[a] + (c[a] + 1) as f32 * cubes.cell - origin[a]) * inv_dir[a];
+                t_delta[a] = cubes.cell * inv_dir[a];
             } else if dir[a] < 0.0 {
                 stepdir[a] = -1;
-                t_next[a] = (lo[a] + c[a] as f32 * cubes.cell - origin[a]) / dir[a];
-                t_delta[a] = -cubes.cell / dir[a];
+                t_next[a] = (lo[a] + c[a] as f32 * cubes.cell - origin[a]) * inv_dir[a];
+                t_delta[a] = -cubes.cell * inv_dir[a];
             }
         }
         let mut transmittance = 1.0f32;
@@ -640,7 +644,6 @@ impl DensityCubes {
         // Samples sit at t0 + (k + 1/2) step, whatever cell they fall in.
         let mut k = 0u64;
         let max_cells = (d[0] + d[1] + d[2]) as usize + 3;
-        let inv_dir = Vec3::ONE / dir;
         let block_side = cubes.cell * BLOCK as f32;
         for _ in 0..max_cells {
             // An empty block of cells is crossed in one step: the DDA restarts where the ray
@@ -674,10 +677,11 @@ impl DensityCubes {
                         // The ray's cell index only moves along `stepdir`: a point on a face
                         // rounds to either side, and going back could ping-pong between two
                         // empty blocks at an edge.
-                        let at = floor_i64((p[a] - lo[a]) / cubes.cell).clamp(0, i64::from(d[a]) - 1);
+                        let at = floor_i64((p[a] - lo[a]) * inv_cell).clamp(0, i64::from(d[a]) - 1);
                         if stepdir[a] > 0 { c[a].max(at) } else { c[a].min(at) }
                     };
-                    t_next[a] = (lo[a] + (c[a] + i64::from(stepdir[a] > 0)) as f32 * cubes.cell - origin[a]) / dir[a];
+                    t_next[a] =
+                        (lo[a] + (c[a] + i64::from(stepdir[a] > 0)) as f32 * cubes.cell - origin[a]) * inv_dir[a];
                 }
                 if c[exit_axis] < 0 || c[exit_axis] >= i64::from(d[exit_axis]) {
                     break;
@@ -696,7 +700,7 @@ impl DensityCubes {
             let cell = [c[0] as u32, c[1] as u32, c[2] as u32];
             if let Some(cube) = cubes.cube_at(cell) {
                 // First sample index at or after t_cur.
-                let first = ceil_non_negative(((t_cur - t0) / step - 0.5).max(0.0));
+                let first = ceil_non_negative(((t_cur - t0) * inv_step - 0.5).max(0.0));
                 k = k.max(first);
                 let cell_min = lo + cubes.cell * Vec3::new(cell[0] as f32, cell[1] as f32, cell[2] as f32);
                 // Cube-local sample coordinates of sample k; one sample step along the ray

@@ -1,0 +1,145 @@
+//! `bench kernel`: where the i-NOLF CPU kernel's time goes, in one run, over orbit views of
+//! one or more assets: the whole kernel with AVX2+FMA and with scalar code, and the density
+//! march alone (the rest is the heads of the rays that hit). Rounds alternate the rows so
+//! that a noisy neighbour on a shared machine hits all of them alike.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use nephele_kernels::inolf::cubes::MarchHit;
+use nephele_kernels::inolf::kernel::{InolfKernel, RAY_NEAR};
+use nephele_kernels::kernel::PixelResults;
+use nephele_nn::SimdMode;
+use rayon::prelude::*;
+
+use crate::Progress;
+use crate::device::{orbit, run};
+
+#[derive(Debug, clap::Args)]
+pub struct KernelArgs {
+    /// i-NOLF assets (`.nolf`), comma-separated; each is timed on its own.
+    #[arg(long, value_delimiter = ',', required = true)]
+    asset: Vec<PathBuf>,
+    /// Frame size.
+    #[arg(long, default_value = "640x480", value_parser = nephele_geometry::camera::parse_size, value_name = "WxH")]
+    size: (u32, u32),
+    /// Views on a circle around each object.
+    #[arg(long, default_value_t = 8)]
+    views: usize,
+    /// Distance of the cameras from the object's centre, in radii of its box.
+    #[arg(long, default_value_t = 2.2)]
+    distance: f32,
+    /// Rounds; each renders every view once per row, rows alternating.
+    #[arg(long, default_value_t = 3)]
+    rounds: usize,
+}
+
+/// Largest absolute difference of colour, opacity and depth between two lists of frames.
+fn largest_difference(a: &[PixelResults], b: &[PixelResults]) -> f32 {
+    let mut worst = 0.0f32;
+    for (a, b) in a.iter().zip(b) {
+        for i in 0..a.len() {
+            let d = (0..3).map(|c| (a.color[i][c] - b.color[i][c]).abs()).fold(0.0, f32::max);
+            worst = worst.max(d).max((a.opacity[i] - b.opacity[i]).abs()).max((a.depth[i] - b.depth[i]).abs());
+        }
+    }
+    worst
+}
+
+/// The march alone over every pixel of every camera: ms per frame and the summed work.
+fn march_only(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]) -> (f64, MarchWork) {
+    let start = Instant::now();
+    let mut work = MarchWork::default();
+    for camera in cameras {
+        let (w, h) = (camera.width(), camera.height());
+        let frame = (0..w * h)
+            .into_par_iter()
+            .map(|p| {
+                let ray = camera.pixel_center_ray(p % w, p / w);
+                MarchWork::of(&kernel.density().march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY))
+            })
+            .reduce(MarchWork::default, MarchWork::add);
+        work = work.add(frame);
+    }
+    (1e3 * start.elapsed().as_secs_f64() / cameras.len() as f64, work)
+}
+
+#[derive(Debug, Clone, Copy, Default)]
+struct MarchWork {
+    rays: u64,
+    cells: u64,
+    samples: u64,
+    lookups: u64,
+}
+
+impl MarchWork {
+    fn of(hit: &MarchHit) -> MarchWork {
+        MarchWork { rays: 1, cells: hit.cells.into(), samples: hit.samples.into(), lookups: hit.lookups.into() }
+    }
+
+    fn add(self, o: MarchWork) -> MarchWork {
+        MarchWork {
+            rays: self.rays + o.rays,
+            cells: self.cells + o.cells,
+            samples: self.samples + o.samples,
+            lookups: self.lookups + o.lookups,
+        }
+    }
+}
+
+pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
+    anyhow::ensure!(args.rounds > 0 && args.views > 0, "--rounds and --views must be positive");
+    let (w, h) = args.size;
+    let rays = f64::from(w) * f64::from(h);
+    println!(
+        "i-NOLF CPU kernel, {} orbit views of {w}x{h} per asset, {} rounds, {} threads",
+        args.views,
+        args.rounds,
+        rayon::current_num_threads()
+    );
+    for path in &args.asset {
+        let fast = InolfKernel::load(path).with_context(|| format!("loading {}", path.display()))?;
+        let mut scalar = fast.clone();
+        scalar.set_simd(SimdMode::Off);
+        let cameras = orbit(&fast, args.size, args.views, args.distance)?;
+        let bar = progress.bar((args.rounds * 2 * cameras.len()) as u64, "rendering", "frames");
+        let (mut fast_ms, mut scalar_ms, mut march_ms) = (0.0, 0.0, 0.0);
+        let (mut hits, mut work) = (0.0, MarchWork::default());
+        let (mut fast_frames, mut scalar_frames) = (Vec::new(), Vec::new());
+        let share = 1.0 / args.rounds as f64;
+        for _ in 0..args.rounds {
+            let (t, hit, out) = run(&fast, &cameras, &bar)?;
+            (fast_ms, hits, fast_frames) = (fast_ms + share * t, hit, out);
+            let (t, _, out) = run(&scalar, &cameras, &bar)?;
+            (scalar_ms, scalar_frames) = (scalar_ms + share * t, out);
+            let (t, counted) = march_only(&fast, &cameras);
+            (march_ms, work) = (march_ms + share * t, counted);
+        }
+        bar.finish_and_clear();
+        let per_ray = |v: u64| v as f64 / work.rays.max(1) as f64;
+        println!(
+            "{}: {hits:.0} rays hit per frame ({:.1} %); per ray {:.2} cells, {:.2} samples, {:.2} corner decodes",
+            path.display(),
+            100.0 * hits / rays,
+            per_ray(work.cells),
+            per_ray(work.samples),
+            per_ray(work.lookups)
+        );
+        println!("{:<40} {:>10} {:>14} {:>10}", "row", "ms/frame", "rays/s", "share");
+        for (label, ms) in [
+            ("whole kernel, AVX2+FMA where present", fast_ms),
+            ("whole kernel, scalar (--simd off)", scalar_ms),
+            ("density march alone", march_ms),
+            ("heads of the hit rays (the difference)", fast_ms - march_ms),
+        ] {
+            println!("{label:<40} {ms:>10.2} {:>14.0} {:>9.1}%", rays / (ms / 1e3).max(1e-12), 100.0 * ms / fast_ms);
+        }
+        println!(
+            "scalar over AVX2+FMA in this run: {:.2}x; largest difference of their results {:.2e}",
+            scalar_ms / fast_ms.max(1e-12),
+            largest_difference(&fast_frames, &scalar_frames)
+        );
+    }
+    Ok(())
+}
