@@ -2,7 +2,7 @@
 //! [`crate::encode::H264Encoder`] and the viewers' peer connections. [`Composer::start`]
 //! binds the listeners and starts the parts, each in a file of its own:
 //!
-//! * [`crate::signalling`]: HTTP signalling (`/v1/sessions`, `/v1/health`);
+//! * [`crate::signalling`]: HTTP signalling (`/v1/sessions`, `/livez`, `/readyz`);
 //! * [`crate::sessions`]: viewer sessions, their poses and control messages;
 //! * [`crate::media`]: per session, YUV conversion, H.264 encoding and sending;
 //! * [`crate::farm`]: the link to the master and the workers' results (proto), fused by

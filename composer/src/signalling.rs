@@ -2,8 +2,10 @@
 //! `"session"`, `"width"`, `"height"`, `"views"`) and answers `201 {"session", "token",
 //! "type": "answer", "sdp"}`; a malformed offer is `400 {"error"}`. `DELETE
 //! /v1/sessions/{id}` with `Authorization: Bearer TOKEN` ends a session; `GET /v1/sessions`
-//! reports every session's counters; `GET /v1/health`. With a master, viewers arrive through
-//! the master's `OpenStream` instead ([`crate::farm`]).
+//! reports every session's counters; `GET /livez` (the process answers) and `GET /readyz`
+//! (200 when it can take viewers: standalone, or registered with its master; 503 while the
+//! master link is down). With a master, viewers arrive through the master's `OpenStream`
+//! instead ([`crate::farm`]).
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -22,10 +24,20 @@ use crate::state::{Shared, lock, reports};
 /// The HTTP routes over `shared`.
 pub(crate) fn router(shared: Arc<Shared>) -> Router {
     Router::new()
-        .route("/v1/health", get(|| async { "ok" }))
+        .route("/livez", get(|| async { "ok" }))
+        .route("/readyz", get(readyz))
         .route("/v1/sessions", post(create_session).get(list_sessions))
         .route("/v1/sessions/{id}", axum::routing::delete(delete_session))
         .with_state(shared)
+}
+
+async fn readyz(State(shared): State<Arc<Shared>>) -> Response {
+    let farm_mode = shared.config.master.is_some();
+    let linked = lock(&shared.to_master).is_some();
+    let ready = !farm_mode || linked;
+    let status = if ready { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE };
+    let body = serde_json::json!({ "ready": ready, "farm_mode": farm_mode, "master_link": linked });
+    (status, Json(body)).into_response()
 }
 
 #[derive(Debug, Deserialize)]

@@ -116,7 +116,8 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/sessions", post(open_session).get(list_sessions))
         .route("/v1/sessions/{id}", delete(close_session))
         .route("/v1/farm", get(farm))
-        .route("/healthz", get(|| async { "ok" }))
+        .route("/livez", get(|| async { "ok" }))
+        .route("/readyz", get(readyz))
         .layer(DefaultBodyLimit::max(MAX_BODY_BYTES))
         .with_state(state)
 }
@@ -280,6 +281,25 @@ async fn farm(State(state): State<Arc<AppState>>) -> Response {
     Json(body).into_response()
 }
 
+/// Ready to serve viewers: the farm's event loop answers, a composer is registered and at
+/// least one render worker is. 503 with what is missing otherwise (load balancers and
+/// Kubernetes' readiness probe take a viewer elsewhere meanwhile).
+async fn readyz(State(state): State<Arc<AppState>>) -> Response {
+    let farm = state.backend.farm_state().await;
+    let workers = farm.get("workers").and_then(|w| w.as_array()).map_or(0, Vec::len);
+    let composer = farm.get("composer").is_some_and(|c| !c.is_null());
+    let mut missing = Vec::new();
+    if !composer {
+        missing.push("no composer has joined the farm");
+    }
+    if workers == 0 {
+        missing.push("no render worker has joined the farm");
+    }
+    let status = if missing.is_empty() { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE };
+    (status, Json(json!({ "ready": missing.is_empty(), "workers": workers, "composer": composer, "missing": missing })))
+        .into_response()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -292,6 +312,8 @@ mod tests {
     #[derive(Default)]
     struct FakeFarm {
         refuse: AtomicBool,
+        /// Workers and composer that `farm_state` reports.
+        members: AtomicUsize,
         opened: AtomicUsize,
         closed: AtomicUsize,
     }
@@ -327,7 +349,11 @@ mod tests {
             Box::pin(async {})
         }
         fn farm_state(&self) -> BoxFuture<serde_json::Value> {
-            Box::pin(async { json!({ "workers": [] }) })
+            // 0: empty farm; 1: a worker only; 2: a worker and a composer.
+            let members = self.members.load(Ordering::SeqCst);
+            let workers: Vec<serde_json::Value> = (0..members.min(1)).map(|i| json!({ "id": i })).collect();
+            let composer = if members >= 2 { json!({ "id": 1 }) } else { serde_json::Value::Null };
+            Box::pin(async move { json!({ "workers": workers, "composer": composer }) })
         }
     }
 
@@ -353,6 +379,25 @@ mod tests {
     }
 
     const OFFER: &str = r#"{"sdp": "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 96\r\n", "scene": "default"}"#;
+
+    #[tokio::test]
+    async fn ready_only_with_a_composer_and_a_worker() {
+        let (app, farm, _) = app();
+        let get = |path: &str| Request::get(path).body(Body::empty()).expect("request");
+        let (status, _, _) = call(&app, get("/livez")).await;
+        assert_eq!(status, StatusCode::OK);
+        let (status, _, body) = call(&app, get("/readyz")).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+        assert_eq!(body["missing"].as_array().map(Vec::len), Some(2), "{body}");
+        farm.members.store(1, Ordering::SeqCst);
+        let (status, _, body) = call(&app, get("/readyz")).await;
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+        assert_eq!(body["missing"][0], "no composer has joined the farm", "{body}");
+        farm.members.store(2, Ordering::SeqCst);
+        let (status, _, body) = call(&app, get("/readyz")).await;
+        assert_eq!(status, StatusCode::OK, "{body}");
+        assert_eq!((body["ready"].as_bool(), body["workers"].as_u64()), (Some(true), Some(1)), "{body}");
+    }
 
     #[tokio::test]
     async fn session_lifecycle() {

@@ -41,6 +41,12 @@ async fn composer_process_streams_to_a_client_and_stops_on_ctrl_c() {
         .and_then(|a| a.parse().ok())
         .unwrap_or_else(|| panic!("no address in '{banner}'"));
 
+    // Standalone (no master): alive and ready.
+    assert_eq!(http_request(http, "GET", "/livez", &[], "").await.unwrap().0, 200);
+    let (status, body) = http_request(http, "GET", "/readyz", &[], "").await.unwrap();
+    assert_eq!(status, 200, "{body}");
+    assert!(body.contains("\"ready\":true"), "{body}");
+
     let (status, body) = http_request(http, "POST", "/v1/sessions", &[], r#"{"sdp":"v=1 nonsense"}"#).await.unwrap();
     assert_eq!(status, 400, "{body}");
     assert!(body.contains("malformed SDP offer"), "{body}");

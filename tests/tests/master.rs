@@ -642,6 +642,12 @@ fn admission_control_refuses_while_a_user_is_starved_and_bad_requests_are_answer
     let err = nephele_tests::nephele_err(&["master", "--http", "127.0.0.1:0", "--load-report-ms", "1"]);
     assert!(err.contains("--load-report-ms"), "{err}");
 
+    // Alive, but not ready without a composer.
+    assert_eq!(http(master.http, "GET", "/livez", &[], "").status, 200);
+    let r = http(master.http, "GET", "/readyz", &[], "");
+    assert_eq!(r.status, 503, "{}", r.body);
+    assert_eq!(r.body["missing"], json!(["no composer has joined the farm"]), "{}", r.body);
+
     // No composer yet: 503 without Retry-After (nothing to wait for).
     let r = open_session(&master, request("diffuse", (64, 48), 30.0, OFFER));
     assert_eq!(r.status, 503, "{}", r.body);
@@ -656,6 +662,8 @@ fn admission_control_refuses_while_a_user_is_starved_and_bad_requests_are_answer
     assert_eq!(delete_session(&master, "s99-abcdef", &"0".repeat(32)), 404);
 
     let mut composer = connect_composer(master.farm, "composer-a").expect("first composer");
+    let r = http(master.http, "GET", "/readyz", &[], "");
+    assert_eq!((r.status, &r.body["ready"]), (200, &json!(true)), "{}", r.body);
     match connect_composer(master.farm, "composer-b").map_err(|m| *m) {
         Err(Message::Error(e)) => assert_eq!(e.code, ErrorCode::Unexpected, "{e:?}"),
         Err(other) => panic!("expected an error, got {other:?}"),
