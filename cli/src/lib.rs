@@ -34,8 +34,29 @@ struct Cli {
     /// Worker threads for rendering and metrics (default: one per core).
     #[arg(long, global = true, value_name = "N")]
     threads: Option<usize>,
+    /// Log lines as text (colour only on a terminal, never with `NO_COLOR`) or as JSON, one
+    /// object per line with the fields of each event, for log collectors. `nephele up` passes
+    /// it on to its processes.
+    #[arg(long, global = true, value_enum, default_value = "text")]
+    log_format: LogFormat,
     #[command(subcommand)]
     command: Command,
+}
+
+/// How log lines are written (on stderr).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormat {
+    Text,
+    Json,
+}
+
+impl std::fmt::Display for LogFormat {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            LogFormat::Text => "text",
+            LogFormat::Json => "json",
+        })
+    }
 }
 
 #[derive(Debug, Subcommand)]
@@ -108,7 +129,7 @@ enum Command {
 /// Parses the command line and runs the command; the whole of a `nephele` binary.
 pub fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
-    init_logging(cli.verbose);
+    init_logging(cli.verbose, cli.log_format);
     match run(cli) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(error) => {
@@ -139,23 +160,26 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(TrainCommand::Gi(args)) => commands::train_gi::run(args, &progress),
         Command::Render(args) => commands::render::run(args, &progress),
         Command::Master(args) => commands::master::run(args),
-        Command::Up(args) => commands::up::run(args, &progress),
+        Command::Up(args) => commands::up::run(args, &progress, cli.log_format),
     }
 }
 
-fn init_logging(verbose: u8) {
+fn init_logging(verbose: u8, format: LogFormat) {
     let default = match verbose {
         0 => "info",
         1 => "debug",
         _ => "trace",
     };
     let filter = EnvFilter::try_from_env("NEPHELE_LOG").unwrap_or_else(|_| EnvFilter::new(default));
-    // Colour only on a terminal, and never with NO_COLOR set (logs piped to files stay plain).
-    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr()) && std::env::var_os("NO_COLOR").is_none();
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_target(false)
-        .with_ansi(ansi)
-        .init();
+    let logs = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    match format {
+        // One JSON object per line: timestamp, level, message and the event's fields
+        // (flattened), and the spans it happened in.
+        LogFormat::Json => logs.json().flatten_event(true).with_current_span(true).init(),
+        LogFormat::Text => {
+            // Colour only on a terminal, and never with NO_COLOR set (logs piped to files stay plain).
+            let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr()) && std::env::var_os("NO_COLOR").is_none();
+            logs.with_target(false).with_ansi(ansi).init()
+        }
+    }
 }

@@ -16,7 +16,11 @@ use nephele_tests::viewer::{Client, ClientOptions, http_request};
 async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_and_stops_on_ctrl_c() {
     let assets = tempfile::tempdir().expect("an empty asset folder: a first start");
     let assets_arg = assets.path().to_str().expect("utf-8 path");
-    let mut up = UpService::start_with(2, &["--bake", "quick", "--assets", assets_arg], Duration::from_secs(600));
+    let mut up = UpService::start_with(
+        2,
+        &["--bake", "quick", "--assets", assets_arg, "--log-format", "json"],
+        Duration::from_secs(600),
+    );
     let http = up.http;
     // Each of the default scene's objects was baked, scored and put where the workers look.
     for object in ["diffuse", "glossy", "shell"] {
@@ -124,6 +128,17 @@ async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_
         "frames while the worker was down {while_down}, after it was back {after_back}"
     );
     println!("worker {victim} killed: back in the farm after {back_after:?}; {while_down} frames meanwhile");
+    // `--log-format json` reached every process, the restarted one included: one JSON object
+    // per line, no terminal colour codes.
+    let lines: Vec<&str> = log.lines().filter(|l| !l.trim().is_empty()).collect();
+    let json_lines = lines
+        .iter()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter(|v| v["level"].is_string() && v["message"].is_string())
+        .count();
+    assert!(lines.len() > 20 && json_lines == lines.len(), "{json_lines} of {} log lines are JSON events", lines.len());
+    assert!(!log.contains('\u{1b}'), "colour codes in the log");
+    assert!(log.contains(r#""message":"restarted""#) && log.contains(r#""process":"worker-"#), "no JSON restart event");
     let children: Vec<u32> = children.into_iter().chain(children_of(up.pid())).collect();
 
     let auth = format!("Bearer {}", client.token);

@@ -102,7 +102,7 @@ fn builtin_objects_of(scene: &str) -> Result<Vec<String>> {
         .collect())
 }
 
-pub fn run(args: Args, progress: &Progress) -> Result<()> {
+pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Result<()> {
     if args.workers == 0 {
         bail!("--workers must be at least 1");
     }
@@ -128,12 +128,17 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let farm = free_port()?;
     let (composer_http, composer_results) = (free_port()?, free_port()?);
     let mut supervisor = Supervisor::new();
-    let mut master = Command::new(&exe);
-    master.args(["master", "--http", &args.http.to_string(), "--farm-listen", &farm.to_string()]);
+    // `nephele ROLE --log-format F ...`: every process logs in the format asked of `nephele up`.
+    let nephele = |role: &str| {
+        let mut command = Command::new(&exe);
+        command.args([role, "--log-format", &log_format.to_string()]);
+        command
+    };
+    let mut master = nephele("master");
+    master.args(["--http", &args.http.to_string(), "--farm-listen", &farm.to_string()]);
     supervisor.spawn("master", master, Restart::Never)?;
-    let mut composer = Command::new(&exe);
+    let mut composer = nephele("composer");
     composer.args([
-        "composer",
         "--master",
         &farm.to_string(),
         "--http",
@@ -143,9 +148,8 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     ]);
     supervisor.spawn("composer", composer, Restart::OnExit)?;
     for i in 0..args.workers {
-        let mut worker = Command::new(&exe);
+        let mut worker = nephele("worker");
         worker.args([
-            "worker",
             "--master",
             &farm.to_string(),
             "--name",
