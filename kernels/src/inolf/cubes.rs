@@ -273,9 +273,12 @@ pub struct DensityCubes {
     /// where some corner sample is not zero. Derived from the samples when loading; a sample
     /// in a clear voxel has density exactly 0 and is skipped without decoding its corners.
     occupancy: VoxelOccupancy,
-    /// Which blocks of `BLOCK^3` coarse cells hold any cube: the march crosses an empty
-    /// block in one step instead of one per cell.
+    /// Which blocks of `BLOCK^3` coarse cells hold any cube (the GPU march crosses an
+    /// empty block in one step instead of one per cell).
     blocks: BlockOccupancy,
+    /// Per coarse cell, the Chebyshev distance in cells to the nearest cell with a cube (0
+    /// for those, at most 255): the CPU march jumps over the empty box it guarantees.
+    proximity: Vec<u8>,
 }
 
 /// Coarse cells per side of an empty-space block.
@@ -305,12 +308,43 @@ impl BlockOccupancy {
         }
         BlockOccupancy { dims, occupied }
     }
+}
 
-    #[inline(always)]
-    fn is_occupied(&self, b: [i64; 3]) -> bool {
-        let d = self.dims.map(|v| v as usize);
-        self.occupied[b[0] as usize + d[0] * (b[1] as usize + d[1] * b[2] as usize)]
+/// Chebyshev distance (in cells, capped at 255) from every cell of `cubes`' grid to the
+/// nearest cell holding a cube: a breadth-first search from those cells over the 26
+/// neighbours (on the king-move graph the path length is the Chebyshev distance). A grid
+/// with no cube at all is 255 everywhere.
+fn proximity_of(cubes: &SparseCubes) -> Vec<u8> {
+    let [nx, ny, nz] = cubes.dims.map(|d| d as usize);
+    let mut distance = vec![u8::MAX; nx * ny * nz];
+    let mut frontier: Vec<usize> = Vec::new();
+    for (i, &e) in cubes.index.iter().enumerate() {
+        if e != EMPTY_CELL {
+            distance[i] = 0;
+            frontier.push(i);
+        }
     }
+    let mut level = 0u8;
+    while !frontier.is_empty() && level < u8::MAX - 1 {
+        level += 1;
+        let mut next = Vec::new();
+        for &i in &frontier {
+            let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+            for dz in z.saturating_sub(1)..=(z + 1).min(nz - 1) {
+                for dy in y.saturating_sub(1)..=(y + 1).min(ny - 1) {
+                    for dx in x.saturating_sub(1)..=(x + 1).min(nx - 1) {
+                        let j = dx + nx * (dy + ny * dz);
+                        if distance[j] > level {
+                            distance[j] = level;
+                            next.push(j);
+                        }
+                    }
+                }
+            }
+        }
+        frontier = next;
+    }
+    distance
 }
 
 /// Per-cube voxel occupancy bits, `words` u64 per cube.
@@ -395,12 +429,13 @@ impl DensityCubes {
         let lut = decode_table(cubes.sample_step());
         let occupancy = VoxelOccupancy::of(&cubes);
         let blocks = BlockOccupancy::of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, blocks })
+        let proximity = proximity_of(&cubes);
+        Ok(DensityCubes { cubes, lut, occupancy, blocks, proximity })
     }
 
     /// Bytes of the voxel occupancy bits derived at load time (not stored in assets).
     pub fn occupancy_bytes(&self) -> u64 {
-        self.occupancy.bytes() + self.blocks.occupied.len() as u64
+        self.occupancy.bytes() + self.blocks.occupied.len() as u64 + self.proximity.len() as u64
     }
 
     pub fn cubes(&self) -> &SparseCubes {
@@ -537,7 +572,8 @@ impl DensityCubes {
         let cubes = SparseCubes { min: bounds.min, cell, dims, cube_res: o.cube_res, channels: 1, index, data };
         let occupancy = VoxelOccupancy::of(&cubes);
         let blocks = BlockOccupancy::of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, blocks })
+        let proximity = proximity_of(&cubes);
+        Ok(DensityCubes { cubes, lut, occupancy, blocks, proximity })
     }
 
     /// Interpolated density (`sigma`) at `p`; 0 outside the cubes.
@@ -644,19 +680,21 @@ impl DensityCubes {
         // Samples sit at t0 + (k + 1/2) step, whatever cell they fall in.
         let mut k = 0u64;
         let max_cells = (d[0] + d[1] + d[2]) as usize + 3;
-        let block_side = cubes.cell * BLOCK as f32;
         for _ in 0..max_cells {
-            // An empty block of cells is crossed in one step: the DDA restarts where the ray
-            // leaves it. Sample positions depend on t only, so nothing else changes.
-            // Inside the grid every c is in 0..dims, so the block is a shift.
-            let block = c.map(|v| v >> BLOCK.trailing_zeros());
-            if !self.blocks.is_occupied(block) {
+            // A cell at Chebyshev distance `n >= 2` from every cube sits in an empty box of
+            // `2 n - 1` cells a side: the ray leaves that box in one step, and the DDA
+            // restarts there. Sample positions depend on t only, so nothing else changes.
+            // Inside the grid every c is in 0..dims.
+            let here = c[0] as usize + d[0] as usize * (c[1] as usize + d[1] as usize * c[2] as usize);
+            let n = i64::from(self.proximity[here]);
+            if n >= 2 {
                 hit.cells += 1;
+                let reach = n - 1;
                 let (mut t_leave, mut exit_axis) = (f32::INFINITY, 0);
                 for a in 0..3 {
                     if stepdir[a] != 0 {
-                        let face = lo[a] + (block[a] + i64::from(stepdir[a] > 0)) as f32 * block_side;
-                        let t = (face - origin[a]) * inv_dir[a];
+                        let face_cell = if stepdir[a] > 0 { c[a] + reach + 1 } else { c[a] - reach };
+                        let t = (lo[a] + face_cell as f32 * cubes.cell - origin[a]) * inv_dir[a];
                         if t < t_leave {
                             (t_leave, exit_axis) = (t, a);
                         }
@@ -672,16 +710,18 @@ impl DensityCubes {
                         continue;
                     }
                     c[a] = if a == exit_axis {
-                        (block[a] + i64::from(stepdir[a] > 0)) * i64::from(BLOCK) - i64::from(stepdir[a] < 0)
+                        c[a] + stepdir[a] * (reach + 1)
                     } else {
                         // The ray's cell index only moves along `stepdir`: a point on a face
                         // rounds to either side, and going back could ping-pong between two
-                        // empty blocks at an edge.
+                        // empty boxes at an edge.
                         let at = floor_i64((p[a] - lo[a]) * inv_cell).clamp(0, i64::from(d[a]) - 1);
                         if stepdir[a] > 0 { c[a].max(at) } else { c[a].min(at) }
                     };
-                    t_next[a] =
-                        (lo[a] + (c[a] + i64::from(stepdir[a] > 0)) as f32 * cubes.cell - origin[a]) * inv_dir[a];
+                    if a != exit_axis || (0..i64::from(d[a])).contains(&c[a]) {
+                        t_next[a] =
+                            (lo[a] + (c[a] + i64::from(stepdir[a] > 0)) as f32 * cubes.cell - origin[a]) * inv_dir[a];
+                    }
                 }
                 if c[exit_axis] < 0 || c[exit_axis] >= i64::from(d[exit_axis]) {
                     break;
@@ -884,7 +924,24 @@ mod tests {
     }
 
     #[test]
-    fn empty_blocks_are_crossed_in_one_step() {
+    fn proximity_is_the_chebyshev_distance_to_the_nearest_cube() {
+        let cubes = sparse_cubes();
+        let grid = cubes.cubes();
+        let [nx, ny, nz] = grid.dims().map(|d| d as i64);
+        let stored: Vec<[i64; 3]> = (0..nx * ny * nz)
+            .filter(|&i| grid.index()[i as usize] != EMPTY_CELL)
+            .map(|i| [i % nx, (i / nx) % ny, i / (nx * ny)])
+            .collect();
+        assert!(!stored.is_empty());
+        for i in 0..nx * ny * nz {
+            let c = [i % nx, (i / nx) % ny, i / (nx * ny)];
+            let nearest = stored.iter().map(|s| (0..3).map(|a| (s[a] - c[a]).abs()).max().unwrap_or(0)).min();
+            assert_eq!(i64::from(cubes.proximity[i as usize]), nearest.unwrap_or(255).min(255), "cell {c:?}");
+        }
+    }
+
+    #[test]
+    fn empty_space_is_crossed_in_few_steps() {
         let cubes = sparse_cubes();
         // Along the diagonal between the balls: fewer DDA steps than cells crossed.
         let d = Vec3::ONE.normalize();
@@ -893,7 +950,7 @@ mod tests {
         assert!(h.opacity > 0.9, "{h:?}");
         let cells_crossed = (0.9f32 * 3f32.sqrt() / cubes.cubes().cell()) as u32;
         assert!(h.cells < cells_crossed * 3 / 4, "{h:?}: {cells_crossed} cells on the way");
-        // A ray through empty blocks only costs a few steps and no samples.
+        // A ray through empty space only costs a few steps and no samples.
         let h = cubes.march(Vec3::new(-2.0, 0.9, -0.9), Vec3::X, 0.0, f32::INFINITY);
         assert_eq!((h.opacity, h.samples), (0.0, 0));
         assert!(h.cells <= 8 + 2, "{h:?}");
