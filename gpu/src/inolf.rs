@@ -7,7 +7,7 @@ use std::sync::Arc;
 use crate::context::{GpuContext, GpuError};
 use crate::dispatch::{Words, pipeline, render, upload, warm_up};
 use nephele_geometry::camera::Camera;
-use nephele_kernels::inolf::cubes::{BLOCK, DensityCubes, MIN_TRANSMITTANCE, SparseCubes};
+use nephele_kernels::inolf::cubes::{DensityCubes, MIN_TRANSMITTANCE, SparseCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::kernel::{DiffuseSource, HIT_OPACITY, HitSource, InolfKernel, RAY_NEAR};
 use nephele_kernels::inolf::model::SPECULAR_OUT;
@@ -46,10 +46,9 @@ fn density_tables(d: &DensityCubes) -> (Words, [u32; 5]) {
     let (words, bits) = d.voxel_bits();
     let voxels = w.bits(bits);
     debug_assert_eq!(bits.len(), words * c.cube_count());
-    let (_, flags) = d.block_flags();
-    let blocks = w.u32s(flags.iter().map(|&f| u32::from(f)));
+    let proximity = w.bytes(d.proximity());
     let lut = w.f32s(d.decode_table().iter().copied());
-    (w, [index, data, voxels, blocks, lut])
+    (w, [index, data, voxels, proximity, lut])
 }
 
 fn cube_tables(c: &SparseCubes) -> (Words, [u32; 2]) {
@@ -113,7 +112,7 @@ impl GpuInolfKernel {
             return Err(GpuError::Unsupported(format!("{} diffuse channels (at most 6)", diffuse.channels())));
         }
         let density = kernel.density();
-        let (d_words, [d_index, d_data, d_voxels, d_blocks, d_lut]) = density_tables(density);
+        let (d_words, [d_index, d_data, d_voxels, d_proximity, d_lut]) = density_tables(density);
         let (c_words, [c_index, c_data]) = cube_tables(diffuse);
         let (p_words, [p_offsets, p_keys, p_features]) = psh_tables(psh);
 
@@ -129,12 +128,10 @@ impl GpuInolfKernel {
         a.f32s([RAY_NEAR, HIT_OPACITY]);
         a.u32s([0, 0]);
         a.vec4([c.min().x, c.min().y, c.min().z, c.cell()]);
-        let (block_dims, _) = density.block_flags();
         let (voxel_words, _) = density.voxel_bits();
         a.uvec4([c.dims()[0], c.dims()[1], c.dims()[2], c.cube_res()]);
-        a.uvec4([block_dims[0], block_dims[1], block_dims[2], 2 * voxel_words as u32]);
         a.f32s([c.sample_step(), MIN_TRANSMITTANCE]);
-        a.u32s([BLOCK, d_index, d_data, d_voxels, d_blocks, d_lut]);
+        a.u32s([2 * voxel_words as u32, d_index, d_data, d_voxels, d_proximity, d_lut]);
         a.vec4([diffuse.min().x, diffuse.min().y, diffuse.min().z, diffuse.cell()]);
         a.uvec4([diffuse.dims()[0], diffuse.dims()[1], diffuse.dims()[2], diffuse.cube_res()]);
         a.u32s([diffuse.channels(), c_index, c_data, 0]);

@@ -23,14 +23,13 @@ struct Params {
     // Density cubes.
     d_min: vec4<f32>,   // xyz min, w cell
     d_dims: vec4<u32>,  // xyz dims, w cube_res
-    d_blocks: vec4<u32>, // xyz block dims, w voxel words (u32) per cube
     d_step: f32,         // sample step
     d_min_transmittance: f32,
-    d_block_side: u32,   // coarse cells per block side
+    d_voxel_words: u32,  // voxel words (u32) per cube
     d_index_offset: u32, // word offsets inside the density buffer
     d_data_offset: u32,
     d_voxel_offset: u32,
-    d_block_offset: u32,
+    d_proximity_offset: u32, // one byte per cell, four to a word
     d_lut_offset: u32,
 
     // Diffuse cubes.
@@ -89,7 +88,7 @@ fn density_at(cube: u32, g: vec3<f32>) -> f32 {
     let iz = min(i32(f.z), last);
     let w = f - vec3<f32>(f32(ix), f32(iy), f32(iz));
     let voxel = u32(ix) + v * (u32(iy) + v * u32(iz));
-    let word = density[params.d_voxel_offset + cube * params.d_blocks.w + (voxel >> 5u)];
+    let word = density[params.d_voxel_offset + cube * params.d_voxel_words + (voxel >> 5u)];
     if (word & (1u << (voxel & 31u))) == 0u {
         return 0.0;
     }
@@ -109,10 +108,12 @@ fn cube_at(c: vec3<i32>) -> u32 {
     return density[params.d_index_offset + i];
 }
 
-fn block_occupied(b: vec3<i32>) -> bool {
-    let d = params.d_blocks;
-    let i = u32(b.x) + d.x * (u32(b.y) + d.y * u32(b.z));
-    return density[params.d_block_offset + i] != 0u;
+// Chebyshev distance in cells from cell `c` to the nearest cell with a cube (at most 255).
+fn proximity(c: vec3<i32>) -> i32 {
+    let d = params.d_dims;
+    let i = u32(c.x) + d.x * (u32(c.y) + d.y * u32(c.z));
+    let word = density[params.d_proximity_offset + (i >> 2u)];
+    return i32((word >> ((i & 3u) * 8u)) & 0xffu);
 }
 
 fn floor_clamped(x: f32, hi: i32) -> i32 {
@@ -125,8 +126,8 @@ struct March {
     t: f32,
 };
 
-// `DensityCubes::march` over [t_near, infinity): DDA over coarse cells, empty blocks crossed
-// in one step, samples at t0 + (k + 1/2) step; returns the coarse opacity and the distance
+// `DensityCubes::march` over [t_near, infinity): DDA over coarse cells, the empty box around
+// a cell far from every cube crossed in one step, samples at t0 + (k + 1/2) step; returns the coarse opacity and the distance
 // of the sample of largest blending weight.
 fn march(origin: vec3<f32>, dir: vec3<f32>, t_near: f32) -> March {
     var hit = March(0.0, 0.0);
@@ -180,21 +181,21 @@ fn march(origin: vec3<f32>, dir: vec3<f32>, t_near: f32) -> March {
     var t_cur = t0;
     var k = 0u;
     let max_cells = u32(d.x + d.y + d.z) + 3u;
-    let block = i32(params.d_block_side);
-    let block_side = cell_size * f32(block);
     for (var iter = 0u; iter < max_cells; iter++) {
-        let b = c / block;
-        if !block_occupied(b) {
+        // At Chebyshev distance n >= 2 from every cube, the box of 2n - 1 cells around c is
+        // empty: leave it in one step (see the CPU march).
+        let n = proximity(c);
+        if n >= 2 {
+            let reach = n - 1;
             var t_leave = BIG;
             var exit_axis = 0;
             for (var a = 0; a < 3; a++) {
                 if stepdir[a] != 0 {
-                    var up = 0;
+                    var face_cell = c[a] - reach;
                     if stepdir[a] > 0 {
-                        up = 1;
+                        face_cell = c[a] + reach + 1;
                     }
-                    let face = lo[a] + f32(b[a] + up) * block_side;
-                    let t = (face - origin[a]) * inv_dir[a];
+                    let t = (lo[a] + f32(face_cell) * cell_size - origin[a]) * inv_dir[a];
                     if t < t_leave {
                         t_leave = t;
                         exit_axis = a;
@@ -211,13 +212,9 @@ fn march(origin: vec3<f32>, dir: vec3<f32>, t_near: f32) -> March {
                     continue;
                 }
                 if a == exit_axis {
-                    if stepdir[a] > 0 {
-                        c[a] = (b[a] + 1) * block;
-                    } else {
-                        c[a] = b[a] * block - 1;
-                    }
+                    c[a] = c[a] + stepdir[a] * (reach + 1);
                 } else {
-                    // Only along stepdir (see the CPU march: no ping-pong at block edges).
+                    // Only along stepdir (see the CPU march: no ping-pong at box edges).
                     let at = floor_clamped((p[a] - lo[a]) / cell_size, d[a] - 1);
                     if stepdir[a] > 0 {
                         c[a] = max(c[a], at);

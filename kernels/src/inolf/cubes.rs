@@ -273,41 +273,9 @@ pub struct DensityCubes {
     /// where some corner sample is not zero. Derived from the samples when loading; a sample
     /// in a clear voxel has density exactly 0 and is skipped without decoding its corners.
     occupancy: VoxelOccupancy,
-    /// Which blocks of `BLOCK^3` coarse cells hold any cube (the GPU march crosses an
-    /// empty block in one step instead of one per cell).
-    blocks: BlockOccupancy,
     /// Per coarse cell, the Chebyshev distance in cells to the nearest cell with a cube (0
-    /// for those, at most 255): the CPU march jumps over the empty box it guarantees.
+    /// for those, at most 255): the march jumps over the empty box it guarantees.
     proximity: Vec<u8>,
-}
-
-/// Coarse cells per side of an empty-space block.
-pub const BLOCK: u32 = 4;
-
-/// One flag per block of `BLOCK^3` coarse cells, derived from the index grid.
-#[derive(Debug, Clone, PartialEq)]
-struct BlockOccupancy {
-    dims: [u32; 3],
-    occupied: Vec<bool>,
-}
-
-impl BlockOccupancy {
-    fn of(cubes: &SparseCubes) -> BlockOccupancy {
-        let dims = cubes.dims.map(|d| d.div_ceil(BLOCK));
-        let mut occupied = vec![false; dims.iter().map(|&d| d as usize).product()];
-        let [nx, ny, nz] = cubes.dims.map(|d| d as usize);
-        for z in 0..nz {
-            for y in 0..ny {
-                for x in 0..nx {
-                    if cubes.index[x + nx * (y + ny * z)] != EMPTY_CELL {
-                        let b = [x, y, z].map(|v| v / BLOCK as usize);
-                        occupied[b[0] + dims[0] as usize * (b[1] + dims[1] as usize * b[2])] = true;
-                    }
-                }
-            }
-        }
-        BlockOccupancy { dims, occupied }
-    }
 }
 
 /// Chebyshev distance (in cells, capped at 255) from every cell of `cubes`' grid to the
@@ -428,14 +396,13 @@ impl DensityCubes {
         }
         let lut = decode_table(cubes.sample_step());
         let occupancy = VoxelOccupancy::of(&cubes);
-        let blocks = BlockOccupancy::of(&cubes);
         let proximity = proximity_of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, blocks, proximity })
+        Ok(DensityCubes { cubes, lut, occupancy, proximity })
     }
 
     /// Bytes of the voxel occupancy bits derived at load time (not stored in assets).
     pub fn occupancy_bytes(&self) -> u64 {
-        self.occupancy.bytes() + self.blocks.occupied.len() as u64 + self.proximity.len() as u64
+        self.occupancy.bytes() + self.proximity.len() as u64
     }
 
     pub fn cubes(&self) -> &SparseCubes {
@@ -453,10 +420,12 @@ impl DensityCubes {
         (self.occupancy.words, &self.occupancy.bits)
     }
 
-    /// The empty-space blocks: grid size in blocks of [`BLOCK`]^3 cells and one flag per
-    /// block, `x + dims.x (y + dims.y z)`.
-    pub fn block_flags(&self) -> ([u32; 3], &[bool]) {
-        (self.blocks.dims, &self.blocks.occupied)
+    /// Per coarse cell (`x + dims.x (y + dims.y z)`), the Chebyshev distance in cells to the
+    /// nearest cell holding a cube, at most 255: a ray in a cell at distance `n >= 2` may
+    /// jump out of the box of `2n - 1` cells a side around it (for backends that mirror
+    /// [`DensityCubes::march`]).
+    pub fn proximity(&self) -> &[u8] {
+        &self.proximity
     }
 
     pub fn bounds(&self) -> Bounds {
@@ -571,9 +540,8 @@ impl DensityCubes {
         }
         let cubes = SparseCubes { min: bounds.min, cell, dims, cube_res: o.cube_res, channels: 1, index, data };
         let occupancy = VoxelOccupancy::of(&cubes);
-        let blocks = BlockOccupancy::of(&cubes);
         let proximity = proximity_of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, blocks, proximity })
+        Ok(DensityCubes { cubes, lut, occupancy, proximity })
     }
 
     /// Interpolated density (`sigma`) at `p`; 0 outside the cubes.
@@ -862,8 +830,8 @@ mod tests {
         CUBES.get_or_init(|| build(sphere_density))
     }
 
-    /// Two small balls in opposite corners of a 32^3 grid: most blocks between them are
-    /// empty, so rays cross them in block steps.
+    /// Two small balls in opposite corners of a 32^3 grid: most cells between them are far
+    /// from any cube, so rays cross them in a few jumps.
     fn sparse_cubes() -> &'static DensityCubes {
         static CUBES: std::sync::OnceLock<DensityCubes> = std::sync::OnceLock::new();
         CUBES.get_or_init(|| {
