@@ -11,11 +11,12 @@ use std::path::Path;
 
 use nephele_geometry::SplitMix64;
 use nephele_kernels::gi::{GI_INPUTS, GI_OUTPUTS, GiFeatures, GiModel, decode_output};
-use nephele_nn::{Adam, AdamConfig, UNet, UNetWorkspace};
+use nephele_nn::{UNet, UNetWorkspace};
 
 use super::data::{Eye, GiFrame, load_frame, read_manifest};
 use super::train::{
-    GiCheckpoint, GiStep, GiTrainError, GiTrainOptions, GiTrainState, displayed, finish_step, sample_of,
+    GiCheckpoint, GiStep, GiTrainError, GiTrainOptions, GiTrainState, displayed, finish_step, resume_or_start,
+    sample_of,
 };
 use super::warp::Warp;
 
@@ -134,30 +135,10 @@ pub fn train_stereo(
     }
     let targets = teacher_targets(teacher, pairs)?;
     let features = teacher.header.features;
-    let adam_config = AdamConfig { learning_rate: options.learning_rate, epsilon: 1e-8, ..AdamConfig::default() };
-    let (mut network, mut adam, mut state) = match resume {
-        Some(c) => {
-            if c.state.options != *options || c.state.features != features {
-                return Err(GiTrainError::Options("the checkpoint was made with other options or data".into()));
-            }
-            let network = UNet::from_params(options.network(2), c.params)?;
-            let adam = Adam::from_moments(adam_config, c.m, c.v, c.state.adam_steps)?;
-            (network, adam, c.state)
-        }
-        None => {
-            let network = UNet::stereo_from_single(&teacher.network, options.seed)?;
-            let adam = Adam::new(adam_config, network.params().len());
-            let state = GiTrainState {
-                options: options.clone(),
-                features,
-                step: 0,
-                curve: Vec::new(),
-                adam_steps: 0,
-                rng: options.seed ^ 0x7374_6572,
-            };
-            (network, adam, state)
-        }
-    };
+    let (mut network, mut adam, mut state) =
+        resume_or_start(resume, options, features, options.network(2), 0x7374_6572, || {
+            Ok(UNet::stereo_from_single(&teacher.network, options.seed)?)
+        })?;
     let mut rng = SplitMix64::new(state.rng);
     let mut ws = UNetWorkspace::new();
     let mut grads = vec![0.0f32; network.params().len()];

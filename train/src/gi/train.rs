@@ -258,6 +258,41 @@ pub struct GiStep {
     pub loss: f32,
 }
 
+/// The network, optimiser and state a training run starts from: `resume`'s when given (it
+/// must have been made with the same options and data, else an error), otherwise `fresh()`
+/// with a new optimiser and a state whose random stream is `options.seed ^ salt`.
+pub(super) fn resume_or_start(
+    resume: Option<GiCheckpoint>,
+    options: &GiTrainOptions,
+    features: GiFeatures,
+    config: UNetConfig,
+    salt: u64,
+    fresh: impl FnOnce() -> Result<UNet, GiTrainError>,
+) -> Result<(UNet, Adam, GiTrainState), GiTrainError> {
+    let adam_config = AdamConfig { learning_rate: options.learning_rate, epsilon: 1e-8, ..AdamConfig::default() };
+    if let Some(c) = resume {
+        if c.state.options != *options || c.state.features != features {
+            return Err(GiTrainError::Options(
+                "the checkpoint was made with other options or data; start afresh or pass the same settings".into(),
+            ));
+        }
+        let network = UNet::from_params(config, c.params)?;
+        let adam = Adam::from_moments(adam_config, c.m, c.v, c.state.adam_steps)?;
+        return Ok((network, adam, c.state));
+    }
+    let network = fresh()?;
+    let adam = Adam::new(adam_config, network.params().len());
+    let state = GiTrainState {
+        options: options.clone(),
+        features,
+        step: 0,
+        curve: Vec::new(),
+        adam_steps: 0,
+        rng: options.seed ^ salt,
+    };
+    Ok((network, adam, state))
+}
+
 /// Trains a single-eye model on `train` (resuming `resume` when given: same options and
 /// features, or an error). `on_step` sees every step; `checkpoint` is called every
 /// `checkpoint_every` steps and at the end with the run's state. Returns the model and the
@@ -282,32 +317,10 @@ pub fn train_single_eye(
         return Err(GiTrainError::Options("no training frames".into()));
     }
     let config = options.network(1);
-    let adam_config = AdamConfig { learning_rate: options.learning_rate, epsilon: 1e-8, ..AdamConfig::default() };
-    let (mut network, mut adam, mut state) = match resume {
-        Some(c) => {
-            if c.state.options != *options || c.state.features != features {
-                return Err(GiTrainError::Options(
-                    "the checkpoint was made with other options or data; start afresh or pass the same settings".into(),
-                ));
-            }
-            let network = UNet::from_params(config, c.params)?;
-            let adam = Adam::from_moments(adam_config, c.m, c.v, c.state.adam_steps)?;
-            (network, adam, c.state)
-        }
-        None => {
-            let network = UNet::new(config, options.seed)?;
-            let adam = Adam::new(adam_config, network.params().len());
-            let state = GiTrainState {
-                options: options.clone(),
-                features,
-                step: 0,
-                curve: Vec::new(),
-                adam_steps: 0,
-                rng: options.seed ^ 0x6769_7472,
-            };
-            (network, adam, state)
-        }
-    };
+    let (mut network, mut adam, mut state) =
+        resume_or_start(resume, options, features, config.clone(), 0x6769_7472, || {
+            Ok(UNet::new(config, options.seed)?)
+        })?;
     let mut rng = SplitMix64::new(state.rng);
     let crop = options.crop;
     let mut ws = UNetWorkspace::new();
