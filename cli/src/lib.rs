@@ -112,6 +112,9 @@ enum Command {
     /// farm=ADDR` once both sockets listen. On SIGTERM or Ctrl-C it stops taking requests,
     /// says goodbye to the workers and the composer, and exits 0.
     Master(commands::master::Args),
+    /// Ask a process's `/livez` or `/readyz` once: exit 0 on 2xx, 1 otherwise (the
+    /// container images' health check).
+    Probe(commands::probe::Args),
     /// Run the whole service locally: master, composer and render workers as child
     /// processes; prints the URL to open; Ctrl-C stops everything.
     ///
@@ -160,6 +163,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train(TrainCommand::Gi(args)) => commands::train_gi::run(args, &progress),
         Command::Render(args) => commands::render::run(args, &progress),
         Command::Master(args) => commands::master::run(args),
+        Command::Probe(args) => commands::probe::run(args),
         Command::Up(args) => commands::up::run(args, &progress, cli.log_format),
     }
 }

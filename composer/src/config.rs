@@ -19,6 +19,9 @@ pub enum FrameSource {
 pub struct ComposerConfig {
     pub http_addr: SocketAddr,
     pub results_addr: SocketAddr,
+    /// The results listener's address as workers reach it (`composer:8091` in a container
+    /// network); `None`: the bound address.
+    pub advertise_results: Option<String>,
     pub rtc: RtcConfig,
     pub source: FrameSource,
     /// Frame rate of the stream (the encoder's plan and the test pattern's clock).
@@ -42,6 +45,7 @@ impl Default for ComposerConfig {
         ComposerConfig {
             http_addr: SocketAddr::from(([127, 0, 0, 1], 8090)),
             results_addr: SocketAddr::from(([127, 0, 0, 1], 8091)),
+            advertise_results: None,
             rtc: RtcConfig::default(),
             source: FrameSource::Workers,
             fps: 30.0,

@@ -19,7 +19,6 @@
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use futures_util::SinkExt;
@@ -46,6 +45,7 @@ pub(crate) async fn run(shared: Arc<Shared>, master: String, results: SocketAddr
             Err(e) => tracing::warn!(%master, "master link: {e}; reconnecting"),
         }
         *lock(&shared.to_master) = None;
+        shared.metrics.master_linked.set(0);
         tokio::select! {
             _ = tokio::time::sleep(Duration::from_secs(1)) => {}
             _ = stop.wait() => return,
@@ -60,7 +60,8 @@ async fn link(shared: &Arc<Shared>, master: &str, results: SocketAddr, stop: &Sh
     handshake(&mut conn, Role::Composer, &[Role::Master], HANDSHAKE_TIMEOUT)
         .await
         .map_err(|e| format!("handshake: {e}"))?;
-    let register = ComposerRegister { name: shared.config.name.clone(), results_address: results.to_string() };
+    let results_address = shared.config.advertise_results.clone().unwrap_or_else(|| results.to_string());
+    let register = ComposerRegister { name: shared.config.name.clone(), results_address };
     conn.send(&Message::ComposerRegister(register)).await.map_err(|e| format!("registering: {e}"))?;
     match tokio::time::timeout(HANDSHAKE_TIMEOUT, recv(&mut conn)).await {
         Ok(Ok(Message::Registered(r))) => tracing::info!(%master, id = r.worker_id, "registered with the master"),
@@ -70,6 +71,7 @@ async fn link(shared: &Arc<Shared>, master: &str, results: SocketAddr, stop: &Sh
     }
     let (tx, mut rx) = mpsc::unbounded_channel();
     *lock(&shared.to_master) = Some(tx);
+    shared.metrics.master_linked.set(1);
     loop {
         tokio::select! {
             incoming = recv(&mut conn) => match incoming {
@@ -233,7 +235,7 @@ pub(crate) async fn accept_results(shared: Arc<Shared>, listener: TcpListener, s
         tokio::select! {
             accepted = listener.accept() => match accepted {
                 Ok((stream, peer)) => {
-                    shared.counters.worker_connections.fetch_add(1, Ordering::Relaxed);
+                    shared.metrics.worker_connections.inc();
                     tokio::spawn(read_results(Arc::clone(&shared), stream, peer, connection_stop));
                 }
                 Err(e) => tracing::warn!("accepting a worker connection: {e}"),
@@ -252,7 +254,7 @@ pub(crate) async fn read_results(shared: Arc<Shared>, stream: TcpStream, peer: S
     let peer_role = match handshake(&mut conn, Role::Composer, &[Role::Worker, Role::Tool], HANDSHAKE_TIMEOUT).await {
         Ok(hello) => hello.role,
         Err(e) => {
-            shared.counters.wire_errors.fetch_add(1, Ordering::Relaxed);
+            shared.metrics.wire_errors.inc();
             tracing::debug!(%peer, "worker handshake: {e}");
             return;
         }
@@ -271,12 +273,12 @@ pub(crate) async fn read_results(shared: Arc<Shared>, stream: TcpStream, peer: S
             Ok(other) => tracing::debug!(%peer, "unexpected message from a worker: {}", other.kind().name()),
             Err(nephele_proto::ProtoError::Invalid(rejected)) => {
                 // A message that decoded but failed validation: skip it, keep the connection.
-                shared.counters.wire_errors.fetch_add(1, Ordering::Relaxed);
+                shared.metrics.wire_errors.inc();
                 tracing::debug!(%peer, "malformed message from a worker: {rejected}");
             }
             Err(e) => {
                 if !matches!(e, nephele_proto::ProtoError::Closed) {
-                    shared.counters.wire_errors.fetch_add(1, Ordering::Relaxed);
+                    shared.metrics.wire_errors.inc();
                     tracing::debug!(%peer, "worker connection: {e}");
                 }
                 break;

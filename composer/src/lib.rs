@@ -1,6 +1,6 @@
 //! `nephele-composer`: frame assembly, depth fusion, H.264 encoding and WebRTC streaming.
 //!
-//! Depends on `nephele-proto` and `nephele-geometry` only; never on kernels or another
+//! Depends on `nephele-proto`, `nephele-geometry` and `nephele-telemetry` only; never on kernels or another
 //! service.
 //!
 //! The composer is the last stage of a frame (DESIGN.md, "What the service does", step 5):
@@ -11,7 +11,8 @@
 //! ([`pose`]). [`service`] is the thin network shell around these pure cores, one file per
 //! concept: HTTP signalling (`signalling`), viewer sessions (`sessions`), the media path
 //! (`media`), the farm link and results listener (`farm`, proto only) and the test pattern
-//! ([`testpattern`]), over the state they share (`state`).
+//! ([`testpattern`]), over the state they share (`state`); [`metrics`] is what `GET /metrics`
+//! reports.
 
 // Tests may unwrap and spell out their reference tuples.
 #![cfg_attr(test, allow(clippy::unwrap_used, clippy::type_complexity, clippy::needless_range_loop))]
@@ -22,6 +23,7 @@ mod farm;
 pub mod fusion;
 pub mod latency;
 mod media;
+pub mod metrics;
 pub mod pose;
 pub mod service;
 mod sessions;

@@ -45,6 +45,7 @@ pub(crate) fn spawn_media_thread(
                 Err(e) => {
                     tracing::warn!(session, "colour conversion: {e}");
                     lock(&media).0.encode_errors += 1;
+                    shared.metrics.encode_errors.inc();
                     continue;
                 }
             };
@@ -60,6 +61,7 @@ pub(crate) fn spawn_media_thread(
                     Err(e) => {
                         tracing::warn!(session, "encoder for {w}x{h}: {e}");
                         lock(&media).0.encode_errors += 1;
+                        shared.metrics.encode_errors.inc();
                         yuv = Some(picture);
                         continue;
                     }
@@ -78,6 +80,7 @@ pub(crate) fn spawn_media_thread(
                 Err(e) => {
                     tracing::warn!(session, "encoding: {e}");
                     lock(&media).0.encode_errors += 1;
+                    shared.metrics.encode_errors.inc();
                     continue;
                 }
             };
@@ -87,7 +90,9 @@ pub(crate) fn spawn_media_thread(
                 let mut latency = lock(&shared.latency);
                 let timing = latency.take_frame(session, frame.frame).filter(|_| sent.is_ok());
                 if let Some(t) = &timing {
-                    latency.frame_sent(crate::latency::Stages::of(t, t0, t1, t2, t3));
+                    let stages = crate::latency::Stages::of(t, t0, t1, t2, t3);
+                    shared.metrics.frame_sent(&stages);
+                    latency.frame_sent(stages);
                 }
                 timing
             };
@@ -108,9 +113,12 @@ pub(crate) fn spawn_media_thread(
                 Ok(()) => {
                     c.frames_sent += 1;
                     c.bytes_sent += encoded.data.len() as u64;
+                    shared.metrics.frames_sent.inc();
+                    shared.metrics.bytes_sent.inc_by(encoded.data.len() as u64);
                 }
                 Err(e) => {
                     c.send_errors += 1;
+                    shared.metrics.send_errors.inc();
                     tracing::debug!(session, "sending a frame: {e}");
                 }
             }
@@ -134,7 +142,10 @@ pub(crate) fn dispatch(shared: &Shared, frames: Vec<FusedFrame>) {
         m.0.frames_in += 1;
         match entry.frames.try_send(frame) {
             Ok(()) => {}
-            Err(std_mpsc::TrySendError::Full(_)) => m.0.frames_dropped_busy += 1,
+            Err(std_mpsc::TrySendError::Full(_)) => {
+                m.0.frames_dropped_busy += 1;
+                shared.metrics.frames_dropped_busy.inc();
+            }
             Err(std_mpsc::TrySendError::Disconnected(_)) => {}
         }
     }

@@ -12,7 +12,7 @@
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex as StdMutex};
 
 use nephele_shutdown::Shutdown;
@@ -25,7 +25,7 @@ pub use crate::config::{ComposerConfig, FrameSource};
 use crate::fusion::{Compositor, FusionLimits, SessionId};
 use crate::pose::Pose;
 use crate::sessions::{end_session, event_loop, layout_for};
-use crate::state::{GlobalCounters, SessionReport, Shared, lock, reports};
+use crate::state::{SessionReport, Shared, lock, reports};
 use crate::webrtc::{RtcError, RtcStack};
 
 #[derive(Debug, Error)]
@@ -92,7 +92,7 @@ impl Composer {
             wake: Notify::new(),
             events: events_tx,
             poses,
-            counters: GlobalCounters::default(),
+            metrics: crate::metrics::ComposerMetrics::new(),
             runtime: tokio::runtime::Handle::current(),
             to_master: StdMutex::new(None),
             task_results: StdMutex::new(HashMap::new()),
@@ -143,7 +143,7 @@ impl Composer {
 
     /// Malformed worker messages seen so far.
     pub fn wire_errors(&self) -> u64 {
-        self.shared.counters.wire_errors.load(Ordering::Relaxed)
+        self.shared.metrics.wire_errors.get()
     }
 
     /// Stops listening, closes every peer connection and waits for the tasks.

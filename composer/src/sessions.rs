@@ -83,6 +83,7 @@ pub(crate) async fn open_viewer(
             next_frame: 0,
         },
     );
+    shared.metrics.sessions.inc();
     tracing::info!(session = id, "new viewer session");
     Ok((token, sdp))
 }
@@ -92,6 +93,7 @@ pub(crate) async fn end_session(shared: &Shared, id: SessionId) {
     lock(&shared.compositor).close_session(id);
     lock(&shared.latency).session_ended(id);
     if let Some(e) = entry {
+        shared.metrics.sessions.dec();
         // Dropping the entry drops the frame sender: the media thread ends.
         e.viewer.close().await;
         tracing::info!(session = id, "session ended");

@@ -23,12 +23,17 @@ use crate::state::{Shared, lock, reports};
 
 /// The HTTP routes over `shared`.
 pub(crate) fn router(shared: Arc<Shared>) -> Router {
-    Router::new()
+    let routes = Router::new()
         .route("/livez", get(|| async { "ok" }))
         .route("/readyz", get(readyz))
+        .route("/metrics", get(metrics))
         .route("/v1/sessions", post(create_session).get(list_sessions))
-        .route("/v1/sessions/{id}", axum::routing::delete(delete_session))
-        .with_state(shared)
+        .route("/v1/sessions/{id}", axum::routing::delete(delete_session));
+    shared.metrics.http.layer(routes).with_state(shared)
+}
+
+async fn metrics(State(shared): State<Arc<Shared>>) -> Response {
+    nephele_telemetry::metrics_response(&shared.metrics.registry)
 }
 
 async fn readyz(State(shared): State<Arc<Shared>>) -> Response {
@@ -98,8 +103,8 @@ async fn create_session(State(shared): State<Arc<Shared>>, body: axum::body::Byt
 async fn list_sessions(State(shared): State<Arc<Shared>>) -> Response {
     let body = serde_json::json!({
         "sessions": reports(&shared),
-        "wire_errors": shared.counters.wire_errors.load(Ordering::Relaxed),
-        "worker_connections": shared.counters.worker_connections.load(Ordering::Relaxed),
+        "wire_errors": shared.metrics.wire_errors.get(),
+        "worker_connections": shared.metrics.worker_connections.get(),
         "unknown_session_batches": lock(&shared.compositor).unknown_session_batches(),
         // Pose received to frame sent and its stages, over the last frames of all sessions
         // (farm mode only: standalone frames have no pose of the farm behind them).

@@ -48,13 +48,6 @@ pub struct SessionReport {
     pub control_malformed: u64,
 }
 
-/// Service-wide counters.
-#[derive(Debug, Default)]
-pub(crate) struct GlobalCounters {
-    pub(crate) wire_errors: AtomicU64,
-    pub(crate) worker_connections: AtomicU64,
-}
-
 pub(crate) struct SessionEntry {
     pub(crate) token: String,
     pub(crate) viewer: Arc<Viewer>,
@@ -78,7 +71,7 @@ pub(crate) struct Shared {
     pub(crate) wake: Notify,
     pub(crate) events: mpsc::Sender<ViewerEvent>,
     pub(crate) poses: broadcast::Sender<(SessionId, Arc<Pose>)>,
-    pub(crate) counters: GlobalCounters,
+    pub(crate) metrics: crate::metrics::ComposerMetrics,
     pub(crate) runtime: tokio::runtime::Handle,
     /// Messages for the master, while a master link is up.
     pub(crate) to_master: StdMutex<Option<mpsc::UnboundedSender<nephele_proto::Message>>>,

@@ -206,6 +206,8 @@ pub struct Live {
     pub connected: AtomicU64,
     pub frames: AtomicU64,
     pub poses: AtomicU64,
+    /// Triggered (Ctrl-C): every user stops streaming now and reports what it has.
+    pub stop: nephele_shutdown::Shutdown,
 }
 
 #[derive(Debug, Default)]
@@ -406,6 +408,7 @@ async fn stream_user(
         loop {
             tokio::select! {
                 _ = tokio::time::sleep_until(end) => break,
+                _ = live.stop.wait() => break,
                 _ = poses.tick() => {
                     let t = open.elapsed().as_secs_f32();
                     let mode = if config.stereo_ipd.is_some() { pose::MODE_XR } else { pose::MODE_FLAT };

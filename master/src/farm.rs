@@ -39,6 +39,7 @@ use serde_json::{Value, json};
 use tokio::sync::{mpsc, oneshot};
 
 use crate::http::{Admission, BoxFuture, FarmBackend, OpenError, SceneView};
+use crate::metrics::{MasterMetrics, Published};
 use crate::scenes::Catalog;
 use crate::sessions::SessionRequest;
 
@@ -162,6 +163,7 @@ struct Inner {
     events: mpsc::UnboundedSender<Event>,
     catalog: Arc<Catalog>,
     admission: Arc<Mutex<Admission>>,
+    metrics: Arc<MasterMetrics>,
     ice_servers: Value,
     open_timeout: Duration,
     load_report_interval_ms: u32,
@@ -184,6 +186,7 @@ impl Farm {
         let (events, receiver) = mpsc::unbounded_channel();
         let (ended_tx, ended_rx) = mpsc::unbounded_channel();
         let admission = Arc::new(Mutex::new(Admission::Admit));
+        let metrics = Arc::new(MasterMetrics::new());
         let actor = Actor {
             scheduler,
             start: Instant::now(),
@@ -198,7 +201,8 @@ impl Farm {
             next_composer: 1,
             ended: ended_tx,
             admission: admission.clone(),
-            counters: Counters::default(),
+            metrics: metrics.clone(),
+            last_publish: None,
             round_us: Samples::default(),
             pose_to_plan_ms: Samples::default(),
         };
@@ -207,6 +211,7 @@ impl Farm {
             events,
             catalog,
             admission,
+            metrics,
             ice_servers: config.ice_servers,
             open_timeout: config.open_timeout,
             load_report_interval_ms: config.load_report_interval_ms,
@@ -221,6 +226,11 @@ impl Farm {
 
     pub fn catalog(&self) -> &Catalog {
         &self.inner.catalog
+    }
+
+    /// The master's metrics (`GET /metrics`).
+    pub fn metrics(&self) -> &Arc<MasterMetrics> {
+        &self.inner.metrics
     }
 
     pub fn load_report_interval_ms(&self) -> u32 {
@@ -349,23 +359,6 @@ struct LiveSession {
     frames_dropped: u64,
 }
 
-#[derive(Debug, Default)]
-struct Counters {
-    workers_joined: u64,
-    workers_left: u64,
-    workers_lost: u64,
-    batches_sent: u64,
-    batches_unsendable: u64,
-    cancels_sent: u64,
-    plans_sent: u64,
-    frames_dropped: u64,
-    releases_sent: u64,
-    poses_unknown_session: u64,
-    sessions_refused: u64,
-    sessions_ended_by_peer: u64,
-    stale_reports: u64,
-}
-
 /// A bounded window of samples for percentiles.
 #[derive(Debug, Default)]
 struct Samples {
@@ -405,7 +398,9 @@ struct Actor {
     next_composer: u64,
     ended: mpsc::UnboundedSender<String>,
     admission: Arc<Mutex<Admission>>,
-    counters: Counters,
+    metrics: Arc<MasterMetrics>,
+    /// When the scheduler's state was last published for `/metrics`.
+    last_publish: Option<Instant>,
     round_us: Samples,
     pose_to_plan_ms: Samples,
 }
@@ -413,6 +408,10 @@ struct Actor {
 /// Events handled per round at most (the rest wait for the next round, so a flood of
 /// results cannot starve the rounds).
 const EVENTS_PER_ROUND: usize = 256;
+
+/// How often the scheduler's state is published for `/metrics` (a scrape sees state at most
+/// this old).
+const PUBLISH_EVERY: Duration = Duration::from_millis(250);
 
 impl Actor {
     fn now(&self) -> Time {
@@ -461,7 +460,9 @@ impl Actor {
         let now = self.now();
         let start = Instant::now();
         let actions = self.scheduler.tick(now);
-        self.round_us.push(start.elapsed().as_secs_f64() * 1e6);
+        let round_s = start.elapsed().as_secs_f64();
+        self.round_us.push(round_s * 1e6);
+        self.metrics.round_ms.observe(round_s * 1e3);
         for action in actions {
             self.carry_out(action, now);
         }
@@ -470,6 +471,21 @@ impl Actor {
             SchedAdmission::Refuse { retry_after } => Admission::Refuse { retry_after },
         };
         *self.admission.lock().unwrap_or_else(|p| p.into_inner()) = admission;
+        if self.last_publish.is_none_or(|at| at.elapsed() >= PUBLISH_EVERY) {
+            self.publish(now);
+        }
+    }
+
+    /// Hands the scheduler's state to the `/metrics` collector.
+    fn publish(&mut self, now: Time) {
+        self.last_publish = Some(Instant::now());
+        let published = Published {
+            snapshot: Some(self.scheduler.snapshot(now)),
+            worker_names: self.workers.iter().map(|(&id, w)| (id, w.name.clone())).collect(),
+            session_names: self.sessions.iter().map(|(sid, s)| (sid.0, s.name.clone())).collect(),
+            composer_linked: self.composer.is_some(),
+        };
+        *self.metrics.farm.published.lock().unwrap_or_else(|p| p.into_inner()) = published;
     }
 
     /// Handles one event; `Some` to stop (shutdown requested).
@@ -480,7 +496,7 @@ impl Actor {
             Event::WorkerMessage(id, message) => self.worker_message(id, message, now),
             Event::WorkerLeft(id, reason) => {
                 if self.workers.remove(&id).is_some() {
-                    self.counters.workers_left += 1;
+                    self.metrics.links.workers_left.inc();
                     match self.scheduler.remove_worker(WorkerId(id), now) {
                         Ok(()) => {
                             tracing::info!(worker = id, %reason, "worker disconnected; its batches are re-issued")
@@ -550,7 +566,7 @@ impl Actor {
             device = %register.device,
             "worker registered"
         );
-        self.counters.workers_joined += 1;
+        self.metrics.links.workers_joined.inc();
         self.workers.insert(
             id,
             WorkerLink {
@@ -570,7 +586,7 @@ impl Actor {
 
     fn worker_message(&mut self, id: u32, message: Message, now: Time) {
         if !self.workers.contains_key(&id) {
-            self.counters.stale_reports += 1;
+            self.metrics.links.stale_reports.inc();
             return;
         }
         let worker = WorkerId(id);
@@ -619,7 +635,7 @@ impl Actor {
                     goodbye.reason
                 );
                 if let Some(w) = self.workers.remove(&id) {
-                    self.counters.workers_left += 1;
+                    self.metrics.links.workers_left.inc();
                     let _ = w.link.send(LinkCommand::Close(String::new()));
                 }
                 if let Err(e) = self.scheduler.remove_worker(worker, now) {
@@ -696,7 +712,7 @@ impl Actor {
                 let sid = SessionId(session_id);
                 if let Some(s) = self.sessions.get(&sid) {
                     tracing::info!(session = %s.name, %reason, "the composer ended the session");
-                    self.counters.sessions_ended_by_peer += 1;
+                    self.metrics.links.sessions_ended_by_peer.inc();
                     let name = s.name.clone();
                     self.end_session(sid, &reason, false, now);
                     let _ = self.ended.send(name);
@@ -719,7 +735,7 @@ impl Actor {
     fn pose(&mut self, pose: ClientPose, now: Time) {
         let sid = SessionId(pose.session_id);
         let Some(s) = self.sessions.get_mut(&sid) else {
-            self.counters.poses_unknown_session += 1;
+            self.metrics.links.poses_unknown_session.inc();
             tracing::debug!(session_id = pose.session_id, "pose for an unknown session; dropped");
             return;
         };
@@ -777,7 +793,6 @@ impl Actor {
         let sid = match self.scheduler.open_session(spec, now) {
             Ok(sid) => sid,
             Err(SchedError::Refused { retry_after }) => {
-                self.counters.sessions_refused += 1;
                 tracing::info!(session = %name, retry_after_s = retry_after.as_secs(), "session refused: a user is starved");
                 let _ = reply.send(Err(OpenError::Refused { retry_after }));
                 return;
@@ -852,7 +867,7 @@ impl Actor {
             Action::Dispatch { worker, batch } => self.dispatch(worker, &batch),
             Action::Cancel { worker, batch } => {
                 if let Some(w) = self.workers.get(&worker.0) {
-                    self.counters.cancels_sent += 1;
+                    self.metrics.links.cancels_sent.inc();
                     let _ = w
                         .link
                         .send(LinkCommand::Send(Message::Cancel(Cancel { target: CancelTarget::Batch(batch.0) })));
@@ -862,14 +877,13 @@ impl Actor {
                 self.plan(session, frame, released, &parts, now)
             }
             Action::FrameDropped { session, frame, reason } => {
-                self.counters.frames_dropped += 1;
                 if let Some(s) = self.sessions.get_mut(&session) {
                     s.frames_dropped += 1;
                 }
                 tracing::debug!(session = session.0, frame = frame.0, ?reason, "frame dropped");
             }
             Action::WorkerLost { worker, reissued } => {
-                self.counters.workers_lost += 1;
+                self.metrics.links.workers_lost.inc();
                 if let Some(w) = self.workers.remove(&worker.0) {
                     tracing::warn!(worker = worker.0, name = %w.name, reissued, "worker missed its heartbeats: closing its link, batches re-issued");
                     let _ = w.link.send(LinkCommand::Close("missed heartbeats".into()));
@@ -877,7 +891,7 @@ impl Actor {
             }
             Action::ReleaseResult { task } => {
                 if let Some(c) = &self.composer {
-                    self.counters.releases_sent += 1;
+                    self.metrics.links.releases_sent.inc();
                     let _ = c.link.send(LinkCommand::Send(Message::ReleaseTask(ReleaseTask { task_id: task.0 })));
                 }
             }
@@ -888,12 +902,12 @@ impl Actor {
         let (Some(w), Some(composer)) = (self.workers.get(&worker.0), &self.composer) else {
             // The worker's departure (or the composer's) is queued; the scheduler re-issues
             // the batch when it hears of it, or at its deadline.
-            self.counters.batches_unsendable += 1;
+            self.metrics.links.batches_unsendable.inc();
             tracing::debug!(worker = worker.0, batch = batch.id.0, "batch not sent: worker or composer gone");
             return;
         };
         let Some(object) = self.catalog.object(batch.object.0) else {
-            self.counters.batches_unsendable += 1;
+            self.metrics.links.batches_unsendable.inc();
             tracing::error!(object = batch.object.0, "batch for an object not in the catalog");
             return;
         };
@@ -914,7 +928,7 @@ impl Actor {
             deadline_unix_us: Some(self.unix_us(batch.timeout)),
             composer: composer.results_address.clone(),
         };
-        self.counters.batches_sent += 1;
+        self.metrics.links.batches_sent.inc();
         let _ = w.link.send(LinkCommand::Send(Message::RayBatch(message)));
     }
 
@@ -942,9 +956,11 @@ impl Actor {
         };
         if composer.link.send(LinkCommand::Send(Message::FramePlan(plan))).is_ok() {
             s.plans_sent += 1;
-            self.counters.plans_sent += 1;
+            self.metrics.links.plans_sent.inc();
             if let Some(p) = pose {
-                self.pose_to_plan_ms.push(p.received.elapsed().as_secs_f64() * 1e3);
+                let ms = p.received.elapsed().as_secs_f64() * 1e3;
+                self.pose_to_plan_ms.push(ms);
+                self.metrics.pose_to_plan_ms.observe(ms);
             }
         }
     }
@@ -999,7 +1015,7 @@ impl Actor {
                 })
             })
             .collect();
-        let c = &self.counters;
+        let c = &self.metrics.links;
         json!({
             "uptime_s": now.as_secs_f64(),
             "workers": workers,
@@ -1009,19 +1025,18 @@ impl Actor {
             "live": {
                 "round_us": self.round_us.summary(),
                 "pose_to_plan_ms": self.pose_to_plan_ms.summary(),
-                "workers_joined": c.workers_joined,
-                "workers_left": c.workers_left,
-                "workers_lost": c.workers_lost,
-                "batches_sent": c.batches_sent,
-                "batches_unsendable": c.batches_unsendable,
-                "cancels_sent": c.cancels_sent,
-                "plans_sent": c.plans_sent,
-                "frames_dropped": c.frames_dropped,
-                "releases_sent": c.releases_sent,
-                "poses_unknown_session": c.poses_unknown_session,
-                "sessions_refused": c.sessions_refused,
-                "sessions_ended_by_peer": c.sessions_ended_by_peer,
-                "stale_reports": c.stale_reports,
+                "workers_joined": c.workers_joined.get(),
+                "workers_left": c.workers_left.get(),
+                "workers_lost": c.workers_lost.get(),
+                "batches_sent": c.batches_sent.get(),
+                "batches_unsendable": c.batches_unsendable.get(),
+                "cancels_sent": c.cancels_sent.get(),
+                "plans_sent": c.plans_sent.get(),
+                "releases_sent": c.releases_sent.get(),
+                "poses_unknown_session": c.poses_unknown_session.get(),
+                "sessions_refused": c.sessions_refused.get(),
+                "sessions_ended_by_peer": c.sessions_ended_by_peer.get(),
+                "stale_reports": c.stale_reports.get(),
             },
         })
     }

@@ -7,6 +7,8 @@
 //!   `Retry-After` while the scheduler's admission control refuses new users.
 //! * `DELETE /v1/sessions/{id}` with `Authorization: Bearer TOKEN`.
 //! * `GET /v1/farm`: the scheduler's state.
+//! * `GET /livez`, `GET /readyz`: liveness, and readiness (a composer and a worker joined).
+//! * `GET /metrics`: Prometheus metrics ([`crate::metrics`]).
 
 use std::future::Future;
 use std::pin::Pin;
@@ -22,6 +24,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::json;
 
 use crate::client_files;
+use crate::metrics::MasterMetrics;
 use crate::sessions::{AccessError, SessionRequest, SessionTable};
 
 /// Largest request body accepted (an SDP offer is a few kilobytes).
@@ -87,6 +90,7 @@ pub trait FarmBackend: Send + Sync + 'static {
 pub struct AppState {
     pub sessions: Mutex<SessionTable>,
     pub backend: Arc<dyn FarmBackend>,
+    pub metrics: Arc<MasterMetrics>,
     clock: Box<dyn Fn() -> f64 + Send + Sync>,
 }
 
@@ -97,8 +101,12 @@ impl std::fmt::Debug for AppState {
 }
 
 impl AppState {
-    pub fn new(backend: Arc<dyn FarmBackend>, clock: Box<dyn Fn() -> f64 + Send + Sync>) -> Arc<AppState> {
-        Arc::new(AppState { sessions: Mutex::new(SessionTable::new()), backend, clock })
+    pub fn new(
+        backend: Arc<dyn FarmBackend>,
+        metrics: Arc<MasterMetrics>,
+        clock: Box<dyn Fn() -> f64 + Send + Sync>,
+    ) -> Arc<AppState> {
+        Arc::new(AppState { sessions: Mutex::new(SessionTable::new()), backend, metrics, clock })
     }
 
     fn sessions(&self) -> std::sync::MutexGuard<'_, SessionTable> {
@@ -109,7 +117,7 @@ impl AppState {
 }
 
 pub fn router(state: Arc<AppState>) -> Router {
-    Router::new()
+    let routes = Router::new()
         .route("/", get(index))
         .route("/client/{file}", get(client_file))
         .route("/v1/config", get(config))
@@ -118,8 +126,8 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/farm", get(farm))
         .route("/livez", get(|| async { "ok" }))
         .route("/readyz", get(readyz))
-        .layer(DefaultBodyLimit::max(MAX_BODY_BYTES))
-        .with_state(state)
+        .route("/metrics", get(metrics));
+    state.metrics.http.layer(routes).layer(DefaultBodyLimit::max(MAX_BODY_BYTES)).with_state(state)
 }
 
 /// A JSON error body with a status.
@@ -211,6 +219,7 @@ async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Byte
     let view = view.clone();
     if let Admission::Refuse { retry_after } = state.backend.admission() {
         tracing::info!(retry_after_s = retry_after.as_secs_f64(), "session refused by admission control");
+        state.metrics.links.sessions_refused.inc();
         return refused(retry_after);
     }
     let mut secret = [0u8; 16];
@@ -231,7 +240,10 @@ async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Byte
             match e {
                 OpenError::BadOffer(_) => error(StatusCode::BAD_REQUEST, e),
                 OpenError::Unavailable(_) => error(StatusCode::SERVICE_UNAVAILABLE, e),
-                OpenError::Refused { retry_after } => refused(retry_after),
+                OpenError::Refused { retry_after } => {
+                    state.metrics.links.sessions_refused.inc();
+                    refused(retry_after)
+                }
             }
         }
     }
@@ -284,6 +296,10 @@ async fn farm(State(state): State<Arc<AppState>>) -> Response {
 /// Ready to serve viewers: the farm's event loop answers, a composer is registered and at
 /// least one render worker is. 503 with what is missing otherwise (load balancers and
 /// Kubernetes' readiness probe take a viewer elsewhere meanwhile).
+async fn metrics(State(state): State<Arc<AppState>>) -> Response {
+    nephele_telemetry::metrics_response(&state.metrics.registry)
+}
+
 async fn readyz(State(state): State<Arc<AppState>>) -> Response {
     let farm = state.backend.farm_state().await;
     let workers = farm.get("workers").and_then(|w| w.as_array()).map_or(0, Vec::len);
@@ -359,7 +375,7 @@ mod tests {
 
     fn app() -> (Router, Arc<FakeFarm>, Arc<AppState>) {
         let farm = Arc::new(FakeFarm::default());
-        let state = AppState::new(farm.clone(), Box::new(|| 0.0));
+        let state = AppState::new(farm.clone(), Arc::new(MasterMetrics::new()), Box::new(|| 0.0));
         (router(state.clone()), farm, state)
     }
 
@@ -469,6 +485,16 @@ mod tests {
         assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
         assert_eq!(headers.get(header::RETRY_AFTER).and_then(|v| v.to_str().ok()), Some("3"));
         assert!(state.sessions().is_empty());
+        // Both refusals are counted for /metrics.
+        let response = app
+            .clone()
+            .oneshot(Request::get("/metrics").body(Body::empty()).expect("request"))
+            .await
+            .expect("infallible");
+        let text =
+            String::from_utf8_lossy(&response.into_body().collect().await.expect("body").to_bytes()).into_owned();
+        assert!(text.contains("nephele_master_admissions_refused_total 2"), "{text}");
+        assert!(text.contains("route=\"/v1/sessions\",status=\"503\"} 2"), "{text}");
     }
 
     #[tokio::test]

@@ -10,12 +10,14 @@
 //! * [`scenes`]: the scene catalog (objects placed in the world, first views).
 //! * [`farm`]: the actor that owns the scheduler, and [`farm::Farm`], its handle.
 //! * [`links`]: the farm listener and one task per worker or composer connection.
+//! * [`metrics`]: the Prometheus metrics (`GET /metrics`).
 //! * [`service`]: both listeners and graceful shutdown: `nephele master`.
 
 pub mod client_files;
 pub mod farm;
 pub mod http;
 pub mod links;
+pub mod metrics;
 pub mod scenes;
 pub mod service;
 pub mod sessions;

@@ -105,7 +105,11 @@ impl Master {
         let Master { http, farm_listener, config, catalog } = self;
         let (farm, farm_task, mut ended) = Farm::start(config.farm_config, catalog)?;
         let start = Instant::now();
-        let state = AppState::new(Arc::new(farm.clone()), Box::new(move || start.elapsed().as_secs_f64()));
+        let state = AppState::new(
+            Arc::new(farm.clone()),
+            farm.metrics().clone(),
+            Box::new(move || start.elapsed().as_secs_f64()),
+        );
         // Sessions the farm ended on its own (client vanished, composer gone) leave the
         // HTTP table too, so that their ids answer 404.
         let table = state.clone();

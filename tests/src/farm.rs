@@ -151,7 +151,11 @@ impl TestFarm {
     /// tokio runtime); returns the address.
     pub async fn serve(&self) -> Result<SocketAddr, FarmError> {
         let start = Instant::now();
-        let state = AppState::new(Arc::new(self.clone()), Box::new(move || start.elapsed().as_secs_f64()));
+        let state = AppState::new(
+            Arc::new(self.clone()),
+            Arc::new(nephele_master::metrics::MasterMetrics::new()),
+            Box::new(move || start.elapsed().as_secs_f64()),
+        );
         let listener = tokio::net::TcpListener::bind(("127.0.0.1", 0)).await?;
         let addr = listener.local_addr()?;
         tokio::spawn(async move {

@@ -1,7 +1,7 @@
 //! `nephele-worker`: the render worker process (`nephele worker`).
 //!
-//! Depends on `nephele-proto`, `nephele-geometry`, `nephele-kernels` and `nephele-pathtracer`
-//! (built-in scenes); never on a trainer (`nephele-train`) or another service.
+//! Depends on `nephele-proto`, `nephele-geometry`, `nephele-kernels`, `nephele-pathtracer`
+//! (built-in scenes) and `nephele-telemetry` (metrics); never on a trainer (`nephele-train`) or another service.
 //!
 //! A worker connects to the master, says hello, registers (name, threads, kernel kinds and
 //! the throughput a short calibration render measured), then serves [`nephele_proto::RayBatch`]es:
@@ -15,7 +15,9 @@
 
 pub mod assets;
 mod composer;
+pub mod metrics;
 mod service;
 
 pub use assets::{AssetError, AssetLoader, AssetOptions, DirAssetLoader};
+pub use metrics::WorkerMetrics;
 pub use service::{WorkerConfig, WorkerError, run};

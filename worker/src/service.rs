@@ -29,6 +29,7 @@ use tokio::sync::mpsc;
 
 use crate::assets::AssetLoader;
 use crate::composer::ComposerLinks;
+use crate::metrics::{Phase, WorkerMetrics};
 
 /// How a worker runs.
 #[derive(Debug, Clone)]
@@ -62,6 +63,8 @@ pub struct WorkerConfig {
     /// How results travel to the composer: compact (only the pixels the object touched,
     /// half floats) or f32 (every pixel, exact).
     pub result_encoding: ResultEncoding,
+    /// Counters and readiness (serve them with `nephele_telemetry::ops_router`).
+    pub metrics: Arc<WorkerMetrics>,
 }
 
 impl WorkerConfig {
@@ -80,6 +83,7 @@ impl WorkerConfig {
             device: "cpu".into(),
             calibration_size: 64,
             result_encoding: ResultEncoding::Compact,
+            metrics: Arc::new(WorkerMetrics::new()),
         }
     }
 }
@@ -104,6 +108,7 @@ struct Shared {
     composers: ComposerLinks,
     worker_id: AtomicU64,
     result_encoding: ResultEncoding,
+    metrics: Arc<WorkerMetrics>,
 }
 
 /// Counters that survive reconnections.
@@ -133,7 +138,10 @@ pub async fn run<F: Future<Output = ()>>(
         composers: ComposerLinks::new(config.frame, config.io_timeout),
         worker_id: AtomicU64::new(0),
         result_encoding: config.result_encoding,
+        metrics: config.metrics.clone(),
     });
+    let metrics = config.metrics.clone();
+    metrics.set_phase(Phase::Calibrating);
     let rays_per_second = calibrate(&shared, &config).await?;
     tracing::info!(name = %config.name, threads = config.threads, rays_per_second = format!("{rays_per_second:.0}"), "calibrated");
     let register = Register {
@@ -144,6 +152,7 @@ pub async fn run<F: Future<Output = ()>>(
         device: config.device.clone(),
     };
 
+    metrics.set_phase(Phase::Connecting);
     let mut shutdown = std::pin::pin!(shutdown);
     let mut totals = Totals::default();
     let mut lost_since = Instant::now();
@@ -160,11 +169,14 @@ pub async fn run<F: Future<Output = ()>>(
             Ok((conn, registered)) => {
                 tracing::info!(master = %config.master, worker_id = registered.worker_id, "registered");
                 shared.worker_id.store(registered.worker_id, Ordering::Relaxed);
+                metrics.set_phase(Phase::Registered);
+                metrics.master_connections.inc();
                 backoff = Duration::from_millis(50);
                 let session = Session::new(&config, &shared, registered);
                 match session.run(conn, shutdown.as_mut(), &mut totals).await {
                     SessionEnd::ShutDown => return Ok(()),
                     SessionEnd::MasterLost(reason) => {
+                        metrics.set_phase(Phase::Connecting);
                         tracing::warn!(master = %config.master, "lost the master: {reason}; reconnecting");
                         lost_since = Instant::now();
                     }
@@ -298,6 +310,8 @@ impl<'a> Session<'a> {
             if self.draining && self.in_flight.is_empty() {
                 return self.say_goodbye(conn, "shutting down").await;
             }
+            self.shared.metrics.queued_batches.set(self.queue.len() as i64);
+            self.shared.metrics.in_flight_batches.set(self.in_flight.len() as i64);
             if let Err(e) = flush(&mut conn, &mut self.outbox).await {
                 return self.lost(format!("sending to the master: {e}"));
             }
@@ -309,6 +323,7 @@ impl<'a> Session<'a> {
                         "shutdown requested: finishing in-flight batches, handing queued ones back"
                     );
                     self.draining = true;
+                    self.shared.metrics.set_phase(Phase::Draining);
                     drain_deadline = tokio::time::Instant::now() + self.config.drain_timeout;
                     for batch in std::mem::take(&mut self.queue) {
                         self.hand_back(batch.ids);
@@ -446,6 +461,8 @@ impl<'a> Session<'a> {
             Ok(batch_done) => {
                 totals.batches_done += 1;
                 totals.rays_done += done.pixels;
+                self.shared.metrics.batches_done.inc();
+                self.shared.metrics.rays_done.inc_by(done.pixels);
                 self.outbox.push(Message::BatchDone(batch_done));
             }
             Err((code, message)) => {
@@ -456,6 +473,7 @@ impl<'a> Session<'a> {
     }
 
     fn fail(&mut self, ids: BatchIds, code: ErrorCode, message: String) {
+        self.shared.metrics.failed(code);
         self.outbox.push(Message::BatchFailed(BatchFailed { ids, code, message: clip_text(message) }));
     }
 
@@ -509,7 +527,9 @@ async fn render_and_deliver(
         let start = Instant::now();
         let rendered = worker.pool.install(|| kernel.render_pixels(&camera, &pixels));
         let rendered = rendered.map_err(|e| (ErrorCode::RenderFailed, e.to_string()));
-        (pixels, rendered, start.elapsed())
+        let elapsed = start.elapsed();
+        worker.metrics.render_ms.observe(elapsed.as_secs_f64() * 1e3);
+        (pixels, rendered, elapsed)
     })
     .await
     .map_err(|e| (ErrorCode::Internal, format!("render task: {e}")))?;
@@ -535,11 +555,13 @@ async fn render_and_deliver(
     });
     validate::message(&result)
         .map_err(|e| (ErrorCode::RenderFailed, format!("the kernel produced an invalid result: {e}")))?;
+    let delivering = Instant::now();
     shared
         .composers
         .send(&composer, &result)
         .await
         .map_err(|e| (ErrorCode::ComposerUnreachable, format!("composer {composer}: {e}")))?;
+    shared.metrics.deliver_ms.observe(delivering.elapsed().as_secs_f64() * 1e3);
     tracing::debug!(batch = ids.batch_id, pixels = count, render_us = render_time_us, "batch delivered");
     Ok(BatchDone { ids, pixels: count, render_time_us, stats })
 }

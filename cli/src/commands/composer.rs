@@ -28,6 +28,11 @@ pub struct Args {
     /// TCP listener for frame plans and worker batch results.
     #[arg(long, default_value = "127.0.0.1:8091")]
     results: SocketAddr,
+    /// The results listener's address as workers must dial it, `HOST:PORT`, told to the
+    /// master (default: the bound `--results` address; set it when binding 0.0.0.0, e.g.
+    /// `composer:8091` on a container network).
+    #[arg(long, value_name = "HOST:PORT", value_parser = parse_host_port)]
+    advertise_results: Option<String>,
     /// Where frames come from.
     #[arg(long, value_enum, default_value = "workers")]
     source: Source,
@@ -72,6 +77,11 @@ pub struct Args {
     name: String,
 }
 
+fn parse_host_port(text: &str) -> Result<String, String> {
+    nephele_proto::validate::address(text).map_err(|e| e.to_string())?;
+    Ok(text.to_string())
+}
+
 fn parse_port_range(text: &str) -> Result<(u16, u16), String> {
     let (lo, hi) = text.split_once('-').ok_or_else(|| format!("expected MIN-MAX, got '{text}'"))?;
     let lo: u16 = lo.trim().parse().map_err(|_| format!("bad port '{lo}'"))?;
@@ -87,10 +97,12 @@ pub fn run(args: Args) -> Result<()> {
     let config = ComposerConfig {
         http_addr: args.http,
         results_addr: args.results,
+        advertise_results: args.advertise_results,
         rtc: RtcConfig {
             ice_servers,
             include_loopback: !args.no_loopback,
-            nat_1to1_ips: args.public_ips,
+            // An empty `--public-ip ''` (a compose file's unset variable) announces nothing.
+            nat_1to1_ips: args.public_ips.into_iter().filter(|ip| !ip.trim().is_empty()).collect(),
             udp_ports: args.udp_ports,
             mdns: if args.mdns { MdnsMode::Query } else { MdnsMode::Off },
             ..RtcConfig::default()

@@ -17,6 +17,7 @@ use crate::progress::Progress;
 /// number). Prints per user: frame rate, frames, keyframes, damaged frames, lost packets,
 /// bitrate, time to connect, ping round trip, and pose-to-frame latency (client time from a
 /// pose to the composer's `frame` note naming it; `-` when the composer sends none).
+/// Ctrl-C or SIGTERM ends the run early with the same reports.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The master, as a browser opens it.
@@ -75,7 +76,10 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     };
     config.validate()?;
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
-    let live = Arc::new(Live::default());
+    // Ctrl-C or SIGTERM ends the run early: every user stops and the reports are printed (and
+    // written) as usual.
+    let stop = nephele_shutdown::Shutdown::on_signals().context("installing the Ctrl-C and SIGTERM handlers")?;
+    let live = Arc::new(Live { stop, ..Live::default() });
     let total_ms = (args.seconds * 1e3) as u64 + args.stagger_ms * args.users as u64;
     let bar = progress.bar(total_ms / 1000, "streaming", "s");
     let reports = runtime.block_on(async {

@@ -8,6 +8,7 @@ pub mod first_start;
 pub mod loadgen;
 pub mod master;
 pub mod pathtrace;
+pub mod probe;
 pub mod render;
 pub mod scenes;
 pub mod simulate;

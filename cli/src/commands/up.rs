@@ -58,6 +58,10 @@ pub struct Args {
     /// `assets/<quality>`).
     #[arg(long, value_name = "DIR")]
     assets: Option<PathBuf>,
+    /// Bake the scene's missing assets into the asset folder and exit without starting the
+    /// service (a container cluster's one-shot bake job fills the shared asset volume so).
+    #[arg(long)]
+    bake_only: bool,
     /// How long to wait for every process to join the farm, seconds.
     #[arg(long, default_value_t = 120)]
     ready_secs: u64,
@@ -122,6 +126,10 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
             ),
             None => println!("using the baked '{}': {}", object.name, object.path.display()),
         }
+    }
+    if args.bake_only {
+        println!("assets ready in {} ({} objects)", assets.display(), baked.len());
+        return Ok(());
     }
     let stop = Shutdown::on_signals().context("installing the Ctrl-C and SIGTERM handlers")?;
     let exe = std::env::current_exe().context("locating the nephele executable")?;

@@ -27,7 +27,7 @@ pub struct Args {
     /// Asset directory (asset ids never resolve outside it).
     #[arg(long, value_name = "DIR")]
     assets: PathBuf,
-    /// Name shown by the master (`[A-Za-z0-9._-]`, default `worker-<pid>`).
+    /// Name shown by the master (`[A-Za-z0-9._-]`, default `worker-<host name>-<pid>`).
     #[arg(long)]
     name: Option<String>,
     /// Samples per pixel of path-traced assets.
@@ -65,9 +65,26 @@ pub struct Args {
     /// Seconds in-flight batches may take to finish after SIGTERM.
     #[arg(long, default_value_t = 30)]
     drain_secs: u64,
+    /// Serve `/livez`, `/readyz` (ready once registered with the master) and `/metrics`
+    /// (Prometheus) on this address, for container health checks and scrapers.
+    #[arg(long, value_name = "ADDR")]
+    ops: Option<std::net::SocketAddr>,
     /// Asset rendered at start-up to measure this worker's throughput.
     #[arg(long, default_value = "diffuse")]
     calibration_asset: String,
+}
+
+/// `worker-<host>-<pid>`: unique across containers too (every container's worker is pid 1;
+/// its host name is the container's id).
+fn default_name() -> String {
+    let host = std::fs::read_to_string("/etc/hostname").unwrap_or_default();
+    let host: String =
+        host.trim().chars().filter(|c| c.is_ascii_alphanumeric() || *c == '-' || *c == '.').take(40).collect();
+    if host.is_empty() {
+        format!("worker-{}", std::process::id())
+    } else {
+        format!("worker-{host}-{}", std::process::id())
+    }
 }
 
 /// `nephele worker --results`.
@@ -79,7 +96,7 @@ pub enum ResultsArg {
 
 pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
     let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let name = args.name.unwrap_or_else(|| format!("worker-{}", std::process::id()));
+    let name = args.name.unwrap_or_else(default_name);
     let (accelerator, device) = crate::commands::open_device(args.device, args.simd)?;
     let load = LoadOptions { pathtrace_spp: args.spp, pathtrace_bounces: args.bounces, simd: args.simd, accelerator };
     let options = AssetOptions { load, ..AssetOptions::default() };
@@ -105,9 +122,26 @@ pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
         .build()
         .context("starting the async runtime")?;
     let shutdown = Shutdown::on_signals().context("installing the Ctrl-C and SIGTERM handlers")?;
+    let metrics = config.metrics.clone();
     let result = runtime.block_on(async move {
+        let ops = match args.ops {
+            Some(addr) => {
+                let router = nephele_telemetry::ops_router(metrics.registry().clone(), metrics.clone());
+                let stop = shutdown.clone();
+                let (bound, task) = nephele_telemetry::serve(addr, router, async move { stop.wait().await })
+                    .await
+                    .with_context(|| format!("--ops: cannot listen on {addr}"))?;
+                tracing::info!(%bound, "operations endpoint: /livez /readyz /metrics");
+                Some(task)
+            }
+            None => None,
+        };
         let shutdown = async move { shutdown.wait().await };
-        nephele_worker::run(config, Arc::new(loader), shutdown).await.map_err(anyhow::Error::from)
+        let result = nephele_worker::run(config, Arc::new(loader), shutdown).await.map_err(anyhow::Error::from);
+        if let Some(task) = ops {
+            task.abort();
+        }
+        result
     });
     // Renders that outlived the drain timeout must not hold the exit.
     runtime.shutdown_timeout(Duration::from_secs(1));

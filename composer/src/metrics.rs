@@ -1,0 +1,132 @@
+//! The composer's Prometheus metrics (`GET /metrics`, prefix `nephele_composer_`): frames and
+//! bytes sent, encoder and send errors, frames dropped because a viewer's media thread was
+//! busy, each latency stage of sent frames as a histogram (the stages of
+//! [`crate::latency::Stages`]), worker connections and wire errors; viewer sessions and the
+//! master link as gauges read at scrape time.
+
+use std::sync::Arc;
+
+use nephele_telemetry::HttpMetrics;
+use nephele_telemetry::prometheus_client::metrics::counter::Counter;
+use nephele_telemetry::prometheus_client::metrics::family::Family;
+use nephele_telemetry::prometheus_client::metrics::gauge::Gauge;
+use nephele_telemetry::prometheus_client::metrics::histogram::Histogram;
+use nephele_telemetry::prometheus_client::registry::Registry;
+
+use crate::latency::Stages;
+
+type StageLabels = [(&'static str, &'static str); 1];
+
+#[derive(Debug)]
+pub struct ComposerMetrics {
+    pub(crate) registry: Registry,
+    pub(crate) frames_sent: Counter,
+    pub(crate) bytes_sent: Counter,
+    pub(crate) frames_dropped_busy: Counter,
+    pub(crate) encode_errors: Counter,
+    pub(crate) send_errors: Counter,
+    pub(crate) wire_errors: Counter,
+    pub(crate) worker_connections: Counter,
+    pub(crate) sessions: Gauge,
+    pub(crate) master_linked: Gauge,
+    stage_ms: Family<StageLabels, Histogram, fn() -> Histogram>,
+    pub(crate) http: HttpMetrics,
+}
+
+impl ComposerMetrics {
+    pub fn new() -> ComposerMetrics {
+        let mut registry = Registry::with_prefix("nephele_composer");
+        let counter = |registry: &mut Registry, name: &str, help: &str| {
+            let c = Counter::default();
+            registry.register(name, help, c.clone());
+            c
+        };
+        let frames_sent = counter(&mut registry, "frames_sent", "Encoded frames sent to viewers");
+        let bytes_sent = counter(&mut registry, "bytes_sent", "H.264 bytes sent to viewers");
+        let frames_dropped_busy =
+            counter(&mut registry, "frames_dropped_busy", "Fused frames dropped: the viewer's media thread was busy");
+        let encode_errors = counter(&mut registry, "encode_errors", "Frames the encoder failed on");
+        let send_errors = counter(&mut registry, "send_errors", "Frames that could not be sent");
+        let wire_errors = counter(&mut registry, "wire_errors", "Malformed messages on the results listener");
+        let worker_connections = counter(&mut registry, "worker_connections", "Worker connections accepted");
+        let sessions = Gauge::default();
+        registry.register("sessions", "Viewer sessions", sessions.clone());
+        let master_linked = Gauge::default();
+        registry.register("master_linked", "1 while the link to the master is up (farm mode)", master_linked.clone());
+        let stage_ms = Family::new_with_constructor(nephele_telemetry::latency_histogram_ms as fn() -> Histogram);
+        registry.register(
+            "frame_stage_ms",
+            "Latency of each stage of sent frames, ms (pose_to_sent, farm, render, results_wait, fusion, yuv, encode, send)",
+            stage_ms.clone(),
+        );
+        let http = HttpMetrics::register(&mut registry);
+        ComposerMetrics {
+            registry,
+            frames_sent,
+            bytes_sent,
+            frames_dropped_busy,
+            encode_errors,
+            send_errors,
+            wire_errors,
+            worker_connections,
+            sessions,
+            master_linked,
+            stage_ms,
+            http,
+        }
+    }
+
+    /// Records the stages of one sent frame.
+    pub(crate) fn frame_sent(&self, stages: &Stages) {
+        let optional = [("pose_to_sent", stages.total), ("farm", stages.farm), ("render", stages.render)];
+        for (stage, ms) in optional {
+            if let Some(ms) = ms {
+                self.stage_ms.get_or_create(&[("stage", stage)]).observe(ms);
+            }
+        }
+        let always = [
+            ("results_wait", stages.results_wait),
+            ("fusion", stages.fusion),
+            ("yuv", stages.yuv),
+            ("encode", stages.encode),
+            ("send", stages.send),
+        ];
+        for (stage, ms) in always {
+            self.stage_ms.get_or_create(&[("stage", stage)]).observe(ms);
+        }
+    }
+
+    /// The text `GET /metrics` answers.
+    pub fn render(&self) -> String {
+        nephele_telemetry::render(&self.registry)
+    }
+}
+
+impl Default for ComposerMetrics {
+    fn default() -> ComposerMetrics {
+        ComposerMetrics::new()
+    }
+}
+
+/// Shared handle.
+pub type SharedMetrics = Arc<ComposerMetrics>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stages_of_a_sent_frame_land_in_their_histograms() {
+        let metrics = ComposerMetrics::new();
+        metrics.frames_sent.inc();
+        metrics.bytes_sent.inc_by(1500);
+        let stages = Stages { total: Some(40.0), farm: None, render: Some(6.0), encode: 3.0, ..Stages::default() };
+        metrics.frame_sent(&stages);
+        let text = metrics.render();
+        assert!(text.contains("nephele_composer_frames_sent_total 1"), "{text}");
+        assert!(text.contains("nephele_composer_bytes_sent_total 1500"), "{text}");
+        assert!(text.contains("nephele_composer_frame_stage_ms_count{stage=\"pose_to_sent\"} 1"), "{text}");
+        assert!(text.contains("nephele_composer_frame_stage_ms_sum{stage=\"encode\"} 3.0"), "{text}");
+        assert!(!text.contains("stage=\"farm\""), "a stage not measured is not observed: {text}");
+    }
+}

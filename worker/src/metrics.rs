@@ -1,0 +1,147 @@
+//! The worker's Prometheus metrics (prefix `nephele_worker_`) and its readiness, served on
+//! the operations port (`nephele worker --ops ADDR`: `/livez`, `/readyz`, `/metrics`).
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU8, Ordering};
+
+use nephele_proto::ErrorCode;
+use nephele_telemetry::Probe;
+use nephele_telemetry::prometheus_client::metrics::counter::Counter;
+use nephele_telemetry::prometheus_client::metrics::family::Family;
+use nephele_telemetry::prometheus_client::metrics::gauge::Gauge;
+use nephele_telemetry::prometheus_client::metrics::histogram::Histogram;
+use nephele_telemetry::prometheus_client::registry::Registry;
+
+/// Where the worker is in its life, for `/readyz`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub enum Phase {
+    Calibrating = 0,
+    Connecting = 1,
+    Registered = 2,
+    Draining = 3,
+}
+
+#[derive(Debug)]
+pub struct WorkerMetrics {
+    registry: Arc<Registry>,
+    phase: AtomicU8,
+    pub(crate) registered: Gauge,
+    pub(crate) batches_done: Counter,
+    pub(crate) rays_done: Counter,
+    pub(crate) batches_failed: Family<[(&'static str, String); 1], Counter>,
+    pub(crate) queued_batches: Gauge,
+    pub(crate) in_flight_batches: Gauge,
+    pub(crate) render_ms: Histogram,
+    pub(crate) deliver_ms: Histogram,
+    pub(crate) master_connections: Counter,
+}
+
+impl WorkerMetrics {
+    pub fn new() -> WorkerMetrics {
+        let mut registry = Registry::with_prefix("nephele_worker");
+        let registered = Gauge::default();
+        registry.register("registered", "1 while registered with the master", registered.clone());
+        let batches_done = Counter::default();
+        registry.register("batches_done", "Batches rendered and delivered to their composer", batches_done.clone());
+        let rays_done = Counter::default();
+        registry.register("rays_done", "Rays (pixels) of the batches done", rays_done.clone());
+        let batches_failed = Family::default();
+        registry.register(
+            "batches_failed",
+            "Batches reported failed to the master, by reason (overloaded = refused, queue full)",
+            batches_failed.clone(),
+        );
+        let queued_batches = Gauge::default();
+        registry.register("queued_batches", "Batches waiting for a render slot", queued_batches.clone());
+        let in_flight_batches = Gauge::default();
+        registry.register("in_flight_batches", "Batches rendering or being delivered", in_flight_batches.clone());
+        let render_ms = nephele_telemetry::latency_histogram_ms();
+        registry.register("render_ms", "Kernel time of one batch, ms", render_ms.clone());
+        let deliver_ms = nephele_telemetry::latency_histogram_ms();
+        registry.register("deliver_ms", "Sending one batch's result to its composer, ms", deliver_ms.clone());
+        let master_connections = Counter::default();
+        registry.register(
+            "master_connections",
+            "Registrations with the master (reconnections included)",
+            master_connections.clone(),
+        );
+        WorkerMetrics {
+            registry: Arc::new(registry),
+            phase: AtomicU8::new(Phase::Calibrating as u8),
+            registered,
+            batches_done,
+            rays_done,
+            batches_failed,
+            queued_batches,
+            in_flight_batches,
+            render_ms,
+            deliver_ms,
+            master_connections,
+        }
+    }
+
+    pub fn registry(&self) -> &Arc<Registry> {
+        &self.registry
+    }
+
+    pub fn phase(&self) -> Phase {
+        match self.phase.load(Ordering::Relaxed) {
+            0 => Phase::Calibrating,
+            1 => Phase::Connecting,
+            2 => Phase::Registered,
+            _ => Phase::Draining,
+        }
+    }
+
+    pub(crate) fn set_phase(&self, phase: Phase) {
+        self.phase.store(phase as u8, Ordering::Relaxed);
+        self.registered.set(i64::from(phase == Phase::Registered));
+    }
+
+    pub(crate) fn failed(&self, code: ErrorCode) {
+        let reason = format!("{code:?}").to_lowercase();
+        self.batches_failed.get_or_create(&[("reason", reason)]).inc();
+    }
+}
+
+impl Default for WorkerMetrics {
+    fn default() -> WorkerMetrics {
+        WorkerMetrics::new()
+    }
+}
+
+impl Probe for WorkerMetrics {
+    fn missing(&self) -> Vec<String> {
+        match self.phase() {
+            Phase::Registered => Vec::new(),
+            Phase::Calibrating => vec!["calibrating (a first render measures this worker's throughput)".into()],
+            Phase::Connecting => vec!["not registered with the master".into()],
+            Phase::Draining => vec!["draining: shutting down".into()],
+        }
+    }
+
+    fn detail(&self) -> serde_json::Value {
+        serde_json::json!({ "phase": format!("{:?}", self.phase()).to_lowercase() })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn readiness_follows_the_phase_and_failures_count_by_reason() {
+        let metrics = WorkerMetrics::new();
+        assert_eq!(metrics.missing().len(), 1);
+        metrics.set_phase(Phase::Registered);
+        assert!(metrics.missing().is_empty());
+        assert_eq!(metrics.registered.get(), 1);
+        metrics.set_phase(Phase::Draining);
+        assert_eq!(metrics.registered.get(), 0);
+        metrics.failed(ErrorCode::Overloaded);
+        metrics.failed(ErrorCode::Overloaded);
+        let text = nephele_telemetry::render(metrics.registry());
+        assert!(text.contains("nephele_worker_batches_failed_total{reason=\"overloaded\"} 2"), "{text}");
+    }
+}
