@@ -104,7 +104,9 @@ fn handle(shared: &Arc<Shared>, message: Message) {
         }
         Message::FramePlan(plan) => accept_plan(shared, plan),
         Message::ReleaseTask(release) => {
-            lock(&shared.task_results).remove(&release.task_id);
+            let mut results = lock(&shared.task_results);
+            results.release(release.task_id);
+            shared.metrics.held_tasks.set(results.len() as i64);
         }
         Message::CloseStream(CloseStream { session_id, reason }) => {
             tracing::info!(session = session_id, %reason, "the master closed the stream");
@@ -140,7 +142,7 @@ fn until_unix_us(deadline: Option<u64>) -> Option<Duration> {
 
 fn all_present(shared: &Shared, plan: &FramePlan) -> bool {
     let results = lock(&shared.task_results);
-    plan.parts.iter().all(|p| results.get(&p.task_id).is_some_and(|r| !r.is_empty()))
+    plan.parts.iter().all(|p| results.get(p.task_id).is_some_and(|r| !r.is_empty()))
 }
 
 /// Fuses a frame plan from the stored task results (see the module docs).
@@ -164,7 +166,7 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
             let view = u16::try_from(part.view).map_err(|_| format!("view {}", part.view))?;
             let object = u32::try_from(i).map_err(|_| "too many parts".to_string())?;
             let key = (session, part.view, part.object_id);
-            match results.get(&part.task_id).filter(|r| !r.is_empty()) {
+            match results.get(part.task_id).filter(|r| !r.is_empty()) {
                 Some(batches) => {
                     let mut covered = Vec::new();
                     for (j, r) in batches.iter().enumerate() {
@@ -266,7 +268,11 @@ pub(crate) async fn read_results(shared: Arc<Shared>, stream: TcpStream, peer: S
         };
         match message {
             Ok(Message::BatchResult(result)) => {
-                lock(&shared.task_results).entry(result.ids.task_id).or_default().push(Arc::new(result));
+                let mut results = lock(&shared.task_results);
+                if !results.insert(result) {
+                    shared.metrics.results_after_release.inc();
+                }
+                shared.metrics.held_tasks.set(results.len() as i64);
             }
             Ok(Message::FramePlan(plan)) if peer_role == Role::Tool => accept_plan(&shared, plan),
             Ok(Message::Goodbye(_)) => break,

@@ -29,6 +29,8 @@ pub struct ComposerMetrics {
     pub(crate) worker_connections: Counter,
     pub(crate) sessions: Gauge,
     pub(crate) master_linked: Gauge,
+    pub(crate) results_after_release: Counter,
+    pub(crate) held_tasks: Gauge,
     stage_ms: Family<StageLabels, Histogram, fn() -> Histogram>,
     pub(crate) http: HttpMetrics,
 }
@@ -53,6 +55,17 @@ impl ComposerMetrics {
         registry.register("sessions", "Viewer sessions", sessions.clone());
         let master_linked = Gauge::default();
         registry.register("master_linked", "1 while the link to the master is up (farm mode)", master_linked.clone());
+        let results_after_release = counter(
+            &mut registry,
+            "results_after_release",
+            "Worker results dropped: their task was already released (late copies of re-issued batches)",
+        );
+        let held_tasks = Gauge::default();
+        registry.register(
+            "held_tasks",
+            "Tasks whose results are held until the master releases them",
+            held_tasks.clone(),
+        );
         let stage_ms = Family::new_with_constructor(nephele_telemetry::latency_histogram_ms as fn() -> Histogram);
         registry.register(
             "frame_stage_ms",
@@ -71,6 +84,8 @@ impl ComposerMetrics {
             worker_connections,
             sessions,
             master_linked,
+            results_after_release,
+            held_tasks,
             stage_ms,
             http,
         }

@@ -95,7 +95,7 @@ impl Composer {
             metrics: crate::metrics::ComposerMetrics::new(),
             runtime: tokio::runtime::Handle::current(),
             to_master: StdMutex::new(None),
-            task_results: StdMutex::new(HashMap::new()),
+            task_results: StdMutex::new(crate::state::TaskResults::default()),
             last_parts: StdMutex::new(HashMap::new()),
             latency: StdMutex::new(crate::latency::LatencyTracker::default()),
         });

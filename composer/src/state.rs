@@ -1,7 +1,7 @@
 //! What every part of the composer shares: the configuration, the compositor, the viewer
 //! sessions, the farm's results and the counters, behind short-held locks.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64};
 use std::sync::{Arc, Mutex as StdMutex, mpsc as std_mpsc};
 use std::time::Instant;
@@ -76,10 +76,58 @@ pub(crate) struct Shared {
     /// Messages for the master, while a master link is up.
     pub(crate) to_master: StdMutex<Option<mpsc::UnboundedSender<nephele_proto::Message>>>,
     /// Worker results of the farm's tasks, by task id, until the master releases the task.
-    pub(crate) task_results: StdMutex<HashMap<u64, Vec<Arc<nephele_proto::BatchResult>>>>,
+    pub(crate) task_results: StdMutex<TaskResults>,
     pub(crate) last_parts: StdMutex<LastParts>,
     /// Poses received, frames planned and the stages of frames sent (farm mode).
     pub(crate) latency: StdMutex<crate::latency::LatencyTracker>,
+}
+
+/// Task ids released remembered, so that late results for them are dropped (at 30 fps with a
+/// few tasks per frame, minutes of releases).
+const RELEASED_REMEMBERED: usize = 1 << 16;
+
+/// Worker results by task id until the master releases the task. A result that arrives
+/// after its task's release (the late first copy of a batch the master re-issued after its
+/// deadline) is dropped instead of being held forever: nothing would release it again.
+#[derive(Debug, Default)]
+pub(crate) struct TaskResults {
+    held: HashMap<u64, Vec<Arc<nephele_proto::BatchResult>>>,
+    released: HashSet<u64>,
+    released_order: VecDeque<u64>,
+}
+
+impl TaskResults {
+    /// Holds `result` for its task; `false` (dropped) when the task was already released.
+    pub(crate) fn insert(&mut self, result: nephele_proto::BatchResult) -> bool {
+        let task = result.ids.task_id;
+        if self.released.contains(&task) {
+            return false;
+        }
+        self.held.entry(task).or_default().push(Arc::new(result));
+        true
+    }
+
+    /// The master will not name `task` again: forget its results, and drop any that come later.
+    pub(crate) fn release(&mut self, task: u64) {
+        self.held.remove(&task);
+        if self.released.insert(task) {
+            self.released_order.push_back(task);
+            if self.released_order.len() > RELEASED_REMEMBERED
+                && let Some(oldest) = self.released_order.pop_front()
+            {
+                self.released.remove(&oldest);
+            }
+        }
+    }
+
+    pub(crate) fn get(&self, task: u64) -> Option<&Vec<Arc<nephele_proto::BatchResult>>> {
+        self.held.get(&task)
+    }
+
+    /// Tasks whose results are held.
+    pub(crate) fn len(&self) -> usize {
+        self.held.len()
+    }
 }
 
 /// Pixel sets of each (session, view, object) in the last frame that had them.
@@ -123,4 +171,44 @@ pub(crate) fn reports(shared: &Shared) -> Vec<SessionReport> {
         .collect();
     out.sort_by_key(|r| r.session);
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nephele_proto::{BatchIds, BatchResult, KernelStats, ResultEncoding};
+
+    fn result(task: u64) -> BatchResult {
+        BatchResult {
+            ids: BatchIds { session_id: 1, frame_id: 1, task_id: task, batch_id: task, view_index: 0 },
+            worker_id: 1,
+            width: 4,
+            height: 4,
+            pixels: vec![0],
+            color: vec![[0.0; 3]],
+            opacity: vec![1.0],
+            depth: vec![1.0],
+            render_time_us: 1,
+            stats: KernelStats::default(),
+            encoding: ResultEncoding::F32,
+        }
+    }
+
+    #[test]
+    fn results_after_their_release_are_dropped_not_held_forever() {
+        let mut results = TaskResults::default();
+        assert!(results.insert(result(7)));
+        assert!(results.insert(result(7)), "a re-issued batch's second copy before the release is held");
+        assert_eq!(results.get(7).map(Vec::len), Some(2));
+        results.release(7);
+        assert_eq!((results.len(), results.get(7).is_none()), (0, true));
+        assert!(!results.insert(result(7)), "a late copy after the release is dropped");
+        assert_eq!(results.len(), 0);
+        // Only the last RELEASED_REMEMBERED releases are remembered.
+        for task in 100..100 + RELEASED_REMEMBERED as u64 {
+            results.release(task);
+        }
+        assert!(results.insert(result(7)), "forgotten after 2^16 later releases");
+        assert!(!results.insert(result(100)));
+    }
 }

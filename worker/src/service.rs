@@ -111,13 +111,6 @@ struct Shared {
     metrics: Arc<WorkerMetrics>,
 }
 
-/// Counters that survive reconnections.
-#[derive(Debug, Default)]
-struct Totals {
-    batches_done: u64,
-    rays_done: u64,
-}
-
 /// Runs a worker until `shutdown` resolves (then drains and says goodbye: `Ok`) or the
 /// master stays unreachable for `config.reconnect_for` (`Err`).
 pub async fn run<F: Future<Output = ()>>(
@@ -154,7 +147,6 @@ pub async fn run<F: Future<Output = ()>>(
 
     metrics.set_phase(Phase::Connecting);
     let mut shutdown = std::pin::pin!(shutdown);
-    let mut totals = Totals::default();
     let mut lost_since = Instant::now();
     let mut backoff = Duration::from_millis(50);
     loop {
@@ -173,7 +165,7 @@ pub async fn run<F: Future<Output = ()>>(
                 metrics.master_connections.inc();
                 backoff = Duration::from_millis(50);
                 let session = Session::new(&config, &shared, registered);
-                match session.run(conn, shutdown.as_mut(), &mut totals).await {
+                match session.run(conn, shutdown.as_mut()).await {
                     SessionEnd::ShutDown => return Ok(()),
                     SessionEnd::MasterLost(reason) => {
                         metrics.set_phase(Phase::Connecting);
@@ -294,13 +286,14 @@ impl<'a> Session<'a> {
         mut self,
         mut conn: Connection<TcpStream>,
         mut shutdown: Pin<&mut F>,
-        totals: &mut Totals,
     ) -> SessionEnd {
+        // The load report's totals are the metrics' counters: they survive reconnections.
+        let metrics = self.shared.metrics.clone();
         let (done_tx, mut done_rx) = mpsc::unbounded_channel::<Done>();
         let interval = Duration::from_millis(u64::from(self.registered.load_report_interval_ms));
         let mut tick = tokio::time::interval_at(tokio::time::Instant::now() + interval, interval);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        let mut last_report = (Instant::now(), totals.rays_done);
+        let mut last_report = (Instant::now(), metrics.rays_done.get());
         let mut drain_deadline = tokio::time::Instant::now();
         loop {
             while !self.draining && self.in_flight.len() < self.config.max_concurrent_batches {
@@ -356,18 +349,19 @@ impl<'a> Session<'a> {
                     }
                     Some(Ok(Ok(message))) => self.handle(message),
                 },
-                Some(done) = done_rx.recv() => self.finish(done, totals),
+                Some(done) = done_rx.recv() => self.finish(done),
                 _ = tick.tick() => {
                     let elapsed = last_report.0.elapsed().as_secs_f64().max(1e-6);
-                    let recent = (totals.rays_done - last_report.1) as f64 / elapsed;
-                    last_report = (Instant::now(), totals.rays_done);
+                    let rays_done = metrics.rays_done.get();
+                    let recent = rays_done.saturating_sub(last_report.1) as f64 / elapsed;
+                    last_report = (Instant::now(), rays_done);
                     self.outbox.push(Message::LoadReport(LoadReport {
                         in_flight_batches: self.in_flight.len() as u32,
                         queued_batches: self.queue.len() as u32,
                         queued_rays: self.queue.iter().map(|b| b.pixels.len() as u64).sum(),
                         recent_rays_per_second: recent,
-                        batches_done: totals.batches_done,
-                        rays_done: totals.rays_done,
+                        batches_done: metrics.batches_done.get(),
+                        rays_done,
                     }));
                 }
             }
@@ -453,14 +447,12 @@ impl<'a> Session<'a> {
         });
     }
 
-    fn finish(&mut self, done: Done, totals: &mut Totals) {
+    fn finish(&mut self, done: Done) {
         if self.in_flight.remove(&done.slot).is_none() {
             return;
         }
         match done.outcome {
             Ok(batch_done) => {
-                totals.batches_done += 1;
-                totals.rays_done += done.pixels;
                 self.shared.metrics.batches_done.inc();
                 self.shared.metrics.rays_done.inc_by(done.pixels);
                 self.outbox.push(Message::BatchDone(batch_done));
