@@ -4,14 +4,12 @@
 //! [`crate::latency::Stages`]), worker connections and wire errors; viewer sessions and the
 //! master link as gauges read at scrape time.
 
-use std::sync::Arc;
-
-use nephele_telemetry::HttpMetrics;
 use nephele_telemetry::prometheus_client::metrics::counter::Counter;
 use nephele_telemetry::prometheus_client::metrics::family::Family;
 use nephele_telemetry::prometheus_client::metrics::gauge::Gauge;
 use nephele_telemetry::prometheus_client::metrics::histogram::Histogram;
 use nephele_telemetry::prometheus_client::registry::Registry;
+use nephele_telemetry::{HttpMetrics, register};
 
 use crate::latency::Stages;
 
@@ -38,11 +36,8 @@ pub struct ComposerMetrics {
 impl ComposerMetrics {
     pub fn new() -> ComposerMetrics {
         let mut registry = Registry::with_prefix("nephele_composer");
-        let counter = |registry: &mut Registry, name: &str, help: &str| {
-            let c = Counter::default();
-            registry.register(name, help, c.clone());
-            c
-        };
+        let counter =
+            |registry: &mut Registry, name: &str, help: &str| register(registry, name, help, Counter::default());
         let frames_sent = counter(&mut registry, "frames_sent", "Encoded frames sent to viewers");
         let bytes_sent = counter(&mut registry, "bytes_sent", "H.264 bytes sent to viewers");
         let frames_dropped_busy =
@@ -51,26 +46,29 @@ impl ComposerMetrics {
         let send_errors = counter(&mut registry, "send_errors", "Frames that could not be sent");
         let wire_errors = counter(&mut registry, "wire_errors", "Malformed messages on the results listener");
         let worker_connections = counter(&mut registry, "worker_connections", "Worker connections accepted");
-        let sessions = Gauge::default();
-        registry.register("sessions", "Viewer sessions", sessions.clone());
-        let master_linked = Gauge::default();
-        registry.register("master_linked", "1 while the link to the master is up (farm mode)", master_linked.clone());
+        let sessions = register(&mut registry, "sessions", "Viewer sessions", Gauge::default());
+        let master_linked = register(
+            &mut registry,
+            "master_linked",
+            "1 while the link to the master is up (farm mode)",
+            Gauge::default(),
+        );
         let results_after_release = counter(
             &mut registry,
             "results_after_release",
             "Worker results dropped: their task was already released (late copies of re-issued batches)",
         );
-        let held_tasks = Gauge::default();
-        registry.register(
+        let held_tasks = register(
+            &mut registry,
             "held_tasks",
             "Tasks whose results are held until the master releases them",
-            held_tasks.clone(),
+            Gauge::default(),
         );
-        let stage_ms = Family::new_with_constructor(nephele_telemetry::latency_histogram_ms as fn() -> Histogram);
-        registry.register(
+        let stage_ms = register(
+            &mut registry,
             "frame_stage_ms",
             "Latency of each stage of sent frames, ms (pose_to_sent, farm, render, results_wait, fusion, yuv, encode, send)",
-            stage_ms.clone(),
+            Family::new_with_constructor(nephele_telemetry::latency_histogram_ms as fn() -> Histogram),
         );
         let http = HttpMetrics::register(&mut registry);
         ComposerMetrics {
@@ -122,9 +120,6 @@ impl Default for ComposerMetrics {
         ComposerMetrics::new()
     }
 }
-
-/// Shared handle.
-pub type SharedMetrics = Arc<ComposerMetrics>;
 
 #[cfg(test)]
 mod tests {

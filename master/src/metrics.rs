@@ -11,13 +11,13 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
 use nephele_scheduler::FarmSnapshot;
-use nephele_telemetry::HttpMetrics;
 use nephele_telemetry::prometheus_client::collector::Collector;
 use nephele_telemetry::prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
 use nephele_telemetry::prometheus_client::metrics::counter::{ConstCounter, Counter};
 use nephele_telemetry::prometheus_client::metrics::gauge::ConstGauge;
 use nephele_telemetry::prometheus_client::metrics::histogram::Histogram;
 use nephele_telemetry::prometheus_client::registry::Registry;
+use nephele_telemetry::{HttpMetrics, register};
 
 /// Events on the farm's links, counted by the actor.
 #[derive(Debug, Default)]
@@ -240,13 +240,17 @@ impl MasterMetrics {
         let mut registry = Registry::with_prefix("nephele_master");
         let links = Arc::new(LinkCounters::default());
         links.register(&mut registry);
-        let round_ms = nephele_telemetry::latency_histogram_ms();
-        registry.register("round_ms", "Time of one scheduling round (tick and its actions), ms", round_ms.clone());
-        let pose_to_plan_ms = nephele_telemetry::latency_histogram_ms();
-        registry.register(
+        let round_ms = register(
+            &mut registry,
+            "round_ms",
+            "Time of one scheduling round (tick and its actions), ms",
+            nephele_telemetry::latency_histogram_ms(),
+        );
+        let pose_to_plan_ms = register(
+            &mut registry,
             "pose_to_plan_ms",
             "From a viewer's pose reaching the master to its frame plan leaving, ms",
-            pose_to_plan_ms.clone(),
+            nephele_telemetry::latency_histogram_ms(),
         );
         let farm = FarmCollector::default();
         registry.register_collector(Box::new(farm.clone()));

@@ -41,6 +41,16 @@ pub fn latency_histogram_ms() -> Histogram {
     Histogram::new(latency_buckets_ms())
 }
 
+/// Registers `metric` under `name` in `registry` and returns it: the registry holds a clone
+/// sharing the same value, the caller keeps the handle it updates.
+pub fn register<M>(registry: &mut Registry, name: &str, help: &str, metric: M) -> M
+where
+    M: prometheus_client::registry::Metric + Clone,
+{
+    registry.register(name, help, metric.clone());
+    metric
+}
+
 /// The registry in the OpenMetrics text format.
 pub fn render(registry: &Registry) -> String {
     let mut text = String::new();
@@ -116,21 +126,20 @@ pub struct HttpMetrics {
 impl HttpMetrics {
     /// Registers the two families in `registry`.
     pub fn register(registry: &mut Registry) -> HttpMetrics {
-        let metrics = HttpMetrics {
-            requests: Family::default(),
-            duration_ms: Family::new_with_constructor(latency_histogram_ms as fn() -> Histogram),
-        };
-        registry.register(
-            "http_requests",
-            "HTTP requests answered, by method, route and status",
-            metrics.requests.clone(),
-        );
-        registry.register(
-            "http_request_ms",
-            "HTTP request duration, ms, by method and route",
-            metrics.duration_ms.clone(),
-        );
-        metrics
+        HttpMetrics {
+            requests: register(
+                registry,
+                "http_requests",
+                "HTTP requests answered, by method, route and status",
+                Family::default(),
+            ),
+            duration_ms: register(
+                registry,
+                "http_request_ms",
+                "HTTP request duration, ms, by method and route",
+                Family::new_with_constructor(latency_histogram_ms as fn() -> Histogram),
+            ),
+        }
     }
 
     /// Wraps every route of `router` (routes added later are not tracked).

@@ -8,6 +8,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use nephele_tests::nephele;
 use serde_json::Value;
@@ -235,14 +236,27 @@ fn kubernetes_manifests_are_complete_and_every_reference_resolves() {
     }
 }
 
+/// `nephele [ROLE] --help`, asked once per role for all the command lines checked.
+fn help_of(role: Option<&str>) -> String {
+    static HELP: Mutex<BTreeMap<String, String>> = Mutex::new(BTreeMap::new());
+    let mut cache = HELP.lock().unwrap_or_else(|p| p.into_inner());
+    let key = role.unwrap_or("").to_string();
+    cache
+        .entry(key)
+        .or_insert_with(|| {
+            let args: Vec<&str> = role.into_iter().chain(["--help"]).collect();
+            String::from_utf8_lossy(&nephele(&args).stdout).into_owned()
+        })
+        .clone()
+}
+
 /// Every `--flag` of a `nephele` command line is one its subcommand's `--help` lists.
 fn check_flags(what: &str, args: &[&str]) {
     const ROLES: [&str; 6] = ["master", "composer", "worker", "up", "loadgen", "probe"];
     let Some(role_at) = args.iter().position(|a| ROLES.contains(a)) else {
         panic!("{what}: no nephele role in {args:?}")
     };
-    let global = String::from_utf8_lossy(&nephele(&["--help"]).stdout).into_owned();
-    let role = String::from_utf8_lossy(&nephele(&[args[role_at], "--help"]).stdout).into_owned();
+    let (global, role) = (help_of(None), help_of(Some(args[role_at])));
     for (i, flag) in args.iter().enumerate().filter(|(_, a)| a.starts_with("--")) {
         let help = if i < role_at { &global } else { &role };
         assert!(

@@ -5,12 +5,12 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU8, Ordering};
 
 use nephele_proto::ErrorCode;
-use nephele_telemetry::Probe;
 use nephele_telemetry::prometheus_client::metrics::counter::Counter;
 use nephele_telemetry::prometheus_client::metrics::family::Family;
 use nephele_telemetry::prometheus_client::metrics::gauge::Gauge;
 use nephele_telemetry::prometheus_client::metrics::histogram::Histogram;
 use nephele_telemetry::prometheus_client::registry::Registry;
+use nephele_telemetry::{Probe, register};
 
 /// Where the worker is in its life, for `/readyz`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,31 +40,41 @@ pub struct WorkerMetrics {
 impl WorkerMetrics {
     pub fn new() -> WorkerMetrics {
         let mut registry = Registry::with_prefix("nephele_worker");
-        let registered = Gauge::default();
-        registry.register("registered", "1 while registered with the master", registered.clone());
-        let batches_done = Counter::default();
-        registry.register("batches_done", "Batches rendered and delivered to their composer", batches_done.clone());
-        let rays_done = Counter::default();
-        registry.register("rays_done", "Rays (pixels) of the batches done", rays_done.clone());
-        let batches_failed = Family::default();
-        registry.register(
+        let registered = register(&mut registry, "registered", "1 while registered with the master", Gauge::default());
+        let batches_done = register(
+            &mut registry,
+            "batches_done",
+            "Batches rendered and delivered to their composer",
+            Counter::default(),
+        );
+        let rays_done = register(&mut registry, "rays_done", "Rays (pixels) of the batches done", Counter::default());
+        let batches_failed = register(
+            &mut registry,
             "batches_failed",
             "Batches reported failed to the master, by reason (overloaded = refused, queue full)",
-            batches_failed.clone(),
+            Family::default(),
         );
-        let queued_batches = Gauge::default();
-        registry.register("queued_batches", "Batches waiting for a render slot", queued_batches.clone());
-        let in_flight_batches = Gauge::default();
-        registry.register("in_flight_batches", "Batches rendering or being delivered", in_flight_batches.clone());
-        let render_ms = nephele_telemetry::latency_histogram_ms();
-        registry.register("render_ms", "Kernel time of one batch, ms", render_ms.clone());
-        let deliver_ms = nephele_telemetry::latency_histogram_ms();
-        registry.register("deliver_ms", "Sending one batch's result to its composer, ms", deliver_ms.clone());
-        let master_connections = Counter::default();
-        registry.register(
+        let queued_batches =
+            register(&mut registry, "queued_batches", "Batches waiting for a render slot", Gauge::default());
+        let in_flight_batches =
+            register(&mut registry, "in_flight_batches", "Batches rendering or being delivered", Gauge::default());
+        let render_ms = register(
+            &mut registry,
+            "render_ms",
+            "Kernel time of one batch, ms",
+            nephele_telemetry::latency_histogram_ms(),
+        );
+        let deliver_ms = register(
+            &mut registry,
+            "deliver_ms",
+            "Sending one batch's result to its composer, ms",
+            nephele_telemetry::latency_histogram_ms(),
+        );
+        let master_connections = register(
+            &mut registry,
             "master_connections",
             "Registrations with the master (reconnections included)",
-            master_connections.clone(),
+            Counter::default(),
         );
         WorkerMetrics {
             registry: Arc::new(registry),
