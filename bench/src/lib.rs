@@ -2,8 +2,10 @@
 //!
 //! One module per family: [`encode`] (the composer's stages), [`wire`] (protocol cost and
 //! loopback throughput), [`scheduler`] (rounds of the scheduler core), [`inolf`] (PSH,
-//! density cubes, cache behaviour, i-NOLF against its baseline); the path tracer's
-//! throughput is here. Benchmarks print numbers; correctness is the tests' job.
+//! density cubes, cache behaviour, i-NOLF against its baseline), [`hardcases`] (the
+//! numerical-stability suite: adversarial rays through every kernel and trainer, with its
+//! CI-sized test here); the path tracer's throughput is here. Benchmarks print numbers;
+//! correctness is the tests' job.
 //!
 //! Depends on the libraries it measures; nothing depends on it but the CLI. The counting
 //! allocator behind `bench inolf`'s runtime-memory column is compiled in only with the
@@ -24,6 +26,7 @@ use serde_json::json;
 pub mod device;
 pub mod encode;
 pub mod gi;
+pub mod hardcases;
 pub mod heap;
 pub mod inolf;
 pub mod kernel;
@@ -81,6 +84,12 @@ pub enum Command {
     /// eyes against path tracing, and the inter-eye coherence error with and without the
     /// coherence loss.
     Gi(crate::gi::GiArgs),
+    /// The numerical-stability suite: adversarial rays (axis-parallel, grazing, inside the box
+    /// and the matter, far away, denormal components, and degenerate ones that must be
+    /// rejected) through every kernel (CPU, GPU, path tracer, stereo GI) and both trainers'
+    /// forward and backward passes, on tiny, unit and huge scenes. Prints the non-finite and
+    /// out-of-range counts per kernel and fails unless they are all zero.
+    Hardcases(crate::hardcases::HardcaseArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -116,6 +125,7 @@ pub fn run(command: Command, progress: &dyn Progress) -> Result<()> {
         Command::Device(args) => crate::device::device(args, progress),
         Command::Kernel(args) => crate::kernel::run_kernel(args, progress),
         Command::Gi(args) => crate::gi::run(args, progress),
+        Command::Hardcases(args) => crate::hardcases::hardcases(args, progress),
     }
 }
 

@@ -73,6 +73,23 @@ impl Ray {
     }
 }
 
+/// Direction components smaller than this in magnitude are taken as exactly 0 by the
+/// marchers: the reciprocal of a denormal component overflows to infinity (1 / 1e-40 in
+/// f32), and across such a component the ray moves less than 1e-20 of its length.
+pub const TINY_DIRECTION_COMPONENT: f32 = 1e-20;
+
+/// The direction a marcher may step along: `dir` with its tiny components set to 0, or `None`
+/// when `dir` is not a unit vector within a factor of two in squared length (zero, denormal,
+/// NaN or infinite directions; a march along a tiny direction would take forever, since its
+/// samples are spaced in `t`). Every marcher (CPU and GPU twins) applies this rule.
+pub fn marchable_direction(dir: Vec3) -> Option<Vec3> {
+    let length_squared = dir.length_squared();
+    if !(0.5..=2.0).contains(&length_squared) {
+        return None;
+    }
+    Some(Vec3::select(dir.abs().cmplt(Vec3::splat(TINY_DIRECTION_COMPONENT)), Vec3::ZERO, dir))
+}
+
 /// Why a camera or rig could not be built.
 #[derive(Debug, Clone, Copy, thiserror::Error, PartialEq)]
 pub enum CameraError {

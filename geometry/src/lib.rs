@@ -23,6 +23,7 @@
 
 pub mod bounds;
 pub mod camera;
+pub mod hardcases;
 pub mod pixels;
 pub mod rng;
 pub mod view;

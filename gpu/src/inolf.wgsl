@@ -129,8 +129,11 @@ struct March {
 // `DensityCubes::march` over [t_near, infinity): DDA over coarse cells, the empty box around
 // a cell far from every cube crossed in one step, samples at t0 + (k + 1/2) step; returns the coarse opacity and the distance
 // of the sample of largest blending weight.
-fn march(origin: vec3<f32>, dir: vec3<f32>, t_near: f32) -> March {
+fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
     var hit = March(0.0, 0.0);
+    // `marchable_direction` (nephele-geometry): components under 1e-20 count as 0. Camera
+    // rays are unit length, so its length check never refuses one here.
+    let dir = select(dir_in, vec3<f32>(0.0), abs(dir_in) < vec3<f32>(1e-20));
     var max_weight = 0.0;
     let lo = params.d_min.xyz;
     let cell_size = params.d_min.w;

@@ -47,6 +47,13 @@ fn bit(offset: u32, index: u32) -> bool {
 
 // `Marcher::exit`: t at which the ray (unit-cube origin o, direction d) leaves the cell of
 // side 1 / cells holding p.
+// `march::advance`: `t + by` for `t >= 0`, but at least one float step past `t` (far from the
+// box a step can be below half a float step of `t`).
+fn advance(t: f32, by: f32) -> f32 {
+    let next = t + by;
+    return select(bitcast<f32>(bitcast<u32>(t) + 1u), next, next > t);
+}
+
 fn cell_exit(o: vec3<f32>, d: vec3<f32>, p: vec3<f32>, cells: f32) -> f32 {
     var t_exit = BIG;
     for (var a = 0; a < 3; a++) {
@@ -246,13 +253,15 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     let box_min = params.box_min.xyz;
     let size = params.box_min.w;
     let box_max = box_min + vec3<f32>(size);
+    // `marchable_direction`: components under 1e-20 count as 0 (camera rays are unit length).
+    let dir = select(ray.dir, vec3<f32>(0.0), abs(ray.dir) < vec3<f32>(1e-20));
 
     // `ray_box`: entry and exit; a miss unless t0 <= t1, t1 >= 0 and t1 finite.
     var t0 = -BIG;
     var t1 = BIG;
     for (var a = 0; a < 3; a++) {
         let o = ray.origin[a];
-        let d = ray.dir[a];
+        let d = dir[a];
         if d == 0.0 {
             if o < box_min[a] || o > box_max[a] {
                 write(i, vec3<f32>(0.0), 0.0, 0.0, 0u);
@@ -275,7 +284,7 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     // Samples at t = (k + 1/2) dt (`Marcher::new` with offset 0.5).
     var t = (ceil(start / dt - 0.5) + 0.5) * dt;
     let o = (ray.origin - box_min) / size;
-    let d = ray.dir / size;
+    let d = dir / size;
     let r = f32(params.occupancy_resolution);
     let max_cell = params.occupancy_resolution - 1u;
     let blocks = params.occupancy_resolution / OCC_BLOCK;
@@ -309,11 +318,11 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         if skip_cells > 0.0 {
             // `Marcher::skip_to`: at least one step, onto the sample grid.
             let t_exit = cell_exit(o, d, clamp(p, vec3<f32>(0.0), vec3<f32>(1.0)), skip_cells);
-            t += max(ceil((t_exit - t) / dt), 1.0) * dt;
+            t = advance(t, max(ceil((t_exit - t) / dt), 1.0) * dt);
             continue;
         }
         let ts = t;
-        t += dt;
+        t = advance(t, dt);
         samples += 1u;
         encode(p, &act);
         density_mlp(&act);

@@ -16,6 +16,7 @@ use proptest::prelude::*;
 
 use crate::{Agreement, DeviceChoice, GpuAccelerator, GpuContext, GpuError, GpuInolfKernel};
 use nephele_geometry::camera::Camera;
+use nephele_geometry::hardcases::hard_object_density;
 use nephele_kernels::assets::{LoadOptions, load_by_magic};
 use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes, SparseCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
@@ -43,15 +44,6 @@ fn bounds() -> Bounds {
     Bounds { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) }
 }
 
-/// A sphere, a thin tilted slab (grazing rays) and a small box alone in a corner (empty
-/// blocks around it), with a soft edge on the sphere so that opacities are fractional.
-fn density(p: Vec3) -> f32 {
-    let sphere = (0.5 - p.length()) * 400.0;
-    let slab = if (p.x + 0.3 * p.y - 0.6).abs() < 0.02 && p.y.abs() < 0.6 && p.z.abs() < 0.6 { 80.0 } else { 0.0 };
-    let corner = if (p - Vec3::new(-0.8, 0.8, -0.8)).abs().max_element() < 0.08 { 200.0 } else { 0.0 };
-    sphere.clamp(0.0, 300.0) + slab + corner
-}
-
 struct Fixture {
     model: InolfModel,
     cpu: InolfKernel,
@@ -65,7 +57,7 @@ fn fixture() -> &'static Fixture {
         let cubes = DensityCubes::build(
             bounds(),
             &options,
-            |p: &[Vec3], out: &mut [f32]| p.iter().zip(out).for_each(|(p, o)| *o = density(*p)),
+            |p: &[Vec3], out: &mut [f32]| p.iter().zip(out).for_each(|(p, o)| *o = hard_object_density(*p)),
             &|_| {},
         )
         .expect("cubes");

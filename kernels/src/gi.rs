@@ -81,9 +81,14 @@ impl GiFeatures {
     }
 }
 
-/// Linear radiance from one network output value (`ln(1 + x)`, clamped at 0).
+/// Largest network output decoded: `exp(30) - 1`, about 1e13, is far above any radiance a
+/// scene holds, and `exp` of anything over 88.7 would be infinite in f32.
+pub const MAX_OUTPUT: f32 = 30.0;
+
+/// Linear radiance from one network output value (`ln(1 + x)`, clamped into
+/// `[0, MAX_OUTPUT]`).
 pub fn decode_output(value: f32) -> f32 {
-    if value.is_finite() { value.max(0.0).exp_m1() } else { 0.0 }
+    if value.is_finite() { value.clamp(0.0, MAX_OUTPUT).exp_m1() } else { 0.0 }
 }
 
 /// The network target of a linear radiance value.
@@ -301,6 +306,7 @@ mod tests {
         assert!(shaded.eyes[0].iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
         assert!(m.shade(4, 4, &[&pixels, &pixels], &mut UNetWorkspace::new()).is_err());
         assert_eq!((decode_output(f32::NAN), decode_output(-3.0)), (0.0, 0.0));
+        assert!(decode_output(1e9).is_finite() && decode_output(1e9) == decode_output(MAX_OUTPUT));
         assert!((decode_output(encode_target(2.5)) - 2.5).abs() < 1e-6);
     }
 }

@@ -5,7 +5,9 @@
 //! * [`ngp`]: training the i-NGP-style radiance field (the baseline, and the density field
 //!   i-NOLF caches);
 //! * [`inolf`]: training the i-NOLF heads and baking the asset;
-//! * [`gi`]: G-buffer datasets for the stereo global-illumination model.
+//! * [`gi`]: G-buffer datasets for the stereo global-illumination model;
+//! * [`targets`]: training targets from images, with corrupt pixels clamped or dropped and
+//!   counted.
 //!
 //! Depends on every library below it (geometry, imaging, the path tracer, the neural
 //! blocks, the kernels); nothing at run time (worker, master, composer) depends on it.
@@ -15,3 +17,4 @@ pub mod gi;
 pub mod inolf;
 pub mod ngp;
 pub mod synth;
+pub mod targets;

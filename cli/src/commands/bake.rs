@@ -82,6 +82,11 @@ pub struct Args {
     /// Also keep the diffuse network in the asset (for the "+ diffuse MLP" variant).
     #[arg(long)]
     keep_diffuse_network: bool,
+    /// Views the radiance field renders at new poses on the sphere of the training cameras,
+    /// added to the heads' training views (R2L's pseudo-data: the heads see the object
+    /// between the dataset's views). 0 trains the heads on the dataset alone.
+    #[arg(long, default_value_t = BakeRecipe::default().pseudo_views)]
+    pseudo_views: u32,
     #[arg(long, default_value_t = BakeRecipe::default().seed)]
     seed: u64,
 }
@@ -102,6 +107,7 @@ impl Args {
             psh_features: self.psh_features,
             density_threshold: self.density_threshold,
             keep_diffuse_network: self.keep_diffuse_network,
+            pseudo_views: self.pseudo_views,
             seed: self.seed,
         }
     }

@@ -23,6 +23,7 @@ use rayon::prelude::*;
 use thiserror::Error;
 
 use nephele_geometry::Bounds;
+use nephele_geometry::camera::marchable_direction;
 
 /// Index-grid entry of a cell without a cube.
 pub const EMPTY_CELL: u32 = u32::MAX;
@@ -593,7 +594,12 @@ impl DensityCubes {
     #[inline(always)]
     pub fn march(&self, origin: Vec3, dir: Vec3, t_near: f32, t_far: f32) -> MarchHit {
         let mut hit = MarchHit::default();
-        if !(origin.is_finite() && dir.is_finite() && t_near.is_finite() && !t_far.is_nan()) || dir == Vec3::ZERO {
+        // Zero, denormal-length and non-finite directions are refused; tiny components are
+        // flushed to 0 (their reciprocals would be infinite).
+        let Some(dir) = marchable_direction(dir) else {
+            return hit;
+        };
+        if !(origin.is_finite() && t_near.is_finite() && !t_far.is_nan()) {
             return hit;
         }
         let cubes = &self.cubes;
@@ -853,6 +859,20 @@ mod tests {
 
     /// Entry distance of a ray into the analytic sphere (0 if starting inside), the length
     /// of its path inside, and the ray's closest approach to the centre.
+    /// Issue 18: a denormal-length direction used to march until a counter overflowed; a
+    /// denormal component is exactly a zero one.
+    #[test]
+    fn degenerate_directions_are_refused_and_tiny_components_are_zero() {
+        let cubes = sphere_cubes();
+        for dir in [Vec3::new(1e-40, -1e-41, 1e-42), Vec3::ZERO, Vec3::splat(f32::NAN), Vec3::splat(0.1)] {
+            assert_eq!(cubes.march(CENTER, dir, 0.0, f32::INFINITY), MarchHit::default(), "{dir}");
+        }
+        let o = Vec3::new(-2.0, CENTER.y, CENTER.z);
+        let exact = cubes.march(o, Vec3::X, 0.0, f32::INFINITY);
+        assert!(exact.opacity > 0.9);
+        assert_eq!(cubes.march(o, Vec3::new(1.0, 1e-40, -1e-44), 0.0, f32::INFINITY), exact);
+    }
+
     fn sphere_hit(o: Vec3, d: Vec3) -> (Option<(f32, f32)>, f32) {
         let oc = o - CENTER;
         let b = oc.dot(d);

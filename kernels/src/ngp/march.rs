@@ -6,14 +6,18 @@
 //! the (unit-length) world direction, so `dt` and the densities keep world units.
 
 use glam::Vec3;
+use nephele_geometry::camera::marchable_direction;
 
 use super::occupancy::{BLOCK, OccupancyGrid};
 
 /// Entry and exit distances of a ray through the box `[min, max]`, `None` if it misses or
-/// the box lies behind the origin or the input is not finite. Rays parallel to a slab are handled without dividing by zero;
+/// the box lies behind the origin or the input is not finite or the direction not
+/// marchable ([`marchable_direction`]: tiny components count as 0). Rays parallel to a slab
+/// are handled without dividing by zero;
 /// `t_enter` may be negative when the origin is inside.
 pub fn ray_box(origin: Vec3, dir: Vec3, min: Vec3, max: Vec3) -> Option<(f32, f32)> {
-    if !(origin.is_finite() && dir.is_finite()) {
+    let dir = marchable_direction(dir)?;
+    if !origin.is_finite() {
         return None;
     }
     let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
@@ -34,6 +38,15 @@ pub fn ray_box(origin: Vec3, dir: Vec3, min: Vec3, max: Vec3) -> Option<(f32, f3
         t1 = t1.min(tb);
     }
     (t0 <= t1 && t1 >= 0.0 && t1.is_finite()).then_some((t0, t1))
+}
+
+/// `t + by` for `t >= 0`, but always past `t`: far from the box (a camera 10^7 box sizes
+/// away) a step is below half a float step of `t` and `t + by` would not move, so the march
+/// would never end; it then moves one float step (the GPU twin does the same).
+#[inline]
+fn advance(t: f32, by: f32) -> f32 {
+    let next = t + by;
+    if next > t { next } else { t.next_up() }
 }
 
 /// Iterator-like marcher over the occupied samples of one ray.
@@ -66,6 +79,7 @@ impl Marcher {
         offset: f32,
         resolution: u32,
     ) -> Option<Self> {
+        let dir = marchable_direction(dir)?;
         let (t0, t1) = ray_box(origin, dir, min, min + Vec3::splat(size))?;
         let start = t0.max(t_min);
         if start >= t1 {
@@ -105,7 +119,7 @@ impl Marcher {
     #[inline]
     fn skip_to(&mut self, t_exit: f32) {
         let steps = ((t_exit - self.t) / self.dt).ceil().max(1.0);
-        self.t += steps * self.dt;
+        self.t = advance(self.t, steps * self.dt);
     }
 
     /// The next occupied sample `(t, unit-cube position)`, or `None` at the end of the box.
@@ -130,7 +144,7 @@ impl Marcher {
                 continue;
             }
             let t = self.t;
-            self.t += self.dt;
+            self.t = advance(self.t, self.dt);
             return Some((t, p.clamp(Vec3::ZERO, Vec3::ONE)));
         }
         None
@@ -140,6 +154,31 @@ impl Marcher {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue 18: a camera 10^6 box sizes away (a sample step below half a float step of `t`)
+    /// used to leave `t` where it was, for ever; denormal and tiny directions.
+    #[test]
+    fn far_rays_end_and_degenerate_directions_are_refused() {
+        let grid = OccupancyGrid::filled(16, true);
+        let origin = Vec3::new(-1e6, 0.31, 0.42);
+        let mut marcher = Marcher::new(origin, Vec3::X, Vec3::ZERO, 1.0, 1.0 / 256.0, 0.0, 0.5, 16).expect("hits");
+        let mut samples = 0;
+        while marcher.next(&grid).is_some() {
+            samples += 1;
+            assert!(samples < 10_000, "the march does not move");
+        }
+        assert!(samples > 0);
+        for dir in [Vec3::ZERO, Vec3::new(1e-40, 1e-41, 0.0), Vec3::new(f32::NAN, 0.0, 1.0), Vec3::splat(0.01)] {
+            assert!(Marcher::new(Vec3::splat(0.5), dir, Vec3::ZERO, 1.0, 0.01, 0.0, 0.5, 16).is_none(), "{dir}");
+            assert_eq!(ray_box(Vec3::splat(0.5), dir, Vec3::ZERO, Vec3::ONE), None, "{dir}");
+        }
+        // A denormal component is exactly a zero one.
+        let o = Vec3::new(-1.0, 0.5, 0.5);
+        assert_eq!(
+            ray_box(o, Vec3::new(1.0, 1e-40, 0.0), Vec3::ZERO, Vec3::ONE),
+            ray_box(o, Vec3::X, Vec3::ZERO, Vec3::ONE)
+        );
+    }
 
     #[test]
     fn ray_box_handles_parallel_and_inside_rays() {

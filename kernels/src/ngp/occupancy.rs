@@ -215,19 +215,21 @@ pub struct CoverageMask {
 }
 
 impl CoverageMask {
-    /// Pixels with alpha above `threshold` count as covered.
+    /// Pixels with alpha above `threshold` count as covered, and so do pixels whose alpha is
+    /// NaN: a value nobody knows must not carve matter away.
     pub fn new(camera: Camera, image: &RgbaImage, threshold: f32) -> Self {
         let (w, h) = (image.width(), image.height());
+        let is_covered = |alpha: f32| !(alpha <= threshold);
         let stride = w as usize + 1;
         let mut sums = vec![0u32; stride * (h as usize + 1)];
         for y in 0..h as usize {
             let mut row = 0u32;
             for x in 0..w as usize {
-                row += u32::from(image.pixels()[y * w as usize + x][3] > threshold);
+                row += u32::from(is_covered(image.pixels()[y * w as usize + x][3]));
                 sums[(y + 1) * stride + x + 1] = sums[y * stride + x + 1] + row;
             }
         }
-        let covered = |x: u32, y: u32| image.pixels()[(y * w + x) as usize][3] > threshold;
+        let covered = |x: u32, y: u32| is_covered(image.pixels()[(y * w + x) as usize][3]);
         let complete =
             !((0..w).any(|x| covered(x, 0) || covered(x, h - 1)) || (0..h).any(|y| covered(0, y) || covered(w - 1, y)));
         CoverageMask { camera, width: w, height: h, sums, complete }

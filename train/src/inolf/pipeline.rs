@@ -11,21 +11,25 @@
 use std::time::Instant;
 
 use nephele_geometry::Bounds;
-use nephele_geometry::camera::CameraError;
+use nephele_geometry::camera::{Camera, CameraError};
 use nephele_kernels::inolf::asset::Asset;
 use nephele_kernels::inolf::cubes::{CubeError, CubeOptions, DensityCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::model::{HeadsShape, InolfModel, ModelError};
 use nephele_kernels::inolf::psh::{PshError, PshOptions};
-use nephele_kernels::ngp::{FieldConfig, NgpError, RadianceField};
+use nephele_kernels::kernel::{RayKernel, all_pixels};
+use nephele_kernels::ngp::{FieldConfig, NgpError, NgpKernel, RadianceField};
 use nephele_nn::HashGridConfig;
 use serde_json::json;
 use thiserror::Error;
 
 use super::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
-use super::train::{TrainOptions, collect_hit_points, train, training_views};
+use super::train::{TrainOptions, TrainingView, collect_hit_points, train, training_views};
 use crate::dataset::Dataset;
+use crate::dataset::sample_views_on_sphere;
+use crate::ngp::train::common_focus;
 use crate::ngp::{TrainConfig, Trainer};
+use crate::targets::CorruptPixels;
 
 /// Everything a bake is asked to do. `Default` is `nephele bake`'s defaults.
 #[derive(Debug, Clone, PartialEq)]
@@ -56,6 +60,9 @@ pub struct BakeRecipe {
     pub density_threshold: f32,
     /// Also keep the diffuse network in the asset (the "+ diffuse MLP" variant).
     pub keep_diffuse_network: bool,
+    /// Views the radiance field renders at poses the dataset lacks, added to the heads'
+    /// training views (R2L's pseudo-data; issue 18): 0 trains on the dataset alone.
+    pub pseudo_views: u32,
     pub seed: u64,
 }
 
@@ -75,6 +82,7 @@ impl Default for BakeRecipe {
             psh_features: 8,
             density_threshold: 1.0,
             keep_diffuse_network: false,
+            pseudo_views: 0,
             seed: 1,
         }
     }
@@ -118,6 +126,8 @@ pub enum BakeError {
     Psh(#[from] PshError),
     #[error("heads: {0}")]
     Model(#[from] ModelError),
+    #[error(transparent)]
+    Pixels(#[from] CorruptPixels),
 }
 
 /// What a bake made.
@@ -215,8 +225,22 @@ pub fn bake(
     ));
 
     // 3. Hit points and the perfect spatial hash.
+    let (mut views, pixel_check) = training_views(data)?;
+    pixel_check.verdict()?;
+    if pixel_check.repaired_any() {
+        progress.finished(pixel_check.summary());
+    }
+    if recipe.pseudo_views > 0 {
+        let t = Instant::now();
+        let pseudo = pseudo_views(&field, &views, recipe.pseudo_views, recipe.seed, progress)?;
+        progress.finished(format!(
+            "pseudo-views: {} rendered by the radiance field at new poses for the heads, {:.0} s",
+            pseudo.len(),
+            t.elapsed().as_secs_f64()
+        ));
+        views.extend(pseudo);
+    }
     let t = Instant::now();
-    let views = training_views(data)?;
     let hits = collect_hit_points(&cubes, &views, 1);
     let cb = cubes.bounds();
     let voxel = cb.size().max_element() / (recipe.psh_res - 1).max(1) as f32;
@@ -269,8 +293,50 @@ pub fn bake(
     let description = json!({
         "dataset": source, "views": data.views.len(), "size": [w, h],
         "field_steps": if field_trained { recipe.field_steps } else { 0 }, "steps": recipe.head_steps,
-        "loss": report.smoothed_loss, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "psh_res": recipe.psh_res,
+        "loss": report.smoothed_loss, "pseudo_views": recipe.pseudo_views, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "psh_res": recipe.psh_res,
     });
     let asset = to_asset(&model, cubes, Some(diffuse), recipe.keep_diffuse_network, description)?;
     Ok(Baked { asset, field })
+}
+
+/// `count` views rendered by `field` (linear, premultiplied: the heads' targets) from poses on
+/// the sphere the training cameras lie on (around their common focus, at their mean distance;
+/// the upper hemisphere only if every camera is above the focus), with the first view's
+/// intrinsics. R2L trains its light field on such pseudo-data of its teacher; here it shows
+/// the heads the object between the dataset's views, where they otherwise overfit.
+fn pseudo_views(
+    field: &RadianceField,
+    views: &[TrainingView],
+    count: u32,
+    seed: u64,
+    progress: &mut dyn BakeProgress,
+) -> Result<Vec<TrainingView>, BakeError> {
+    let first = views.first().ok_or(BakeError::NoViews)?.camera;
+    let cameras: Vec<Camera> = views.iter().map(|v| v.camera).collect();
+    let focus = common_focus(&cameras);
+    let radius = cameras.iter().map(|c| c.position().distance(focus)).sum::<f32>() / cameras.len() as f32;
+    let upper = cameras.iter().all(|c| c.position().z >= focus.z);
+    let fov_x = first.fov_x();
+    let kernel = NgpKernel::new(field.clone());
+    progress.stage("pseudo-views", u64::from(count), "views");
+    let mut out = Vec::with_capacity(count as usize);
+    // A seed of its own, so that the poses do not repeat the field's ray draws.
+    for (i, pose) in
+        sample_views_on_sphere(count as usize, radius, focus, upper, seed ^ 0x7073_6575_646f).into_iter().enumerate()
+    {
+        let camera = Camera::from_fov_x(first.width(), first.height(), fov_x, pose)?;
+        let (frame, _) = kernel
+            .render_pixels(&camera, &all_pixels(&camera))
+            .map_err(|e| NgpError::Invalid(format!("rendering a pseudo-view: {e}")))?;
+        let target = (0..frame.len())
+            .map(|k| {
+                let a = frame.opacity[k].clamp(0.0, 1.0);
+                let [r, g, b] = frame.color[k].map(|c| c.clamp(0.0, a));
+                [r, g, b, a]
+            })
+            .collect();
+        out.push(TrainingView { camera, target });
+        progress.advance(i as u64 + 1, u64::from(count), "");
+    }
+    Ok(out)
 }

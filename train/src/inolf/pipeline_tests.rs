@@ -417,9 +417,59 @@ fn the_library_bake_turns_posed_images_into_an_asset() {
     eprintln!("bake of 16 views: {:.2} dB against {:.2} dB for an empty frame", baked_db / n, empty_db / n);
     assert!(baked_db / n > empty_db / n + 5.0, "{} vs {}", baked_db / n, empty_db / n);
 
+    // Again from the returned field, with pseudo-views of it for the heads.
     let mut again = Recorder::default();
+    let recipe = BakeRecipe { pseudo_views: 4, ..recipe };
     let rebaked = bake(&data, "tiny diffuse", &recipe, Some(baked.field), &mut again).expect("bake from the field");
-    assert!(!again.stages.iter().any(|s| s == "radiance field") && !again.field_handed_over);
+    assert_eq!(again.stages, ["density cubes", "pseudo-views", "i-NOLF heads"]);
+    assert!(!again.field_handed_over);
+    assert!(again.summaries.iter().any(|s| s.starts_with("pseudo-views: 4 rendered")), "{:?}", again.summaries);
     let meta: serde_json::Value = serde_json::from_str(&rebaked.asset.meta).expect("meta is JSON");
-    assert_eq!(meta["bake"]["field_steps"], 0, "{meta}");
+    assert_eq!((&meta["bake"]["field_steps"], &meta["bake"]["pseudo_views"]), (&0.into(), &4.into()), "{meta}");
+}
+
+/// Corrupt training pixels (issue 18): the heads never train on a dropped pixel (a target of
+/// NaN), so a few of them leave every loss and parameter finite; `training_views` counts what
+/// it clamped and dropped.
+#[test]
+fn dropped_pixels_are_never_trained() {
+    let cubes = sphere_cubes();
+    let mut views = views();
+    for v in &mut views {
+        for (i, t) in v.target.iter_mut().enumerate() {
+            if i % 97 == 0 {
+                *t = crate::targets::DROPPED;
+            }
+        }
+    }
+    let hits = collect_hit_points(&cubes, &views, 1);
+    let psh = PshEncoding::from_points(&hits, bounds().min, 2.0 / 31.0, 32, 4, &PshOptions::coherent()).expect("psh");
+    let mut model = InolfModel::new(small_shape(), bounds(), psh, 3).expect("model");
+    let options = TrainOptions { steps: 60, batch: 512, ..TrainOptions::default() };
+    let mut losses = Vec::new();
+    let report = train(&mut model, &cubes, &views, &options, &mut |_, loss| losses.push(loss)).expect("train");
+    assert!(report.smoothed_loss.is_finite() && losses.iter().all(|l| l.is_finite()), "{report:?}");
+    assert!(model.specular.params().iter().chain(model.diffuse.params()).all(|p| p.is_finite()));
+    assert!(model.psh.features.iter().chain(model.grid.params()).all(|p| p.is_finite()));
+
+    // The dataset path: clamped and dropped pixels counted, targets in range.
+    let image = nephele_imaging::image::RgbaImage::from_fn(8, 8, |x, y| match (x, y) {
+        (0, 0) => [f32::NAN, 0.0, 0.0, 1.0],
+        (1, 0) => [2.0, 0.5, 0.5, 1.0],
+        _ => [0.5, 0.5, 0.5, 1.0],
+    });
+    let dataset = crate::dataset::Dataset {
+        camera_angle_x: 0.7,
+        views: vec![crate::dataset::View {
+            name: "r_0".into(),
+            camera_to_world: glam::Mat4::from_translation(Vec3::new(0.0, 0.0, 3.0)),
+            image,
+            depth: None,
+        }],
+    };
+    let (views, check) = super::train::training_views(&dataset).expect("views");
+    assert_eq!((check.pixels, check.clamped, check.dropped), (64, 1, 1));
+    assert!(crate::targets::is_dropped(&views[0].target[0]));
+    assert!(views[0].target[1..].iter().flatten().all(|v| (0.0..=1.0).contains(v)));
+    assert!(check.verdict().is_err(), "1 in 64 is more than 1 %");
 }

@@ -11,9 +11,9 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::dataset::Dataset;
+use crate::targets::{PixelCheck, TargetSpace, is_dropped, premultiplied_targets};
 use nephele_geometry::SplitMix64;
 use nephele_geometry::camera::{Camera, CameraError};
-use nephele_imaging::image::srgb_to_linear;
 use nephele_kernels::inolf::cubes::{DensityCubes, MarchHit};
 use nephele_kernels::inolf::encoding::Corners;
 use nephele_kernels::inolf::kernel::{HIT_OPACITY, RAY_NEAR};
@@ -31,26 +31,22 @@ pub struct TrainingView {
     pub target: Vec<[f32; 4]>,
 }
 
-/// The views of a loaded NeRF-synthetic split, as training targets.
-pub fn training_views(dataset: &Dataset) -> Result<Vec<TrainingView>, CameraError> {
-    dataset
+/// The views of a loaded NeRF-synthetic split, as training targets, and what the check of
+/// their pixels clamped and dropped (see [`crate::targets`]; refuse the set with
+/// [`PixelCheck::verdict`]).
+pub fn training_views(dataset: &Dataset) -> Result<(Vec<TrainingView>, PixelCheck), CameraError> {
+    let mut check = PixelCheck::default();
+    let views = dataset
         .views
         .iter()
         .map(|v| {
             let camera =
                 Camera::from_fov_x(v.image.width(), v.image.height(), dataset.camera_angle_x, v.camera_to_world)?;
-            let target = v
-                .image
-                .pixels()
-                .iter()
-                .map(|p| {
-                    let a = p[3].clamp(0.0, 1.0);
-                    [srgb_to_linear(p[0]) * a, srgb_to_linear(p[1]) * a, srgb_to_linear(p[2]) * a, a]
-                })
-                .collect();
+            let target = premultiplied_targets(&v.image, TargetSpace::Linear, &mut check);
             Ok(TrainingView { camera, target })
         })
-        .collect()
+        .collect::<Result<Vec<_>, CameraError>>()?;
+    Ok((views, check))
 }
 
 /// Marches the centre ray of every pixel of every view (in parallel) and returns the hit
@@ -167,6 +163,122 @@ impl ErrorMap {
     }
 }
 
+/// One training ray of the heads: where it starts, its direction, where it hit the density
+/// cubes, and the pixel it should show (linear RGB premultiplied by alpha, then alpha).
+#[derive(Debug, Clone, Copy)]
+pub struct HeadRay {
+    pub origin: Vec3,
+    pub dir: Vec3,
+    pub hit: MarchHit,
+    pub target: [f32; 4],
+}
+
+/// Gradients of the heads' parameters, one buffer per parameter group.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ParameterGradients {
+    pub grid: Vec<f32>,
+    pub diffuse: Vec<f32>,
+    pub psh: Vec<f32>,
+    pub specular: Vec<f32>,
+}
+
+impl ParameterGradients {
+    /// Zero gradients shaped like `model`'s parameters.
+    pub fn zeros(model: &InolfModel) -> ParameterGradients {
+        ParameterGradients {
+            grid: vec![0.0; model.grid.num_params()],
+            diffuse: vec![0.0; model.diffuse.num_params()],
+            psh: vec![0.0; model.psh.features.len()],
+            specular: vec![0.0; model.specular.num_params()],
+        }
+    }
+
+    /// Sets every gradient back to zero.
+    pub fn clear(&mut self) {
+        for g in [&mut self.grid, &mut self.diffuse, &mut self.psh, &mut self.specular] {
+            g.iter_mut().for_each(|x| *x = 0.0);
+        }
+    }
+
+    /// Every value, group after group.
+    pub fn values(&self) -> impl Iterator<Item = f32> + '_ {
+        self.grid.iter().chain(&self.diffuse).chain(&self.psh).chain(&self.specular).copied()
+    }
+}
+
+/// The two heads' network workspaces, kept between batches.
+#[derive(Debug, Default)]
+pub struct HeadsWorkspace {
+    diffuse: MlpWorkspace,
+    specular: MlpWorkspace,
+}
+
+/// Forward and backward of both heads over a batch of rays that hit (the loss of eq. 8,
+/// averaged over the batch): adds the parameters' gradients into `grads` and returns each
+/// ray's loss.
+pub fn heads_forward_backward(
+    model: &InolfModel,
+    rays: &[HeadRay],
+    opacity_weight: f32,
+    grads: &mut ParameterGradients,
+    workspace: &mut HeadsWorkspace,
+) -> Result<Vec<f32>, ModelError> {
+    let n = rays.len();
+    if n == 0 {
+        return Ok(Vec::new());
+    }
+    let f_dim = model.psh.dim();
+    let s_in = model.specular.config().input;
+    let e_dim = model.grid.output_dim();
+    let points: Vec<[f32; 3]> = rays.iter().map(|r| model.grid_input(r.origin + r.dir * r.hit.t)).collect();
+    let mut enc = vec![0.0; n * e_dim];
+    model.grid.encode_batch(&points, &mut enc)?;
+    let out_d = model.diffuse.forward(&enc, &mut workspace.diffuse)?.to_vec();
+    let mut s_input = vec![0.0; n * s_in];
+    let mut corners: Vec<Corners> = Vec::with_capacity(n);
+    for (k, r) in rays.iter().enumerate() {
+        corners.push(model.specular_row(
+            r.origin + r.dir * r.hit.t,
+            r.dir,
+            r.hit.opacity,
+            &mut s_input[k * s_in..(k + 1) * s_in],
+        ));
+    }
+    let mut out_s = model.specular.forward(&s_input, &mut workspace.specular)?.to_vec();
+    for (k, r) in rays.iter().enumerate() {
+        specular_activation(&mut out_s[k * SPECULAR_OUT..(k + 1) * SPECULAR_OUT], r.hit.opacity);
+    }
+    let mut d_out_d = vec![0.0; n * DIFFUSE_OUT];
+    let mut d_out_s = vec![0.0; n * SPECULAR_OUT];
+    let scale = 1.0 / n as f32;
+    let mut losses = Vec::with_capacity(n);
+    for (k, r) in rays.iter().enumerate() {
+        let g = head_gradients(
+            &out_d[k * DIFFUSE_OUT..(k + 1) * DIFFUSE_OUT],
+            &out_s[k * SPECULAR_OUT..(k + 1) * SPECULAR_OUT],
+            r.target,
+            opacity_weight,
+        );
+        losses.push(g.loss);
+        for j in 0..DIFFUSE_OUT {
+            d_out_d[k * DIFFUSE_OUT + j] = g.d_diffuse[j] * scale;
+        }
+        for j in 0..SPECULAR_OUT {
+            d_out_s[k * SPECULAR_OUT + j] =
+                g.d_specular[j] * scale * specular_activation_derivative(out_s[k * SPECULAR_OUT + j]);
+        }
+    }
+    let mut d_s_input = vec![0.0; n * s_in];
+    model.specular.backward(&s_input, &mut workspace.specular, &d_out_s, &mut grads.specular, Some(&mut d_s_input))?;
+    for (k, c) in corners.iter().enumerate() {
+        model.psh.backward(c, &d_s_input[k * s_in..k * s_in + f_dim], &mut grads.psh);
+    }
+    let mut d_enc = vec![0.0; n * e_dim];
+    model.diffuse.backward(&enc, &mut workspace.diffuse, &d_out_d, &mut grads.diffuse, Some(&mut d_enc))?;
+    model.grid.backward_batch_parallel(&points, &d_enc, &mut grads.grid)?;
+    Ok(losses)
+}
+
 /// Trains `model` on `views`; `progress(step, smoothed loss)` is called after every step.
 pub fn train(
     model: &mut InolfModel,
@@ -188,14 +300,8 @@ pub fn train(
     let mut opt_diffuse = adam(lr, 1e-6, model.diffuse.num_params());
     let mut opt_psh = adam(lr, 0.0, model.psh.features.len());
     let mut opt_specular = adam(lr, 1e-6, model.specular.num_params());
-    let mut g_grid = vec![0.0; model.grid.num_params()];
-    let mut g_diffuse = vec![0.0; model.diffuse.num_params()];
-    let mut g_psh = vec![0.0; model.psh.features.len()];
-    let mut g_specular = vec![0.0; model.specular.num_params()];
-    let (mut ws_d, mut ws_s) = (MlpWorkspace::new(), MlpWorkspace::new());
-    let f_dim = model.psh.dim();
-    let s_in = model.specular.config().input;
-    let e_dim = model.grid.output_dim();
+    let mut grads = ParameterGradients::zeros(model);
+    let mut workspace = HeadsWorkspace::default();
     let mut report = TrainReport::default();
     let mut smoothed = f32::NAN;
 
@@ -229,7 +335,14 @@ pub fn train(
                 (cubes.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY), ray.origin, ray.direction)
             })
             .collect();
-        let kept: Vec<usize> = (0..draws.len()).filter(|&i| marched[i].0.opacity >= HIT_OPACITY).collect();
+        let target_of = |i: usize| {
+            let (_, view, x, y) = draws[i];
+            let v = &views[view as usize];
+            v.target[(y * v.camera.width() + x) as usize]
+        };
+        // Pixels the check dropped (NaN or infinite) are not trained either.
+        let kept: Vec<usize> =
+            (0..draws.len()).filter(|&i| marched[i].0.opacity >= HIT_OPACITY && !is_dropped(&target_of(i))).collect();
         // A ray that misses cannot be improved: its tile's error decays so that tiles of
         // empty background stop being drawn.
         for (i, m) in marched.iter().enumerate() {
@@ -244,67 +357,27 @@ pub fn train(
             progress(step + 1, smoothed);
             continue;
         }
-        let n = kept.len();
-        let points: Vec<[f32; 3]> = kept
+        let rays: Vec<HeadRay> = kept
             .iter()
             .map(|&i| {
-                let (h, o, d) = marched[i];
-                model.grid_input(o + d * h.t)
+                let (hit, origin, dir) = marched[i];
+                HeadRay { origin, dir, hit, target: target_of(i) }
             })
             .collect();
-        let mut enc = vec![0.0; n * e_dim];
-        model.grid.encode_batch(&points, &mut enc)?;
-        let out_d = model.diffuse.forward(&enc, &mut ws_d)?.to_vec();
-        let mut s_input = vec![0.0; n * s_in];
-        let mut corners: Vec<Corners> = Vec::with_capacity(n);
-        for (k, &i) in kept.iter().enumerate() {
-            let (h, o, d) = marched[i];
-            corners.push(model.specular_row(o + d * h.t, d, h.opacity, &mut s_input[k * s_in..(k + 1) * s_in]));
-        }
-        let mut out_s = model.specular.forward(&s_input, &mut ws_s)?.to_vec();
-        for (k, &i) in kept.iter().enumerate() {
-            specular_activation(&mut out_s[k * SPECULAR_OUT..(k + 1) * SPECULAR_OUT], marched[i].0.opacity);
-        }
-        let mut d_out_d = vec![0.0; n * DIFFUSE_OUT];
-        let mut d_out_s = vec![0.0; n * SPECULAR_OUT];
-        let scale = 1.0 / n as f32;
+        let losses = heads_forward_backward(model, &rays, options.opacity_weight, &mut grads, &mut workspace)?;
         let mut loss_sum = 0.0f64;
-        for (k, &i) in kept.iter().enumerate() {
-            let (tile, view, x, y) = draws[i];
-            let v = &views[view as usize];
-            let target = v.target[(y * v.camera.width() + x) as usize];
-            let g = head_gradients(
-                &out_d[k * DIFFUSE_OUT..(k + 1) * DIFFUSE_OUT],
-                &out_s[k * SPECULAR_OUT..(k + 1) * SPECULAR_OUT],
-                target,
-                options.opacity_weight,
-            );
-            loss_sum += f64::from(g.loss);
-            map.error[tile] = 0.9 * map.error[tile] + 0.1 * g.loss;
-            for j in 0..DIFFUSE_OUT {
-                d_out_d[k * DIFFUSE_OUT + j] = g.d_diffuse[j] * scale;
-            }
-            for j in 0..SPECULAR_OUT {
-                d_out_s[k * SPECULAR_OUT + j] =
-                    g.d_specular[j] * scale * specular_activation_derivative(out_s[k * SPECULAR_OUT + j]);
-            }
+        for (&i, &loss) in kept.iter().zip(&losses) {
+            loss_sum += f64::from(loss);
+            let tile = draws[i].0;
+            map.error[tile] = 0.9 * map.error[tile] + 0.1 * loss;
         }
-        let mut d_s_input = vec![0.0; n * s_in];
-        model.specular.backward(&s_input, &mut ws_s, &d_out_s, &mut g_specular, Some(&mut d_s_input))?;
-        for (k, c) in corners.iter().enumerate() {
-            model.psh.backward(c, &d_s_input[k * s_in..k * s_in + f_dim], &mut g_psh);
-        }
-        let mut d_enc = vec![0.0; n * e_dim];
-        model.diffuse.backward(&enc, &mut ws_d, &d_out_d, &mut g_diffuse, Some(&mut d_enc))?;
-        model.grid.backward_batch_parallel(&points, &d_enc, &mut g_grid)?;
+        let n = kept.len();
 
-        opt_grid.step(model.grid.params_mut(), &g_grid)?;
-        opt_diffuse.step(model.diffuse.params_mut(), &g_diffuse)?;
-        opt_psh.step(&mut model.psh.features, &g_psh)?;
-        opt_specular.step(model.specular.params_mut(), &g_specular)?;
-        for g in [&mut g_grid, &mut g_diffuse, &mut g_psh, &mut g_specular] {
-            g.iter_mut().for_each(|x| *x = 0.0);
-        }
+        opt_grid.step(model.grid.params_mut(), &grads.grid)?;
+        opt_diffuse.step(model.diffuse.params_mut(), &grads.diffuse)?;
+        opt_psh.step(&mut model.psh.features, &grads.psh)?;
+        opt_specular.step(model.specular.params_mut(), &grads.specular)?;
+        grads.clear();
         let loss = (loss_sum / n as f64) as f32;
         smoothed = if smoothed.is_nan() { loss } else { 0.98 * smoothed + 0.02 * loss };
         report.last_loss = loss;

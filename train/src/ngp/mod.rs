@@ -4,7 +4,7 @@
 
 pub mod train;
 
-pub use train::{StepStats, TrainConfig, Trainer};
+pub use train::{BatchGradients, StepStats, TrainConfig, Trainer, TrainingRay, batch_gradients};
 
 #[cfg(test)]
 mod tests;

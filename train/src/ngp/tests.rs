@@ -309,3 +309,47 @@ fn density_hit_matches_the_full_render(kernel: &NgpKernel, camera: &Camera) {
     }
     assert!(hits > 50, "{hits} pixels see the sphere");
 }
+
+/// Corrupt training pixels (issue 18): a few NaN, infinite or out-of-range values are dropped
+/// or clamped and counted, and training stays finite; a set with more than 1 % of them is
+/// refused.
+#[test]
+fn corrupt_pixels_are_clamped_or_dropped_with_a_count() {
+    let size = 24;
+    let cameras: Vec<Camera> = (0..12).map(|i| view(i, 12, size)).collect();
+    let corrupt = |every: u32| -> Vec<RgbaImage> {
+        cameras
+            .iter()
+            .map(|c| {
+                let clean = sphere_image(c);
+                RgbaImage::from_fn(size, size, |x, y| {
+                    let p = clean.pixel(x, y);
+                    match (y * size + x) % every {
+                        0 => [f32::NAN, p[1], p[2], p[3]],
+                        1 => [p[0], p[1], p[2], f32::INFINITY],
+                        2 => [4.0, -1.0, p[2], 1.5],
+                        _ => p,
+                    }
+                })
+            })
+            .collect()
+    };
+    let config = TrainConfig { samples_per_step: 1 << 12, ..TrainConfig::default() };
+    // Four pixels in 576 per view are not numbers (0.7 %): dropped; two are out of range.
+    let images = corrupt(288);
+    let views: Vec<(Camera, &RgbaImage)> = cameras.iter().copied().zip(images.iter()).collect();
+    let mut trainer = Trainer::new(tiny_config(), config, &views).expect("a few corrupt pixels are accepted");
+    let check = trainer.pixel_check();
+    assert_eq!(check.pixels, 12 * 576);
+    assert_eq!((check.dropped, check.clamped), (12 * 4, 12 * 2), "{check:?}");
+    for s in 0..20 {
+        let stats = trainer.step(s as f32 / 20.0).expect("step");
+        assert!(stats.loss.is_finite(), "{stats:?}");
+    }
+    assert!(trainer.field().density.params().iter().all(|p| p.is_finite()));
+    // One pixel in ten is not a number: refused, with the count.
+    let images = corrupt(20);
+    let views: Vec<(Camera, &RgbaImage)> = cameras.iter().copied().zip(images.iter()).collect();
+    let err = Trainer::new(tiny_config(), config, &views).expect_err("corrupt images are refused");
+    assert!(err.to_string().contains("NaN or infinite"), "{err}");
+}

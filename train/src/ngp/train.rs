@@ -20,6 +20,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::dataset::Dataset;
+use crate::targets::{PixelCheck, TargetSpace, is_dropped, premultiplied_targets};
 use nephele_geometry::camera::Camera;
 use nephele_imaging::image::RgbaImage;
 use nephele_nn::{Adam, AdamConfig, MlpWorkspace, sh_coefficient_count, sh_encode};
@@ -103,13 +104,32 @@ pub struct StepStats {
     pub seconds_occupancy: f32,
 }
 
-/// A ray to train on.
-#[derive(Debug, Clone, Copy)]
-struct RayTask {
-    origin: Vec3,
-    dir: Vec3,
-    offset: f32,
-    target: [f32; 4],
+/// A ray to train on: a pixel's centre ray and its target (sRGB premultiplied by alpha, then
+/// alpha).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrainingRay {
+    pub origin: Vec3,
+    /// Unit direction.
+    pub dir: Vec3,
+    /// Jitter of the first sample in `[0, 1)` steps.
+    pub offset: f32,
+    pub target: [f32; 4],
+}
+
+/// The loss and the parameters' gradients of a batch of rays (the mean over rays and
+/// channels of the squared error).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BatchGradients {
+    /// Mean loss per ray.
+    pub loss: f32,
+    /// Density samples taken.
+    pub samples: usize,
+    pub density: Vec<f32>,
+    pub color: Vec<f32>,
+    /// Seconds spent on the rays (forward and backward through the MLPs), and on scattering
+    /// the encoding gradients into the hash table.
+    pub seconds_rays: f32,
+    pub seconds_grid: f32,
 }
 
 /// What one parallel task returns.
@@ -163,10 +183,11 @@ pub struct Trainer {
     steps: u64,
     rays_per_step: usize,
     occupancy_updates: u64,
+    pixel_check: PixelCheck,
 }
 
 /// The point closest (least squares) to all cameras' optical axes: what they look at.
-fn common_focus(cameras: &[Camera]) -> Vec3 {
+pub fn common_focus(cameras: &[Camera]) -> Vec3 {
     let mut a = glam::Mat3::ZERO;
     let mut b = Vec3::ZERO;
     for c in cameras {
@@ -253,13 +274,18 @@ impl Trainer {
             // density confirms the cell.
             density_ema[c as usize] = 2.0 * occupancy_threshold;
         }
-        let train_views = views
+        let mut pixel_check = PixelCheck::default();
+        let train_views: Vec<TrainView> = views
             .iter()
             .map(|(camera, image)| TrainView {
                 camera: *camera,
-                pixels: image.pixels().iter().map(|&[r, g, b, a]| [r * a, g * a, b * a, a]).collect(),
+                pixels: premultiplied_targets(image, TargetSpace::Srgb, &mut pixel_check),
             })
             .collect();
+        pixel_check.verdict().map_err(|e| NgpError::Invalid(e.to_string()))?;
+        if pixel_check.repaired_any() {
+            tracing::warn!("{}", pixel_check.summary());
+        }
         let mlp_adam = AdamConfig { learning_rate: config.learning_rate, weight_decay: 1e-6, ..AdamConfig::default() };
         Ok(Trainer {
             adam_grid: Adam::new(
@@ -279,6 +305,7 @@ impl Trainer {
             steps: 0,
             rays_per_step: (config.samples_per_step / 64).max(64),
             occupancy_updates: 0,
+            pixel_check,
         })
     }
 
@@ -292,6 +319,11 @@ impl Trainer {
 
     pub fn steps(&self) -> u64 {
         self.steps
+    }
+
+    /// What the check of the training pixels clamped and dropped.
+    pub fn pixel_check(&self) -> PixelCheck {
+        self.pixel_check
     }
 
     /// Number of cells the occupancy may ever set (the visual hull).
@@ -308,53 +340,10 @@ impl Trainer {
         self.adam_density.set_learning_rate(lr);
         self.adam_color.set_learning_rate(lr);
 
-        let clock = std::time::Instant::now();
         let tasks = self.draw_rays(self.rays_per_step);
         let n_rays = tasks.len();
-        let field = &self.field;
-        let outs: Vec<TaskOut> = tasks
-            .par_chunks(RAYS_PER_TASK)
-            .map(|chunk| {
-                let mut out = TaskOut {
-                    grad_density: vec![0.0; field.density.num_params()],
-                    grad_color: vec![0.0; field.color.num_params()],
-                    ..TaskOut::default()
-                };
-                let mut buffers = RayBuffers::default();
-                for ray in chunk {
-                    train_ray(field, ray, n_rays, &mut buffers, &mut out);
-                }
-                out
-            })
-            .collect();
-
-        // Reduce.
-        let mut grad_density = vec![0.0f32; self.field.density.num_params()];
-        let mut grad_color = vec![0.0f32; self.field.color.num_params()];
-        let (mut loss, mut samples, mut points_total) = (0.0f64, 0usize, 0usize);
-        for o in &outs {
-            for (g, v) in grad_density.iter_mut().zip(&o.grad_density) {
-                *g += v;
-            }
-            for (g, v) in grad_color.iter_mut().zip(&o.grad_color) {
-                *g += v;
-            }
-            loss += o.loss;
-            samples += o.samples;
-            points_total += o.points.len();
-        }
-        let enc_dim = self.field.grid.output_dim();
-        let mut points = Vec::with_capacity(points_total);
-        let mut d_encoding = Vec::with_capacity(points_total * enc_dim);
-        for o in outs {
-            points.extend_from_slice(&o.points);
-            d_encoding.extend_from_slice(&o.d_encoding);
-        }
-        let seconds_rays = clock.elapsed().as_secs_f32();
-        let clock = std::time::Instant::now();
-        self.grad_grid.par_chunks_mut(1 << 16).for_each(|c| c.fill(0.0));
-        self.field.grid.backward_batch_parallel(&points, &d_encoding, &mut self.grad_grid)?;
-        let seconds_grid = clock.elapsed().as_secs_f32();
+        let batch = batch_gradients(&self.field, &tasks, &mut self.grad_grid)?;
+        let (grad_density, grad_color, samples) = (batch.density, batch.color, batch.samples);
         let clock = std::time::Instant::now();
         self.adam_grid.step_sparse(self.field.grid.params_mut(), &self.grad_grid)?;
         self.adam_density.step(self.field.density.params_mut(), &grad_density)?;
@@ -373,19 +362,19 @@ impl Trainer {
         let seconds_occupancy = clock.elapsed().as_secs_f32();
         let occupancy = self.field.occupancy();
         Ok(StepStats {
-            loss: (loss / n_rays.max(1) as f64) as f32,
+            loss: batch.loss,
             rays: n_rays,
             samples,
             occupied_fraction: occupancy.occupied_count() as f32 / occupancy.cell_count() as f32,
             learning_rate: lr,
-            seconds_rays,
-            seconds_grid,
+            seconds_rays: batch.seconds_rays,
+            seconds_grid: batch.seconds_grid,
             seconds_adam,
             seconds_occupancy,
         })
     }
 
-    fn draw_rays(&mut self, count: usize) -> Vec<RayTask> {
+    fn draw_rays(&mut self, count: usize) -> Vec<TrainingRay> {
         let mut tasks = Vec::with_capacity(count);
         for _ in 0..count {
             let v = &self.views[(self.rng.next_u32() as usize) % self.views.len()];
@@ -393,12 +382,13 @@ impl Trainer {
             let x = self.rng.next_u32() % w;
             let y = self.rng.next_u32() % h;
             let ray = v.camera.pixel_center_ray(x, y);
-            tasks.push(RayTask {
-                origin: ray.origin,
-                dir: ray.direction,
-                offset: self.rng.next_f32(),
-                target: v.pixels[(y * w + x) as usize],
-            });
+            let offset = self.rng.next_f32();
+            let target = v.pixels[(y * w + x) as usize];
+            if is_dropped(&target) {
+                // A pixel the check dropped (NaN or infinite): never trained.
+                continue;
+            }
+            tasks.push(TrainingRay { origin: ray.origin, dir: ray.direction, offset, target });
         }
         tasks
     }
@@ -453,8 +443,78 @@ impl Trainer {
     }
 }
 
+/// Forward and backward of a batch of training rays through `field`: the mean loss and the
+/// MLPs' gradients, and the hash table's gradient written into `grad_grid` (zeroed here;
+/// `field.grid.num_params()` long). A ray that finds no occupied cell is trained towards
+/// transparency by its loss alone (no parameter takes its gradient).
+pub fn batch_gradients(
+    field: &RadianceField,
+    rays: &[TrainingRay],
+    grad_grid: &mut [f32],
+) -> Result<BatchGradients, NgpError> {
+    if grad_grid.len() != field.grid.num_params() {
+        return Err(NgpError::Invalid(format!(
+            "grid gradient of {} values for a table of {}",
+            grad_grid.len(),
+            field.grid.num_params()
+        )));
+    }
+    let clock = std::time::Instant::now();
+    let n_rays = rays.len();
+    let outs: Vec<TaskOut> = rays
+        .par_chunks(RAYS_PER_TASK)
+        .map(|chunk| {
+            let mut out = TaskOut {
+                grad_density: vec![0.0; field.density.num_params()],
+                grad_color: vec![0.0; field.color.num_params()],
+                ..TaskOut::default()
+            };
+            let mut buffers = RayBuffers::default();
+            for ray in chunk {
+                train_ray(field, ray, n_rays, &mut buffers, &mut out);
+            }
+            out
+        })
+        .collect();
+
+    // Reduce.
+    let mut density = vec![0.0f32; field.density.num_params()];
+    let mut color = vec![0.0f32; field.color.num_params()];
+    let (mut loss, mut samples, mut points_total) = (0.0f64, 0usize, 0usize);
+    for o in &outs {
+        for (g, v) in density.iter_mut().zip(&o.grad_density) {
+            *g += v;
+        }
+        for (g, v) in color.iter_mut().zip(&o.grad_color) {
+            *g += v;
+        }
+        loss += o.loss;
+        samples += o.samples;
+        points_total += o.points.len();
+    }
+    let enc_dim = field.grid.output_dim();
+    let mut points = Vec::with_capacity(points_total);
+    let mut d_encoding = Vec::with_capacity(points_total * enc_dim);
+    for o in outs {
+        points.extend_from_slice(&o.points);
+        d_encoding.extend_from_slice(&o.d_encoding);
+    }
+    let seconds_rays = clock.elapsed().as_secs_f32();
+    let clock = std::time::Instant::now();
+    grad_grid.par_chunks_mut(1 << 16).for_each(|c| c.fill(0.0));
+    field.grid.backward_batch_parallel(&points, &d_encoding, grad_grid)?;
+    Ok(BatchGradients {
+        loss: (loss / n_rays.max(1) as f64) as f32,
+        samples,
+        density,
+        color,
+        seconds_rays,
+        seconds_grid: clock.elapsed().as_secs_f32(),
+    })
+}
+
 /// Forward and backward of one training ray; accumulates into `out`.
-fn train_ray(field: &RadianceField, ray: &RayTask, n_rays: usize, b: &mut RayBuffers, out: &mut TaskOut) {
+fn train_ray(field: &RadianceField, ray: &TrainingRay, n_rays: usize, b: &mut RayBuffers, out: &mut TaskOut) {
     let dt = field.step_size();
     let geo = 1 + field.config.geo_features;
     let enc_dim = field.grid.output_dim();
@@ -624,7 +684,7 @@ mod tests {
     use super::*;
 
     /// Loss and gradients of one ray through an untrained (foggy, never terminating) field.
-    fn ray_loss(field: &RadianceField, ray: &RayTask) -> (f64, TaskOut) {
+    fn ray_loss(field: &RadianceField, ray: &TrainingRay) -> (f64, TaskOut) {
         let mut out = TaskOut {
             grad_density: vec![0.0; field.density.num_params()],
             grad_color: vec![0.0; field.color.num_params()],
@@ -643,7 +703,7 @@ mod tests {
         for p in field.grid.params_mut() {
             *p = 0.5 * (rng.next_f32() - 0.5);
         }
-        let ray = RayTask {
+        let ray = TrainingRay {
             origin: Vec3::new(-3.0, 0.1, 0.2),
             dir: Vec3::new(1.0, 0.1, -0.05).normalize(),
             offset: 0.3,
