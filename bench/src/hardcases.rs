@@ -31,11 +31,9 @@ use nephele_geometry::camera::Camera;
 use nephele_geometry::hardcases::{HardRay, HardRays, RayClass, hard_object_density};
 use nephele_gpu::{DeviceChoice, GpuContext, GpuInolfKernel, GpuNgpKernel};
 use nephele_kernels::gi::{GBufferPixel, GI_INPUTS, GI_OUTPUTS, GiFeatures, GiModel};
-use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes, SparseCubes};
-use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::kernel::{HIT_OPACITY, InolfKernel, RAY_NEAR};
-use nephele_kernels::inolf::model::{HeadsShape, InolfModel};
-use nephele_kernels::inolf::psh::PshOptions;
+use nephele_kernels::inolf::model::InolfModel;
+use nephele_kernels::inolf::synthetic::{SyntheticObject, spread, synthetic_object};
 use nephele_kernels::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
 use nephele_kernels::ngp::{FieldConfig, FieldScratch, NgpKernel, OccupancyGrid, RadianceField};
 use nephele_nn::{HashGridConfig, UNet, UNetConfig, UNetWorkspace};
@@ -193,69 +191,17 @@ struct Scene {
     scale: f32,
     bounds: Bounds,
     matter: Vec<Vec3>,
-    cubes: DensityCubes,
     model: InolfModel,
     inolf: InolfKernel,
     ngp: NgpKernel,
 }
 
-fn spread(i: usize) -> f32 {
-    ((i as u32).wrapping_mul(2_654_435_761) >> 8) as f32 / (1u32 << 24) as f32 * 2.0 - 1.0
-}
-
 impl Scene {
     fn new(scale: f32) -> Result<Scene> {
+        let SyntheticObject { model, kernel: inolf } =
+            synthetic_object(scale).map_err(|e| anyhow::anyhow!("the synthetic object: {e}"))?;
         let bounds = Bounds { min: Vec3::splat(-scale), max: Vec3::splat(scale) };
-        // Density in world units: optical depths do not change with the scale.
-        let options = CubeOptions { resolution: 24, cube_res: 6, probe: 2, dilate: 1 };
-        let cubes = DensityCubes::build(
-            bounds,
-            &options,
-            |p: &[Vec3], out: &mut [f32]| {
-                p.iter().zip(out).for_each(|(p, o)| *o = hard_object_density(*p / scale) / scale)
-            },
-            &|_| {},
-        )?;
         let matter = vec![Vec3::ZERO, Vec3::new(0.2, 0.1, -0.1) * scale, Vec3::new(-0.8, 0.8, -0.8) * scale];
-        // The PSH over the hit points of a ring of views.
-        let mut points = Vec::new();
-        for i in 0..12 {
-            let a = i as f32 * std::f32::consts::TAU / 12.0;
-            let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), if i % 2 == 0 { 1.2 } else { -0.9 }) * scale;
-            let camera = Camera::look_at(24, 24, 0.8, eye, Vec3::ZERO, Vec3::Z)?;
-            for p in all_pixels(&camera) {
-                let ray = camera.pixel_center_ray(p % 24, p / 24);
-                let h = cubes.march(ray.origin, ray.direction, RAY_NEAR * scale, f32::INFINITY);
-                if h.opacity > 1e-3 {
-                    points.push(ray.at(h.t));
-                }
-            }
-        }
-        let u = 64;
-        let mut psh =
-            PshEncoding::from_points(&points, bounds.min, 2.0 * scale / u as f32, u, 4, &PshOptions::default())?;
-        for (i, f) in psh.features.iter_mut().enumerate() {
-            *f = spread(i);
-        }
-        let shape = HeadsShape {
-            grid_levels: 4,
-            grid_log2_table: 12,
-            grid_base: 4,
-            grid_scale: 2.0,
-            diffuse_hidden: 16,
-            diffuse_layers: 1,
-            sh_degree: 3,
-            specular_hidden: 16,
-            specular_layers: 2,
-        };
-        let mut model = InolfModel::new(shape, bounds, psh, 7)?;
-        for (i, f) in model.grid.params_mut().iter_mut().enumerate() {
-            *f = spread(i);
-        }
-        let c = cubes.cubes();
-        let diffuse_bytes = (0..c.cube_count() * 4 * 4 * 4 * 6).map(|i| (i * 37 % 251) as u8).collect();
-        let diffuse = SparseCubes::from_parts(c.min(), c.cell(), c.dims(), 4, 6, c.index().to_vec(), diffuse_bytes)?;
-        let inolf = InolfKernel::from_model(&model, cubes.clone(), Some(diffuse));
 
         let config = FieldConfig {
             grid: HashGridConfig::with_finest_resolution(8, 14, 16, 512),
@@ -274,7 +220,7 @@ impl Scene {
         field.occupancy =
             OccupancyGrid::from_flags(r, &flags).ok_or_else(|| anyhow::anyhow!("occupancy of the field"))?;
         let ngp = NgpKernel::new(field);
-        Ok(Scene { scale, bounds, matter, cubes, model, inolf, ngp })
+        Ok(Scene { scale, bounds, matter, model, inolf, ngp })
     }
 
     fn rays(&self, seed: u64, count: u64) -> Vec<HardRay> {
@@ -288,7 +234,7 @@ fn march(scene: &Scene, rays: &[HardRay]) -> Tally {
         .map(|chunk| {
             let mut t = Tally::default();
             for r in chunk {
-                let h = scene.cubes.march(r.origin, r.direction, RAY_NEAR * scene.scale, f32::INFINITY);
+                let h = scene.inolf.density().march(r.origin, r.direction, RAY_NEAR * scene.scale, f32::INFINITY);
                 t.rays += 1;
                 let values = [h.opacity, h.t, h.max_weight];
                 if !values.iter().all(|v| v.is_finite()) {
@@ -416,7 +362,7 @@ fn heads_training(scene: &Scene, rays: &[HardRay]) -> Result<Tally> {
         .iter()
         .enumerate()
         .filter_map(|(i, r)| {
-            let hit = scene.cubes.march(r.origin, r.direction, RAY_NEAR * scene.scale, f32::INFINITY);
+            let hit = scene.inolf.density().march(r.origin, r.direction, RAY_NEAR * scene.scale, f32::INFINITY);
             (hit.opacity >= HIT_OPACITY).then_some(HeadRay {
                 origin: r.origin,
                 dir: r.direction,

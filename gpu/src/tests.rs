@@ -16,14 +16,11 @@ use proptest::prelude::*;
 
 use crate::{Agreement, DeviceChoice, GpuAccelerator, GpuContext, GpuError, GpuInolfKernel};
 use nephele_geometry::camera::Camera;
-use nephele_geometry::hardcases::hard_object_density;
 use nephele_kernels::assets::{LoadOptions, load_by_magic};
-use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes, SparseCubes};
-use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::kernel::{DiffuseSource, InolfKernel};
-use nephele_kernels::inolf::model::{HeadsShape, InolfModel};
-use nephele_kernels::inolf::psh::PshOptions;
-use nephele_kernels::kernel::{Bounds, KernelError, PixelResults, RayKernel, all_pixels};
+use nephele_kernels::inolf::model::InolfModel;
+use nephele_kernels::inolf::synthetic::{SyntheticObject, synthetic_object};
+use nephele_kernels::kernel::{KernelError, PixelResults, RayKernel, all_pixels};
 
 pub(crate) const MAX_MASK_FRACTION: f64 = 0.005;
 pub(crate) const MAX_COLOR_MEAN_ABS: f64 = 1e-3;
@@ -40,10 +37,6 @@ pub(crate) fn context() -> Arc<GpuContext> {
         .clone()
 }
 
-fn bounds() -> Bounds {
-    Bounds { min: Vec3::splat(-1.0), max: Vec3::splat(1.0) }
-}
-
 struct Fixture {
     model: InolfModel,
     cpu: InolfKernel,
@@ -53,53 +46,7 @@ struct Fixture {
 fn fixture() -> &'static Fixture {
     static FIXTURE: OnceLock<Fixture> = OnceLock::new();
     FIXTURE.get_or_init(|| {
-        let options = CubeOptions { resolution: 24, cube_res: 6, probe: 2, dilate: 1 };
-        let cubes = DensityCubes::build(
-            bounds(),
-            &options,
-            |p: &[Vec3], out: &mut [f32]| p.iter().zip(out).for_each(|(p, o)| *o = hard_object_density(*p)),
-            &|_| {},
-        )
-        .expect("cubes");
-        // PSH over the hit points of a ring of views, features spread over [-1, 1] so that
-        // the encoding shapes the specular output.
-        let mut points = Vec::new();
-        for i in 0..12 {
-            let a = i as f32 * std::f32::consts::TAU / 12.0;
-            let eye = Vec3::new(3.0 * a.cos(), 3.0 * a.sin(), if i % 2 == 0 { 1.2 } else { -0.9 });
-            let camera = Camera::look_at(24, 24, 0.8, eye, Vec3::ZERO, Vec3::Z).expect("camera");
-            for p in all_pixels(&camera) {
-                let ray = camera.pixel_center_ray(p % 24, p / 24);
-                let h = cubes.march(ray.origin, ray.direction, 1e-3, f32::INFINITY);
-                if h.opacity > 1e-3 {
-                    points.push(ray.at(h.t));
-                }
-            }
-        }
-        let u = 64;
-        let mut psh =
-            PshEncoding::from_points(&points, Vec3::splat(-1.0), 2.0 / u as f32, u, 4, &PshOptions::default())
-                .expect("psh");
-        for (i, f) in psh.features.iter_mut().enumerate() {
-            *f = ((i as u32).wrapping_mul(2_654_435_761) >> 8) as f32 / (1u32 << 24) as f32 * 2.0 - 1.0;
-        }
-        let shape = HeadsShape {
-            grid_levels: 2,
-            grid_log2_table: 10,
-            grid_base: 4,
-            grid_scale: 2.0,
-            diffuse_hidden: 8,
-            diffuse_layers: 1,
-            sh_degree: 3,
-            specular_hidden: 16,
-            specular_layers: 2,
-        };
-        let model = InolfModel::new(shape, bounds(), psh, 7).expect("model");
-        let c = cubes.cubes();
-        let diffuse_bytes = (0..c.cube_count() * 4 * 4 * 4 * 6).map(|i| (i * 37 % 251) as u8).collect();
-        let diffuse = SparseCubes::from_parts(c.min(), c.cell(), c.dims(), 4, 6, c.index().to_vec(), diffuse_bytes)
-            .expect("diffuse cubes");
-        let cpu = InolfKernel::from_model(&model, cubes, Some(diffuse));
+        let SyntheticObject { model, kernel: cpu } = synthetic_object(1.0).expect("synthetic object");
         let gpu = GpuInolfKernel::new(context(), &cpu).expect("gpu kernel");
         Fixture { model, cpu, gpu }
     })

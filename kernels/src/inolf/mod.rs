@@ -7,6 +7,7 @@
 //! * [`heads`]: the networks read back from an asset, the diffuse cubes' 8-bit code.
 //! * [`asset`]: the versioned `.nolf` asset file and its defensive loader.
 //! * [`kernel`]: [`kernel::InolfKernel`], the farm kernel.
+//! * [`synthetic`]: a synthetic object with every part of an asset, for tests and benchmarks.
 //!
 //! Training the heads and baking the asset live in `nephele-train` (`inolf::train`,
 //! `inolf::bake`); surface voxelisation of meshes in `nephele-pathtracer` (`voxel`).
@@ -18,3 +19,4 @@ pub mod heads;
 pub mod kernel;
 pub mod model;
 pub mod psh;
+pub mod synthetic;
