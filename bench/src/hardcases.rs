@@ -68,7 +68,8 @@ const FRAME: u32 = 7;
 pub struct Tally {
     /// Rays (or G-buffer pixels) sent.
     pub rays: u64,
-    /// Of those, rays that hit matter (a kernel that returns nothing would pass otherwise).
+    /// Of those, rays that hit matter (a kernel that returns nothing would pass otherwise);
+    /// for the radiance field's trainer, batches of 256 rays in which some ray took samples.
     pub hits: u64,
     /// Degenerate rays rejected as they must be (an empty result, or a refused camera).
     pub rejected: u64,
