@@ -115,6 +115,7 @@
     sequence: 0,
     posesSent: 0,
     rttMs: null,
+    poseToFrameMs: null, // from the composer's 'frame' messages: pose sent -> its frame out
     xrSession: null,
     xrViews: null, // latest [{view, projection}] from the XR frame loop
     reconnectDelayMs: 1000,
@@ -335,11 +336,18 @@
         const seconds = (s.timestamp - lastStats.timestamp) / 1000;
         if (seconds > 0) {
           $('fps').textContent = ((s.framesDecoded - lastStats.framesDecoded) / seconds).toFixed(1);
-          $('bitrate').textContent = `${((8 * (s.bytesReceived - lastStats.bytesReceived)) / seconds / 1e6).toFixed(2)} Mbit/s`;
+          $('bitrate').textContent = formatBitrate((8 * (s.bytesReceived - lastStats.bytesReceived)) / seconds);
         }
       }
       lastStats = { timestamp: s.timestamp, framesDecoded: s.framesDecoded, bytesReceived: s.bytesReceived };
     });
+    if (client.poseToFrameMs !== null) $('latency').textContent = `${client.poseToFrameMs.toFixed(0)} ms`;
+  }
+
+  // An unchanging picture encodes to a few kbit/s: in Mbit/s with two decimals it read 0.00.
+  function formatBitrate(bitsPerSecond) {
+    if (bitsPerSecond >= 1e6) return `${(bitsPerSecond / 1e6).toFixed(2)} Mbit/s`;
+    return `${(bitsPerSecond / 1e3).toFixed(1)} kbit/s`;
   }
 
   // ---------------------------------------------------------------- input

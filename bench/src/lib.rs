@@ -4,7 +4,9 @@
 //! loopback throughput), [`scheduler`] (rounds of the scheduler core), [`inolf`] (PSH,
 //! density cubes, cache behaviour, i-NOLF against its baseline), [`hardcases`] (the
 //! numerical-stability suite: adversarial rays through every kernel and trainer, with its
-//! CI-sized test here); the path tracer's throughput is here. Benchmarks print numbers;
+//! CI-sized test here), [`share`] (rays saved by reprojection between adjacent views, and
+//! the dB it costs), [`assigner`] (the TaskAssigner's pixel estimate against the pixels
+//! really hit); the path tracer's throughput is here. Benchmarks print numbers;
 //! correctness is the tests' job.
 //!
 //! Depends on the libraries it measures; nothing depends on it but the CLI. The counting
@@ -23,6 +25,7 @@ use nephele_pathtracer::scenes;
 use nephele_pathtracer::{RenderOptions, Renderer};
 use serde_json::json;
 
+pub mod assigner;
 pub mod device;
 pub mod encode;
 pub mod gi;
@@ -31,6 +34,7 @@ pub mod heap;
 pub mod inolf;
 pub mod kernel;
 pub mod scheduler;
+pub mod share;
 pub mod wire;
 
 /// Where benchmarks draw their progress bars (the CLI's, hidden by `--quiet`).
@@ -90,6 +94,18 @@ pub enum Command {
     /// forward and backward passes, on tiny, unit and huge scenes. Prints the non-finite and
     /// out-of-range counts per kernel and fails unless they are all zero.
     Hardcases(crate::hardcases::HardcaseArgs),
+    /// Shared rays between adjacent views (NEPHELE eqs. 10-12, by depth reprojection): a
+    /// stereo pair, four users orbiting 2, 5 and 10 degrees apart, a 45-view quilt and one
+    /// user's consecutive frames, each around held-out views of a dataset. Rays rendered
+    /// against rendering every view in full, PSNR of every shared view against its own full
+    /// render, dB lost against the ground truth, and the reprojection's time against a full
+    /// render's, in one run; a sweep of the reuse angle.
+    Share(crate::share::ShareArgs),
+    /// The TaskAssigner's `nhit` estimate against the pixels each built-in object really
+    /// covers (path-traced primary rays), for the bounding box and for occupancy grids made
+    /// from the object's mesh: mean relative error, hit pixels missed (must be zero), and the
+    /// estimate's time against the box's.
+    Assigner(crate::assigner::AssignerArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -126,6 +142,8 @@ pub fn run(command: Command, progress: &dyn Progress) -> Result<()> {
         Command::Kernel(args) => crate::kernel::run_kernel(args, progress),
         Command::Gi(args) => crate::gi::run(args, progress),
         Command::Hardcases(args) => crate::hardcases::hardcases(args, progress),
+        Command::Share(args) => crate::share::run(args, progress),
+        Command::Assigner(args) => crate::assigner::run(args, progress),
     }
 }
 

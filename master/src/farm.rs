@@ -179,7 +179,8 @@ impl Farm {
     ) -> Result<(Farm, tokio::task::JoinHandle<()>, mpsc::UnboundedReceiver<String>), SchedError> {
         let mut scheduler = Scheduler::new(config.scheduler.clone())?;
         for object in catalog.objects() {
-            let info = ObjectInfo { bounds: object.bounds, occupancy: None, cost_per_ray: 1.0 };
+            let occupancy = catalog.occupancy(&object.asset).cloned();
+            let info = ObjectInfo { bounds: object.bounds, occupancy, cost_per_ray: 1.0 };
             scheduler.register_object(ObjectId(object.id), info)?;
         }
         let catalog = Arc::new(catalog);

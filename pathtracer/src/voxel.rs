@@ -101,9 +101,79 @@ pub fn surface_bits(mesh: &Mesh, grid: &VoxelGrid) -> VoxelBits {
     VoxelBits { grid: *grid, bits }
 }
 
+/// A coarse occupancy of a mesh over the box `[min, max]`: `dims` cells per axis (x fastest),
+/// the longest axis cut into `longest_cells`, and `true` in every cell that the surface passes
+/// within `margin` cells of (a margin of 0.5 also takes in the slivers that sampling misses and
+/// the half-cell blur of a field baked from the mesh). The TaskAssigner's proxy of an object
+/// (NEPHELE's prior mesh, section 5): its projection bounds the pixels the object covers.
+pub fn cell_occupancy(mesh: &Mesh, min: Vec3, max: Vec3, longest_cells: u32, margin: f32) -> ([u32; 3], Vec<bool>) {
+    let size = (max - min).max(Vec3::splat(1e-6));
+    let cell = size.max_element() / longest_cells.max(1) as f32;
+    let dims = (size / cell).ceil().max(Vec3::ONE);
+    let dims = [dims.x as u32, dims.y as u32, dims.z as u32];
+    // Cells of equal side along every axis, the last one of each axis reaching `max`.
+    let step = size / Vec3::new(dims[0] as f32, dims[1] as f32, dims[2] as f32);
+    let mut occupied = vec![false; dims.iter().map(|&d| d as usize).product()];
+    let reach = Vec3::splat(margin.max(0.0));
+    let sample_step = 0.5 * step.min_element();
+    for tri in &mesh.indices {
+        let [a, b, c] = tri.map(|i| mesh.positions.get(i as usize).copied().unwrap_or(Vec3::NAN));
+        if !(a.is_finite() && b.is_finite() && c.is_finite()) {
+            continue;
+        }
+        let longest = (b - a).length().max((c - a).length()).max((c - b).length());
+        let n = ((longest / sample_step).ceil() as usize).clamp(1, 4096);
+        for i in 0..=n {
+            for j in 0..=(n - i) {
+                let p = a + (b - a) * (i as f32 / n as f32) + (c - a) * (j as f32 / n as f32);
+                let f = (p - min) / step;
+                let lo = (f - reach).floor().max(Vec3::ZERO);
+                let hi = (f + reach).floor();
+                for z in lo.z as u32..=(hi.z.max(0.0) as u32).min(dims[2] - 1) {
+                    for y in lo.y as u32..=(hi.y.max(0.0) as u32).min(dims[1] - 1) {
+                        for x in lo.x as u32..=(hi.x.max(0.0) as u32).min(dims[0] - 1) {
+                            let index = x as usize + dims[0] as usize * (y as usize + dims[1] as usize * z as usize);
+                            occupied[index] = true;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    (dims, occupied)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cell_occupancy_marks_the_cells_a_surface_crosses_and_a_margin() {
+        // The square z = 0.5 spanning the unit box, cut into 8 cells a side: the layer of
+        // cells it lies on (z index 4; 0.5 is exactly their lower face, so with no margin
+        // only that layer), then with half a cell of margin the layer below too.
+        let mesh = Mesh::new(
+            vec![
+                Vec3::new(0.0, 0.0, 0.5),
+                Vec3::new(1.0, 0.0, 0.5),
+                Vec3::new(1.0, 1.0, 0.5),
+                Vec3::new(0.0, 1.0, 0.5),
+            ],
+            vec![[0, 1, 2], [0, 2, 3]],
+        );
+        let (dims, tight) = cell_occupancy(&mesh, Vec3::ZERO, Vec3::ONE, 8, 0.0);
+        assert_eq!(dims, [8, 8, 8]);
+        let layers =
+            |cells: &[bool]| (0..8).filter(|z| cells[64 * z..64 * (z + 1)].iter().all(|&c| c)).collect::<Vec<usize>>();
+        assert_eq!(tight.iter().filter(|&&c| c).count(), 64);
+        assert_eq!(layers(&tight), vec![4]);
+        let (_, loose) = cell_occupancy(&mesh, Vec3::ZERO, Vec3::ONE, 8, 0.5);
+        assert_eq!(layers(&loose), vec![3, 4]);
+        assert_eq!(loose.iter().filter(|&&c| c).count(), 128);
+        // A flat box: the short axis gets fewer cells of the same side.
+        let (dims, _) = cell_occupancy(&mesh, Vec3::ZERO, Vec3::new(1.0, 1.0, 0.25), 8, 0.0);
+        assert_eq!(dims, [8, 8, 2]);
+    }
 
     #[test]
     fn a_square_covers_one_layer() {
