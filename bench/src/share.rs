@@ -205,13 +205,20 @@ struct Tally {
     shared_views: usize,
 }
 
-/// Runs one scenario at `settings`: the served frames, counted; `full` holds every view's full
-/// render (and the seconds it took), made once per scenario.
+/// A view rendered in full, once per scenario: the frame, the seconds it took, and how many of
+/// its pixels' rays enter the asset's box.
+struct FullRender {
+    frame: PixelResults,
+    seconds: f64,
+    in_bounds: usize,
+}
+
+/// Runs one scenario at `settings`: the served frames, counted against `full`.
 fn serve(
     kernel: &dyn RayKernel,
     bounds: &Bounds,
     scenario: &Scenario,
-    full: &[(PixelResults, f64)],
+    full: &[FullRender],
     truth: Option<&RgbaImage>,
     settings: &Settings,
     tally: &mut Tally,
@@ -223,10 +230,10 @@ fn serve(
         let pixels = (w * h) as usize;
         tally.views += 1;
         tally.full_rays += pixels;
-        tally.in_bounds_rays += reproject(camera, bounds, &[], settings)?.counts().in_bounds();
+        tally.in_bounds_rays += full[*view].in_bounds;
         if sources.is_empty() {
             tally.rendered_rays += pixels;
-            served[*view] = Some(full[*view].0.clone());
+            served[*view] = Some(full[*view].frame.clone());
             continue;
         }
         let source_list: Vec<Source<'_>> = sources
@@ -236,7 +243,7 @@ fn serve(
         let start = Instant::now();
         let mut shared: Reprojection = reproject(camera, bounds, &source_list, settings)?;
         tally.reprojection_s += start.elapsed().as_secs_f64();
-        tally.full_render_s += full[*view].1;
+        tally.full_render_s += full[*view].seconds;
         tally.shared_views += 1;
         let holes = shared.pixels_to_render();
         tally.rendered_rays += holes.len();
@@ -245,7 +252,7 @@ fn serve(
             shared.fill(&holes, &rendered)?;
         }
         let image = frame_to_image(w, h, &shared.frame).context("shared frame")?;
-        let reference = frame_to_image(w, h, &full[*view].0).context("full frame")?;
+        let reference = frame_to_image(w, h, &full[*view].frame).context("full frame")?;
         tally.shared_psnr.push(psnr(&image, &reference, [1.0; 3])?.min(99.0));
         if let (true, Some(truth)) = (*view == scenario.anchor_view, truth) {
             tally.truth_loss.push(psnr(&reference, truth, [1.0; 3])? - psnr(&image, truth, [1.0; 3])?);
@@ -288,7 +295,9 @@ pub fn run(args: ShareArgs, progress: &dyn Progress) -> Result<()> {
             for camera in &scenario.cameras {
                 let start = Instant::now();
                 let (frame, _) = kernel.render_pixels(camera, &all_pixels(camera))?;
-                full.push((frame, start.elapsed().as_secs_f64()));
+                let seconds = start.elapsed().as_secs_f64();
+                let in_bounds = reproject(camera, &bounds, &[], &base)?.counts().in_bounds();
+                full.push(FullRender { frame, seconds, in_bounds });
                 bar.inc(1);
             }
             let row = match table.iter().position(|(n, _)| *n == scenario.name) {
