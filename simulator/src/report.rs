@@ -44,6 +44,8 @@ pub struct Summary {
     pub rays_requested: u64,
     /// Rays the workers rendered (re-issued and aborted work included).
     pub rays_rendered: u64,
+    /// Pixels of the frames the users were shown (completed frames x views x width x height).
+    pub pixels_displayed: u64,
     /// Frames the scheduler released (all users, frames in flight at the end included).
     pub frames_released: u64,
     pub frames_completed: u64,
@@ -63,6 +65,12 @@ impl Summary {
     pub fn rays_saved(&self) -> f64 {
         if self.rays_requested == 0 { 0.0 } else { 1.0 - self.rays_rendered as f64 / self.rays_requested as f64 }
     }
+
+    /// Rays rendered per pixel shown: below 1 where pixels need no ray (the object does not
+    /// cover them) or come from another user's rays; above 1 where work was thrown away.
+    pub fn rays_per_displayed_pixel(&self) -> f64 {
+        if self.pixels_displayed == 0 { 0.0 } else { self.rays_rendered as f64 / self.pixels_displayed as f64 }
+    }
 }
 
 /// A run's report.
@@ -75,7 +83,7 @@ pub struct Report {
 /// Column header of [`table`].
 pub fn table_header() -> String {
     format!(
-        "{:<13} {:<17} {:>7} {:>7} {:>7} {:>6} {:>7} {:>7} {:>5} {:>9} {:>9} {:>6} {:>6} {:>6} {:>5}",
+        "{:<13} {:<17} {:>7} {:>7} {:>7} {:>6} {:>7} {:>7} {:>5} {:>9} {:>9} {:>6} {:>6} {:>6} {:>6} {:>5}",
         "scenario",
         "policy",
         "users",
@@ -88,6 +96,7 @@ pub fn table_header() -> String {
         "req Mray",
         "rend Mray",
         "saved%",
+        "ray/px",
         "err px",
         "reiss",
         "jain"
@@ -97,7 +106,7 @@ pub fn table_header() -> String {
 /// One table line.
 pub fn table_row(s: &Summary) -> String {
     format!(
-        "{:<13} {:<17} {:>7} {:>7} {:>7.1} {:>6.1} {:>7.1} {:>7.1} {:>5.1} {:>9.1} {:>9.1} {:>6.1} {:>6.2} {:>6} {:>5.3}",
+        "{:<13} {:<17} {:>7} {:>7} {:>7.1} {:>6.1} {:>7.1} {:>7.1} {:>5.1} {:>9.1} {:>9.1} {:>6.1} {:>6.3} {:>6.2} {:>6} {:>5.3}",
         s.scenario,
         s.policy,
         format!("{}/{}", s.admitted, s.users),
@@ -110,6 +119,7 @@ pub fn table_row(s: &Summary) -> String {
         s.rays_requested as f64 * 1e-6,
         s.rays_rendered as f64 * 1e-6,
         100.0 * s.rays_saved(),
+        s.rays_per_displayed_pixel(),
         s.share_error_px_max,
         s.batches_reissued,
         s.jain
@@ -132,7 +142,7 @@ pub fn table(rows: &[Summary]) -> String {
     out
 }
 
-pub const CSV_HEADER: &str = "scenario,policy,users,admitted,refusals,attainment_mean,attainment_min,latency_p50_ms,latency_p99_ms,utilisation,rays_requested,rays_rendered,rays_saved,frames_released,frames_completed,frames_dropped,batches_reissued,shared_joins,history_hits,share_error_px_max,jain";
+pub const CSV_HEADER: &str = "scenario,policy,users,admitted,refusals,attainment_mean,attainment_min,latency_p50_ms,latency_p99_ms,utilisation,rays_requested,rays_rendered,rays_saved,pixels_displayed,rays_per_displayed_pixel,frames_released,frames_completed,frames_dropped,batches_reissued,shared_joins,history_hits,share_error_px_max,jain";
 
 /// The rows as CSV (header included).
 pub fn csv(rows: &[Summary]) -> String {
@@ -141,7 +151,7 @@ pub fn csv(rows: &[Summary]) -> String {
     for s in rows {
         let _ = writeln!(
             out,
-            "{},{},{},{},{},{:.6},{:.6},{:.3},{:.3},{:.6},{},{},{:.6},{},{},{},{},{},{},{:.3},{:.6}",
+            "{},{},{},{},{},{:.6},{:.6},{:.3},{:.3},{:.6},{},{},{:.6},{},{:.6},{},{},{},{},{},{},{:.3},{:.6}",
             s.scenario,
             s.policy,
             s.users,
@@ -155,6 +165,8 @@ pub fn csv(rows: &[Summary]) -> String {
             s.rays_requested,
             s.rays_rendered,
             s.rays_saved(),
+            s.pixels_displayed,
+            s.rays_per_displayed_pixel(),
             s.frames_released,
             s.frames_completed,
             s.frames_dropped,

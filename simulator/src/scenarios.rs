@@ -10,7 +10,7 @@ use glam::Vec3;
 use crate::model::{CameraPath, Detect, Scenario, SimObject, SimParams, SimUser, SimWorker, ViewMode};
 
 /// Names and one-line descriptions of the built-in scenarios.
-pub const SCENARIOS: [(&str, &str); 6] = [
+pub const SCENARIOS: [(&str, &str); 8] = [
     (
         "many-objects",
         "one user, 12 objects: 2 close heavy ones (one with an i-NGP-like cost 5) and 10 small light ones, 60 FPS",
@@ -26,6 +26,11 @@ pub const SCENARIOS: [(&str, &str); 6] = [
         "6 stereo users at 60 FPS, 5 workers; one dies mid-frame at 3 s (its connection drops), another hangs silently at 6 s",
     ),
     ("straggler", "6 users at 30 FPS; one of 4 workers runs 10x slower from 2 s to 7 s"),
+    (
+        "adjacent",
+        "8 users orbiting one object 3 degrees apart (adjacent, never identical), 30 FPS, 4 workers: what sharing of identical cameras leaves",
+    ),
+    ("stereo-crowd", "12 headset users (two 1000x1000 eyes) around one object, 30 FPS, 8 workers"),
 ];
 
 pub fn names() -> Vec<&'static str> {
@@ -198,6 +203,36 @@ pub fn builtin(name: &str, seed: u64) -> Option<Scenario> {
             let mut workers = farm(4, 3e7);
             workers[0].slow = Some((2.0, 7.0, 10.0));
             (objects, users, workers, params)
+        }
+        "adjacent" => {
+            let objects = vec![object("lego", Vec3::ZERO, 0.6, 1.0)];
+            let users = (0..8)
+                .map(|i| {
+                    let path = orbit(3.0, 0.8, 6.0, 3.0 * i as f32);
+                    user(format!("u{i}"), 0.0, d, 30.0, (1280, 720), 50.0, ViewMode::Mono, vec![0], path)
+                })
+                .collect();
+            (objects, users, farm(4, 5e7), params)
+        }
+        "stereo-crowd" => {
+            let objects = vec![object("lego", Vec3::ZERO, 0.6, 1.0)];
+            let users = (0..12)
+                .map(|i| {
+                    let path = orbit(3.0, 0.5, 8.0, 30.0 * i as f32);
+                    user(
+                        format!("vr{i:02}"),
+                        0.1 * i as f64,
+                        d,
+                        30.0,
+                        (1000, 1000),
+                        90.0,
+                        ViewMode::Stereo,
+                        vec![0],
+                        path,
+                    )
+                })
+                .collect();
+            (objects, users, farm(8, 6e7), params)
         }
         _ => return None,
     };

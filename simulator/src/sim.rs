@@ -530,6 +530,11 @@ impl Engine<'_> {
             utilisation: if online > 0.0 { busy / online } else { 0.0 },
             rays_requested: stats.rays_requested,
             rays_rendered: rendered.round() as u64,
+            pixels_displayed: self
+                .users
+                .iter()
+                .map(|u| u.completed * u64::from(u.spec.width) * u64::from(u.spec.height) * u.spec.views.count() as u64)
+                .sum(),
             frames_released: stats.frames_released,
             frames_completed: users.iter().map(|u| u.frames_completed).sum(),
             frames_dropped: users.iter().map(|u| u.frames_dropped).sum(),

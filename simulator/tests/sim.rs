@@ -50,6 +50,23 @@ fn viewers_of_one_quilt_render_its_rays_once() {
 }
 
 #[test]
+fn rays_per_displayed_pixel_counts_what_sharing_saves() {
+    // Stereo eyes never share; without sharing, each shown pixel of an object costs its ray.
+    let s = scenario("stereo-crowd", 1.5);
+    let crowd = simulate(&s, Variant::of(Policy::Nephele)).summary;
+    let pixels: u64 = 1000 * 1000 * 2 * crowd.frames_completed;
+    assert_eq!(crowd.pixels_displayed, pixels, "{crowd:?}");
+    let per_pixel = crowd.rays_per_displayed_pixel();
+    assert!(per_pixel > 0.0 && per_pixel < 1.0, "the object fills part of each eye: {per_pixel}");
+    // The same quilt shown twice: half the rays per shown pixel of rendering each alone.
+    let q = scenario("quilt", 1.5);
+    let shared = simulate(&q, Variant::of(Policy::Nephele)).summary;
+    let unshared = simulate(&q, Variant::nephele_without_sharing()).summary;
+    let ratio = shared.rays_per_displayed_pixel() / unshared.rays_per_displayed_pixel();
+    assert!(ratio < 0.6, "shared {shared:?}\nunshared {unshared:?}");
+}
+
+#[test]
 fn a_worker_dying_mid_frame_loses_no_frame() {
     let mut s = scenario("worker-death", 5.0);
     s.workers[3].fail_s = None; // keep only the process death at 3.019 s (connection drops)

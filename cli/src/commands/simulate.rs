@@ -12,7 +12,7 @@ use crate::progress::Progress;
 /// The two CSV formats, shown under `--help`.
 pub fn formats_help() -> String {
     format!(
-        "Scenarios: {}.\n\nTRACE FORMAT (--trace FILE), one user session per line:\n{TRACE_FORMAT}\n\nFARM FORMAT (--workers FILE), one worker per line:\n{WORKERS_FORMAT}\n\nMETRICS: attain% = on-time frames (release to composed within 1/FPS) over the frames the user wanted (time admitted x FPS), mean and min over admitted users; p50/p99 frame latency; util% = worker busy time over connected time; req/rend Mray = rays the frames asked for / rays workers rendered (saved% = sharing and history savings, minus re-issued work); err px = largest reprojection error a shared or reused result was accepted with; reiss = batches re-issued after a loss, failure or missed deadline; jain = Jain's fairness index over achieved/target FPS.",
+        "Scenarios: {}.\n\nTRACE FORMAT (--trace FILE), one user session per line:\n{TRACE_FORMAT}\n\nFARM FORMAT (--workers FILE), one worker per line:\n{WORKERS_FORMAT}\n\nMETRICS: attain% = on-time frames (release to composed within 1/FPS) over the frames the user wanted (time admitted x FPS), mean and min over admitted users; p50/p99 frame latency; util% = worker busy time over connected time; req/rend Mray = rays the frames asked for / rays workers rendered (saved% = sharing and history savings, minus re-issued work); ray/px = rays rendered per pixel shown to the users (below 1 where the object leaves pixels empty or users share rays); err px = largest reprojection error a shared or reused result was accepted with; reiss = batches re-issued after a loss, failure or missed deadline; jain = Jain's fairness index over achieved/target FPS.",
         scenarios::names().join(", ")
     )
 }
