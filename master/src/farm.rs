@@ -86,6 +86,9 @@ pub fn live_scheduler_config() -> SchedulerConfig {
     SchedulerConfig {
         min_batch_timeout: Duration::from_millis(50),
         heartbeat_timeout: Some(Duration::from_secs(2)),
+        // Opt-in live (`nephele master --admit-up-to`): the end-to-end tests open several
+        // users at rates their small test farms cannot all carry.
+        admit_up_to: None,
         ..SchedulerConfig::default()
     }
 }
@@ -794,7 +797,7 @@ impl Actor {
         let sid = match self.scheduler.open_session(spec, now) {
             Ok(sid) => sid,
             Err(SchedError::Refused { retry_after }) => {
-                tracing::info!(session = %name, retry_after_s = retry_after.as_secs(), "session refused: a user is starved");
+                tracing::info!(session = %name, retry_after_s = retry_after.as_secs(), "session refused: a user is starved or the farm is full");
                 let _ = reply.send(Err(OpenError::Refused { retry_after }));
                 return;
             }

@@ -120,14 +120,19 @@ impl Collector for FarmCollector {
         gauge(e, "workers", "Workers in the farm", published.worker_names.len() as f64)?;
         let Some(snapshot) = &published.snapshot else { return Ok(()) };
         let s = &snapshot.stats;
-        let counts: [(&str, &str, u64); 20] = [
+        let counts: [(&str, &str, u64); 21] = [
             ("scheduler_rounds", "Scheduling rounds", s.rounds),
             ("scheduler_starved_rounds", "Rounds in which at least one user was starved", s.starved_rounds),
             ("sessions_opened", "Sessions the scheduler admitted", s.sessions_opened),
             (
                 "scheduler_sessions_refused",
-                "Session opens the scheduler itself refused (a user became starved after the HTTP check)",
+                "Session opens the scheduler itself refused (a user became starved after the HTTP check, or the farm's capacity)",
                 s.sessions_refused,
+            ),
+            (
+                "scheduler_sessions_refused_capacity",
+                "Of those, refused because the asked work would pass the share of the measured throughput set by --admit-up-to",
+                s.sessions_refused_capacity,
             ),
             ("sessions_closed", "Sessions closed", s.sessions_closed),
             ("frames_released", "Frames released to the composer", s.frames_released),

@@ -121,6 +121,15 @@ pub struct SchedulerConfig {
     /// flickers on a loaded farm (a user is starved only while its work waits for dispatch),
     /// so an instant check alone lets sessions in between two starved rounds.
     pub admission_hold: Duration,
+    /// Admission that looks ahead (with `admission_control`): a new session is refused while
+    /// the work its admitted peers ask for (each session's frame rate times the rays its own
+    /// frames render, shared work counted once, by the session that rendered it) plus the
+    /// newcomer's (the mean of theirs) would pass this fraction of the farm's measured
+    /// throughput. `None`: only the starvation refusal. Off in the simulator's baselines.
+    pub admit_up_to: Option<f64>,
+    /// `Retry-After` of a refusal for capacity (users leave, or nothing changes, on a scale of
+    /// seconds).
+    pub capacity_retry: Duration,
     /// Frames of one session that may be in flight at once.
     pub max_frames_in_flight: usize,
     /// Weight of the newest sample in the moving averages (`t_u`, worker throughput).
@@ -165,6 +174,8 @@ impl SchedulerConfig {
             history_max_age: Duration::from_millis(500),
             admission_control: nephele,
             admission_hold: Duration::from_secs(1),
+            admit_up_to: nephele.then_some(0.9),
+            capacity_retry: Duration::from_secs(5),
             max_frames_in_flight: 2,
             smoothing: 0.2,
             straggler_factor: 3.0,
@@ -187,6 +198,9 @@ impl SchedulerConfig {
         }
         if !(self.heavy_fraction.is_finite() && self.heavy_fraction > 0.0) {
             return bad("heavy_fraction must be a positive number");
+        }
+        if self.admit_up_to.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
+            return bad("admit_up_to must be a positive number");
         }
         if !(self.smoothing > 0.0 && self.smoothing <= 1.0) {
             return bad("smoothing must lie in (0, 1]");

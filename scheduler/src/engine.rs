@@ -231,6 +231,9 @@ struct Session {
     last_complete: Option<Time>,
     /// Batches in flight over the tasks of its frames ("loaded tasks").
     loaded: u64,
+    /// Moving average of the work (rays x cost) its frames asked the farm to render: the
+    /// parts it rendered itself, not those it shared or took from the history.
+    work_per_frame: Option<f64>,
     released: u64,
     completed: u64,
     on_time: u64,
@@ -460,6 +463,22 @@ impl Scheduler {
         Admission::Admit
     }
 
+    /// Admission that looks ahead ([`crate::SchedulerConfig::admit_up_to`]): `Some(retry
+    /// after)` when a newcomer asking `fps` would take the admitted sessions' asked work past
+    /// the allowed share of the farm's measured throughput. Admits while no session has
+    /// released a frame yet (nothing is known of the work) or no worker is connected.
+    fn over_capacity(&self, fps: f64) -> Option<Duration> {
+        let share = self.config.admit_up_to.filter(|_| self.config.admission_control)?;
+        let measured: Vec<f64> = self.sessions.values().filter_map(|s| s.work_per_frame).collect();
+        if measured.is_empty() {
+            return None;
+        }
+        let mean = measured.iter().sum::<f64>() / measured.len() as f64;
+        let asked: f64 = self.sessions.values().map(|s| s.fps * s.work_per_frame.unwrap_or(mean)).sum();
+        let capacity: f64 = self.workers.values().filter(|w| !w.draining).map(|w| w.measured).sum();
+        (capacity > 0.0 && asked + fps * mean > share * capacity).then_some(self.config.capacity_retry)
+    }
+
     /// Time for the farm to work off its queue, whole seconds in 1..=30.
     fn retry_after(&self) -> Duration {
         let capacity: f64 = self.workers.values().filter(|w| !w.draining).map(|w| w.measured).sum();
@@ -489,6 +508,11 @@ impl Scheduler {
             self.stats.sessions_refused += 1;
             return Err(SchedError::Refused { retry_after });
         }
+        if let Some(retry_after) = self.over_capacity(spec.target_fps) {
+            self.stats.sessions_refused += 1;
+            self.stats.sessions_refused_capacity += 1;
+            return Err(SchedError::Refused { retry_after });
+        }
         let id = SessionId(self.next_session);
         self.next_session += 1;
         self.sessions.insert(
@@ -506,6 +530,7 @@ impl Scheduler {
                 interval: None,
                 last_complete: None,
                 loaded: 0,
+                work_per_frame: None,
                 released: 0,
                 completed: 0,
                 on_time: 0,
@@ -1057,6 +1082,18 @@ impl Scheduler {
                     source,
                 });
             }
+        }
+        let rendered_work: f64 = parts
+            .iter()
+            .filter(|p| p.source == PartSource::Rendered)
+            .filter_map(|p| self.tasks.get(&p.task).map(|t| t.rays as f64 * t.cost))
+            .sum();
+        let smoothing = self.config.smoothing;
+        if let Some(s) = self.sessions.get_mut(&sid) {
+            s.work_per_frame = Some(match s.work_per_frame {
+                Some(w) => (1.0 - smoothing) * w + smoothing * rendered_work,
+                None => rendered_work,
+            });
         }
         let mut frame =
             Frame { id: fid, released: now, first_dispatch: None, parts, remaining: 0, pending: 0, cursor: 0 };

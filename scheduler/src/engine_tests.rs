@@ -581,3 +581,55 @@ fn a_heavy_batch_that_timed_out_on_every_worker_is_still_reissued() {
     }
     assert!(workers.len() >= 3, "the batch went to {workers:?} and then waited forever");
 }
+
+#[test]
+fn admission_looks_ahead_at_the_farms_capacity() {
+    let run = |admit_up_to: Option<f64>| {
+        let mut cfg = config(Policy::Nephele);
+        cfg.heartbeat_timeout = None;
+        cfg.admit_up_to = admit_up_to;
+        let mut s = scheduler(cfg);
+        s.add_worker(WorkerId(1), 1e5, ms(0)).expect("worker");
+        // Before any frame nothing is known of the work: the first user is admitted.
+        let a = open(&mut s, 1.0, &[camera_at(0.0)], ms(0));
+        s.tick(ms(0));
+        let work = s.sessions.get(&a).and_then(|x| x.work_per_frame).expect("work of the released frame");
+        assert!(work > 100.0, "{work}");
+        // A rate at which two users at different angles fill 80 % of 0.9 x 1e5 rays/s.
+        let fps = 0.9e5 / (2.5 * work);
+        s.close_session(a, ms(1)).expect("close");
+        let a = open(&mut s, fps, &[camera_at(0.0)], ms(2));
+        s.tick(ms(2));
+        let b = s.open_session(SessionSpec { target_fps: fps, objects: vec![OBJ] }, ms(3));
+        let c = s.open_session(SessionSpec { target_fps: fps, objects: vec![OBJ] }, ms(4));
+        let d = s.open_session(SessionSpec { target_fps: 0.1 * fps, objects: vec![OBJ] }, ms(5));
+        (a, b, c, d, s)
+    };
+    let (_, b, c, d, s) = run(Some(0.9));
+    assert!(b.is_ok(), "two users fit: {b:?}");
+    assert!(
+        matches!(c, Err(SchedError::Refused { retry_after }) if retry_after == Duration::from_secs(5)),
+        "a third would pass 90 % of the capacity: {c:?}"
+    );
+    assert!(d.is_ok(), "a slower one still fits: {d:?}");
+    assert_eq!((s.stats().sessions_refused, s.stats().sessions_refused_capacity), (1, 1));
+    // Off: only starvation refuses.
+    let (_, b, c, d, s) = run(None);
+    assert!(b.is_ok() && c.is_ok() && d.is_ok());
+    assert_eq!(s.stats().sessions_refused, 0);
+}
+
+#[test]
+fn a_user_sharing_every_ray_asks_nothing_of_the_farm() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.heartbeat_timeout = None;
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e5, ms(0)).expect("worker");
+    let view = [camera_at(0.0)];
+    let a = open(&mut s, 10.0, &view, ms(0));
+    let b = open(&mut s, 10.0, &view, ms(0));
+    s.tick(ms(0));
+    let work = |id| s.sessions.get(&id).and_then(|x| x.work_per_frame);
+    assert!(work(a).is_some_and(|w| w > 0.0));
+    assert_eq!(work(b), Some(0.0), "b joined a's tasks");
+}

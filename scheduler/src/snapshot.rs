@@ -15,6 +15,9 @@ pub struct Stats {
     pub sessions_opened: u64,
     /// `open_session` calls refused by admission control (each retry counts).
     pub sessions_refused: u64,
+    /// Of those, refused because the farm's measured throughput would not cover the asked
+    /// work ([`crate::SchedulerConfig::admit_up_to`]).
+    pub sessions_refused_capacity: u64,
     pub sessions_closed: u64,
     pub frames_released: u64,
     pub frames_completed: u64,

@@ -42,6 +42,12 @@ pub struct Args {
     /// object-per-worker.
     #[arg(long, default_value = "nephele")]
     policy: Policy,
+    /// Admission that looks ahead: refuse a new user (503, Retry-After 5 s) while the work
+    /// the admitted users ask for (frame rate x the rays their own frames render, shared rays
+    /// counted once) plus the newcomer's would pass this fraction of the farm's measured
+    /// throughput, e.g. 0.9. Without it only Algorithm 1's starvation refusal applies.
+    #[arg(long, value_name = "FRACTION")]
+    admit_up_to: Option<f64>,
     /// Largest ray batch, pixels.
     #[arg(long, value_name = "N")]
     max_batch_rays: Option<u32>,
@@ -88,6 +94,11 @@ pub fn run(args: Args) -> Result<()> {
         scheduler.sharing = baseline.sharing;
         scheduler.history_capacity = baseline.history_capacity;
         scheduler.admission_control = baseline.admission_control;
+    }
+    if let Some(fraction) = args.admit_up_to {
+        ensure!(fraction.is_finite() && fraction > 0.0, "--admit-up-to must be a positive fraction, e.g. 0.9");
+        ensure!(scheduler.admission_control, "--admit-up-to needs the nephele policy's admission control");
+        scheduler.admit_up_to = Some(fraction);
     }
     if let Some(n) = args.max_batch_rays {
         scheduler.max_batch_rays = n;

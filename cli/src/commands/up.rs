@@ -65,6 +65,10 @@ pub struct Args {
     /// How long to wait for every process to join the farm, seconds.
     #[arg(long, default_value_t = 120)]
     ready_secs: u64,
+    /// Admission that looks ahead (the master's `--admit-up-to`): refuse new users while the
+    /// asked work would pass this fraction of the farm's measured throughput, e.g. 0.9.
+    #[arg(long, value_name = "FRACTION")]
+    admit_up_to: Option<f64>,
 }
 
 fn free_port() -> Result<SocketAddr> {
@@ -144,6 +148,9 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     };
     let mut master = nephele("master");
     master.args(["--http", &args.http.to_string(), "--farm-listen", &farm.to_string()]);
+    if let Some(fraction) = args.admit_up_to {
+        master.args(["--admit-up-to", &fraction.to_string()]);
+    }
     supervisor.spawn("master", master, Restart::Never)?;
     let mut composer = nephele("composer");
     composer.args([
