@@ -117,6 +117,7 @@
     rttMs: null,
     poseToFrameMs: null, // from the composer's 'frame' messages: pose sent -> its frame out
     xrSession: null,
+    xrEyeSize: null, // {width, height} the headset recommends per eye
     xrViews: null, // latest [{view, projection}] from the XR frame loop
     reconnectDelayMs: 1000,
     wantConnected: false,
@@ -149,11 +150,29 @@
     });
   }
 
+  // The stream's size per view: in VR the headset's recommended size per eye (its WebXR
+  // layer's framebuffer, halved across); else `?width=&height=`, else the size chosen, where
+  // 'window' is the stage in device pixels. Even sides (H.264 4:2:0), at most MAX_STREAM_SIDE.
+  const MAX_STREAM_SIDE = 1920;
+  function streamSize() {
+    const fitted = (width, height) => {
+      const scale = Math.min(1, MAX_STREAM_SIDE / Math.max(width, height, 1));
+      const even = (n) => Math.max(2, 2 * Math.floor((n * scale) / 2));
+      return [even(width), even(height)];
+    };
+    if (client.xrSession && client.xrEyeSize) return fitted(client.xrEyeSize.width, client.xrEyeSize.height);
+    const choice = $('size').value;
+    let [w, h] = choice.split('x').map(Number);
+    if (choice === 'window') {
+      const ratio = window.devicePixelRatio || 1;
+      [w, h] = fitted($('stage').clientWidth * ratio, $('stage').clientHeight * ratio);
+    }
+    return [Number(params.get('width')) || w, Number(params.get('height')) || h];
+  }
+
   async function connect() {
     client.wantConnected = true;
-    const [w, h] = $('size').value.split('x').map(Number);
-    client.width = Number(params.get('width')) || w;
-    client.height = Number(params.get('height')) || h;
+    [client.width, client.height] = streamSize();
     client.views = client.xrSession ? 2 : 1;
     setState('connecting');
     $('connect').disabled = true;
@@ -420,7 +439,10 @@
     const canvas = $('xr-canvas');
     const gl = canvas.getContext('webgl', { xrCompatible: true });
     await gl.makeXRCompatible();
-    session.updateRenderState({ baseLayer: new XRWebGLLayer(session, gl) });
+    const layer = new XRWebGLLayer(session, gl);
+    session.updateRenderState({ baseLayer: layer });
+    // Both eyes side by side in the layer's framebuffer, sized as the headset recommends.
+    client.xrEyeSize = { width: layer.framebufferWidth / 2, height: layer.framebufferHeight };
     const space = await session.requestReferenceSpace('local-floor').catch(() => session.requestReferenceSpace('local'));
     const drawer = makeVideoDrawer(gl);
     client.xrSession = session;
@@ -504,6 +526,22 @@
     }
     $('connect').onclick = () => connect();
     $('disconnect').onclick = () => disconnect();
+    $('fullscreen').onclick = () => $('stage').requestFullscreen?.().catch(() => {});
+    const size = params.get('size');
+    if (size && [...$('size').options].some((o) => o.value === size)) $('size').value = size;
+    // With the window's size chosen, a new stream once the window has settled at another size.
+    let resizeTimer = null;
+    window.addEventListener('resize', () => {
+      clearTimeout(resizeTimer);
+      resizeTimer = setTimeout(() => {
+        if ($('size').value !== 'window' || client.xrSession || !client.wantConnected) return;
+        const [w, h] = streamSize();
+        if (w !== client.width || h !== client.height) {
+          disconnect();
+          connect();
+        }
+      }, 500);
+    });
     window.addEventListener('pagehide', () => teardown(true));
     installInput();
     setupXr();

@@ -311,6 +311,22 @@ impl Browser {
         }
     }
 
+    /// Runs `source` in every document this tab opens from now on, before the page's own
+    /// scripts (Chromium's `Page.addScriptToEvaluateOnNewDocument`, through chromedriver): how
+    /// tests inject doubles such as a scripted `navigator.xr`.
+    pub fn add_script_on_new_document(&self, source: &str) -> Result<()> {
+        let command = json!({ "cmd": "Page.addScriptToEvaluateOnNewDocument", "params": { "source": source } });
+        self.request("POST", &self.session_path("/goog/cdp/execute"), Some(&command))?;
+        Ok(())
+    }
+
+    /// Resizes the browser window (WebDriver's Set Window Rect); the page sees `resize`.
+    pub fn set_window_size(&self, width: u32, height: u32) -> Result<()> {
+        let rect = json!({ "width": width, "height": height });
+        self.request("POST", &self.session_path("/window/rect"), Some(&rect))?;
+        Ok(())
+    }
+
     /// The current tab's handle.
     pub fn window(&self) -> Result<String> {
         let value = self.request("GET", &self.session_path("/window"), None)?;

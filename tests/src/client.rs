@@ -116,6 +116,10 @@ pub fn h264_mode1_payload_types(sdp: &str) -> Vec<u32> {
     h264
 }
 
+/// A scripted WebXR device (`navigator.xr`, `XRWebGLLayer`), to inject with
+/// [`Browser::add_script_on_new_document`] before opening the page: see the script's header.
+pub const MOCK_XR: &str = include_str!("mock_xr.js");
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -206,6 +206,97 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
     assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
 }
 
+/// The stream size the page should ask for with `?size=window`: the stage in device pixels,
+/// even sides, at most 1920 (the client's `streamSize`).
+fn window_stream_size(browser: &Browser) -> (u32, u32) {
+    let value = browser
+        .execute(
+            "const s = document.getElementById('stage'), r = window.devicePixelRatio || 1;\n\
+             return [s.clientWidth * r, s.clientHeight * r];",
+            Vec::new(),
+        )
+        .expect("stage size");
+    let (w, h) = (value[0].as_f64().expect("width"), value[1].as_f64().expect("height"));
+    let scale = (1920.0 / w.max(h)).min(1.0);
+    let even = |n: f64| (2.0 * (n * scale / 2.0).floor()).max(2.0) as u32;
+    (even(w), even(h))
+}
+
+#[test]
+fn the_window_size_streams_the_stage_in_device_pixels_and_follows_a_resize() {
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let service = Service::start(false);
+    let base = service.url.split('?').next().expect("url").to_string();
+    let browser = Browser::start().expect("headless Chromium");
+    browser.goto(&format!("{base}?size=window")).expect("open the client");
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("the data channel opens");
+    let asked = |offer: &nephele_tests::farm::Offer| (offer.request.width, offer.request.height);
+    let first = window_stream_size(&browser);
+    assert_eq!(service.farm.offers().iter().map(asked).collect::<Vec<_>>(), vec![first]);
+    // A smaller window: once it settles, a new session at the new size.
+    browser.set_window_size(700, 500).expect("resize");
+    let offers = wait_for("a session at the new size", Duration::from_secs(15), || {
+        let offers = service.farm.offers();
+        (offers.len() >= 2).then_some(offers)
+    });
+    let second = window_stream_size(&browser);
+    assert_ne!(first, second, "the stage did not change size");
+    assert_eq!(asked(offers.last().expect("offer")), second);
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("streams again");
+}
+
+#[test]
+fn the_immersive_vr_path_streams_both_eyes_at_the_headsets_size_and_returns_to_flat() {
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let service = Service::start(true);
+    let farm = &service.farm;
+    let base = service.url.split('?').next().expect("url").to_string();
+    let browser = Browser::start().expect("headless Chromium");
+    browser.add_script_on_new_document(client::MOCK_XR).expect("inject the XR device");
+    browser.goto(&format!("{base}?size=640x480")).expect("open the client");
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("flat streaming");
+    browser.wait_until("!document.getElementById('enter-vr').hidden", Duration::from_secs(5)).expect("Enter VR shown");
+    browser.execute("document.getElementById('enter-vr').click(); return null;", Vec::new()).expect("click");
+
+    // A new session with two views at the size the headset recommends per eye.
+    let offers = wait_for("the VR session", Duration::from_secs(15), || {
+        let offers = farm.offers();
+        (offers.len() >= 2).then_some(offers)
+    });
+    let vr = &offers[1];
+    assert_eq!((offers[0].request.views, offers[0].request.width, offers[0].request.height), (1, 640, 480));
+    assert_eq!((vr.request.views, vr.request.width, vr.request.height), (2, 320, 240));
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("VR streaming");
+    // Both eyes' poses reach the farm as one two-view pose in VR mode, 64 mm apart.
+    let pose = wait_for("a two-view pose", Duration::from_secs(5), || {
+        farm.latest_pose(&vr.session_id).filter(|p| p.views.len() == 2)
+    });
+    assert_eq!((pose.mode, pose.view_size()), (1, (320, 240)));
+    let (left, right) = (eye(&pose, 0), eye(&pose, 1));
+    let apart = left.iter().zip(right).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+    assert!((apart - 0.064).abs() < 1e-4, "eyes {left:?} and {right:?} are {apart} m apart");
+    // Each eye's half of the layer is drawn.
+    let drawn = browser
+        .wait_until(
+            "window.__xrViewports.some(v => v.join() === '0,0,320,240') && window.__xrViewports.some(v => v.join() === '320,0,320,240')",
+            Duration::from_secs(5),
+        )
+        .expect("both eyes' viewports drawn");
+    assert_eq!(drawn, serde_json::Value::Bool(true));
+
+    // Ending the XR session returns the page to a flat stream.
+    browser.execute("window.__xrSession.end(); return null;", Vec::new()).expect("end");
+    let offers = wait_for("the flat session again", Duration::from_secs(15), || {
+        let offers = farm.offers();
+        (offers.len() >= 3).then_some(offers)
+    });
+    let flat = &offers[2];
+    assert_eq!((flat.request.views, flat.request.width, flat.request.height), (1, 640, 480));
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("flat streaming again");
+    let errors = browser.console_log().expect("console log");
+    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
+}
+
 #[test]
 fn a_busy_farm_makes_the_client_wait_and_retry() {
     let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
