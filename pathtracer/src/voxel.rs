@@ -76,11 +76,9 @@ pub fn surface_voxels(mesh: &Mesh, grid: &VoxelGrid) -> Vec<[u32; 3]> {
     surface_bits(mesh, grid).points()
 }
 
-/// [`surface_voxels`] as a bit array.
-pub fn surface_bits(mesh: &Mesh, grid: &VoxelGrid) -> VoxelBits {
-    let res = grid.res as usize;
-    let mut bits = vec![0u64; (res * res * res).div_ceil(64)];
-    let step = 0.5 * grid.voxel;
+/// Calls `visit` with points of every finite triangle of `mesh` on a barycentric lattice at
+/// most `step` apart along the longest edge (at most 4096 steps per edge).
+fn for_surface_points(mesh: &Mesh, step: f32, mut visit: impl FnMut(Vec3)) {
     for tri in &mesh.indices {
         let [a, b, c] = tri.map(|i| mesh.positions.get(i as usize).copied().unwrap_or(Vec3::NAN));
         if !(a.is_finite() && b.is_finite() && c.is_finite()) {
@@ -90,14 +88,23 @@ pub fn surface_bits(mesh: &Mesh, grid: &VoxelGrid) -> VoxelBits {
         let n = ((longest / step).ceil() as usize).clamp(1, 4096);
         for i in 0..=n {
             for j in 0..=(n - i) {
-                let p = a + (b - a) * (i as f32 / n as f32) + (c - a) * (j as f32 / n as f32);
-                if let Some([x, y, z]) = grid.voxel_of(p) {
-                    let idx = x as usize + res * (y as usize + res * z as usize);
-                    bits[idx / 64] |= 1 << (idx % 64);
-                }
+                visit(a + (b - a) * (i as f32 / n as f32) + (c - a) * (j as f32 / n as f32));
             }
         }
     }
+}
+
+/// [`surface_voxels`] as a bit array.
+pub fn surface_bits(mesh: &Mesh, grid: &VoxelGrid) -> VoxelBits {
+    let res = grid.res as usize;
+    let mut bits = vec![0u64; (res * res * res).div_ceil(64)];
+    let step = 0.5 * grid.voxel;
+    for_surface_points(mesh, step, |p| {
+        if let Some([x, y, z]) = grid.voxel_of(p) {
+            let idx = x as usize + res * (y as usize + res * z as usize);
+            bits[idx / 64] |= 1 << (idx % 64);
+        }
+    });
     VoxelBits { grid: *grid, bits }
 }
 
@@ -116,30 +123,19 @@ pub fn cell_occupancy(mesh: &Mesh, min: Vec3, max: Vec3, longest_cells: u32, mar
     let mut occupied = vec![false; dims.iter().map(|&d| d as usize).product()];
     let reach = Vec3::splat(margin.max(0.0));
     let sample_step = 0.5 * step.min_element();
-    for tri in &mesh.indices {
-        let [a, b, c] = tri.map(|i| mesh.positions.get(i as usize).copied().unwrap_or(Vec3::NAN));
-        if !(a.is_finite() && b.is_finite() && c.is_finite()) {
-            continue;
-        }
-        let longest = (b - a).length().max((c - a).length()).max((c - b).length());
-        let n = ((longest / sample_step).ceil() as usize).clamp(1, 4096);
-        for i in 0..=n {
-            for j in 0..=(n - i) {
-                let p = a + (b - a) * (i as f32 / n as f32) + (c - a) * (j as f32 / n as f32);
-                let f = (p - min) / step;
-                let lo = (f - reach).floor().max(Vec3::ZERO);
-                let hi = (f + reach).floor();
-                for z in lo.z as u32..=(hi.z.max(0.0) as u32).min(dims[2] - 1) {
-                    for y in lo.y as u32..=(hi.y.max(0.0) as u32).min(dims[1] - 1) {
-                        for x in lo.x as u32..=(hi.x.max(0.0) as u32).min(dims[0] - 1) {
-                            let index = x as usize + dims[0] as usize * (y as usize + dims[1] as usize * z as usize);
-                            occupied[index] = true;
-                        }
-                    }
+    for_surface_points(mesh, sample_step, |p| {
+        let f = (p - min) / step;
+        let lo = (f - reach).floor().max(Vec3::ZERO);
+        let hi = (f + reach).floor();
+        for z in lo.z as u32..=(hi.z.max(0.0) as u32).min(dims[2] - 1) {
+            for y in lo.y as u32..=(hi.y.max(0.0) as u32).min(dims[1] - 1) {
+                for x in lo.x as u32..=(hi.x.max(0.0) as u32).min(dims[0] - 1) {
+                    let index = x as usize + dims[0] as usize * (y as usize + dims[1] as usize * z as usize);
+                    occupied[index] = true;
                 }
             }
         }
-    }
+    });
     (dims, occupied)
 }
 
@@ -147,12 +143,9 @@ pub fn cell_occupancy(mesh: &Mesh, min: Vec3, max: Vec3, longest_cells: u32, mar
 mod tests {
     use super::*;
 
-    #[test]
-    fn cell_occupancy_marks_the_cells_a_surface_crosses_and_a_margin() {
-        // The square z = 0.5 spanning the unit box, cut into 8 cells a side: the layer of
-        // cells it lies on (z index 4; 0.5 is exactly their lower face, so with no margin
-        // only that layer), then with half a cell of margin the layer below too.
-        let mesh = Mesh::new(
+    /// The square z = 0.5 spanning the unit box.
+    fn square_at_half_height() -> Mesh {
+        Mesh::new(
             vec![
                 Vec3::new(0.0, 0.0, 0.5),
                 Vec3::new(1.0, 0.0, 0.5),
@@ -160,7 +153,15 @@ mod tests {
                 Vec3::new(0.0, 1.0, 0.5),
             ],
             vec![[0, 1, 2], [0, 2, 3]],
-        );
+        )
+    }
+
+    #[test]
+    fn cell_occupancy_marks_the_cells_a_surface_crosses_and_a_margin() {
+        // The square z = 0.5 spanning the unit box, cut into 8 cells a side: the layer of
+        // cells it lies on (z index 4; 0.5 is exactly their lower face, so with no margin
+        // only that layer), then with half a cell of margin the layer below too.
+        let mesh = square_at_half_height();
         let (dims, tight) = cell_occupancy(&mesh, Vec3::ZERO, Vec3::ONE, 8, 0.0);
         assert_eq!(dims, [8, 8, 8]);
         let layers =
@@ -178,15 +179,7 @@ mod tests {
     #[test]
     fn a_square_covers_one_layer() {
         // The square z = 0.5 spanning the unit box: one full layer of voxels.
-        let mesh = Mesh::new(
-            vec![
-                Vec3::new(0.0, 0.0, 0.5),
-                Vec3::new(1.0, 0.0, 0.5),
-                Vec3::new(1.0, 1.0, 0.5),
-                Vec3::new(0.0, 1.0, 0.5),
-            ],
-            vec![[0, 1, 2], [0, 2, 3]],
-        );
+        let mesh = square_at_half_height();
         let grid = VoxelGrid { min: Vec3::ZERO, voxel: 0.125, res: 8 };
         let v = surface_voxels(&mesh, &grid);
         assert_eq!(v.len(), 64);

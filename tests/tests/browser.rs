@@ -52,6 +52,22 @@ fn wait_for<T>(what: &str, limit: Duration, mut probe: impl FnMut() -> Option<T>
     }
 }
 
+/// The HUD shows the bitrate (in kbit/s while the picture is still: it read 0.00 Mbit/s) and
+/// the pose -> frame latency once the stats have ticked.
+fn hud_shows_bitrate_and_latency(browser: &Browser) {
+    let hud = |id: &str| {
+        let script = format!("return document.getElementById('{id}').textContent;");
+        browser.execute(&script, Vec::new()).ok().and_then(|v| v.as_str().map(str::to_string))
+    };
+    let (bitrate, latency) = wait_for("the HUD's bitrate and latency", Duration::from_secs(20), || {
+        let (bitrate, latency) = (hud("bitrate")?, hud("latency")?);
+        let bits = bitrate.split(' ').next()?.parse::<f64>().ok()?;
+        let ms = latency.strip_suffix(" ms")?.parse::<f64>().ok()?;
+        (bits > 0.0 && ms > 0.0).then_some((bitrate, latency))
+    });
+    eprintln!("HUD: bitrate {bitrate}, pose -> frame {latency}");
+}
+
 fn orbit_eye(azimuth: f64, elevation: f64, radius: f64) -> [f64; 3] {
     let t = FIRST_VIEW.target.map(f64::from);
     [
@@ -157,19 +173,7 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
         (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))),
         "{stats}"
     );
-    // The HUD shows the bitrate (in kbit/s while the picture is still: it read 0.00 Mbit/s)
-    // and the pose -> frame latency once the stats have ticked.
-    let hud = |id: &str| {
-        let script = format!("return document.getElementById('{id}').textContent;");
-        browser.execute(&script, Vec::new()).ok().and_then(|v| v.as_str().map(str::to_string))
-    };
-    let (bitrate, latency) = wait_for("the HUD's bitrate and latency", Duration::from_secs(20), || {
-        let (bitrate, latency) = (hud("bitrate")?, hud("latency")?);
-        let bits = bitrate.split(' ').next()?.parse::<f64>().ok()?;
-        let ms = latency.strip_suffix(" ms")?.parse::<f64>().ok()?;
-        (bits > 0.0 && ms > 0.0).then_some((bitrate, latency))
-    });
-    eprintln!("HUD: bitrate {bitrate}, pose -> frame {latency}");
+    hud_shows_bitrate_and_latency(&browser);
     assert!(farm.frames_sent(&first) > 0);
     // Pings go out and pongs come back (the client measures the round trip).
     browser.wait_until("window.nephele.rttMs !== null", Duration::from_secs(3)).expect("a round-trip time");
@@ -346,19 +350,7 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
         (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))),
         "{stats}"
     );
-    // The HUD shows the bitrate (in kbit/s while the picture is still: it read 0.00 Mbit/s)
-    // and the pose -> frame latency once the stats have ticked.
-    let hud = |id: &str| {
-        let script = format!("return document.getElementById('{id}').textContent;");
-        browser.execute(&script, Vec::new()).ok().and_then(|v| v.as_str().map(str::to_string))
-    };
-    let (bitrate, latency) = wait_for("the HUD's bitrate and latency", Duration::from_secs(20), || {
-        let (bitrate, latency) = (hud("bitrate")?, hud("latency")?);
-        let bits = bitrate.split(' ').next()?.parse::<f64>().ok()?;
-        let ms = latency.strip_suffix(" ms")?.parse::<f64>().ok()?;
-        (bits > 0.0 && ms > 0.0).then_some((bitrate, latency))
-    });
-    eprintln!("HUD: bitrate {bitrate}, pose -> frame {latency}");
+    hud_shows_bitrate_and_latency(&browser);
 
     // Close to the scene, then far away: the farm renders the new pose and the picture follows.
     let whole = [0.0, 0.0, 1.0, 1.0];
