@@ -348,7 +348,7 @@ fn loopback_processes(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<L
     let cfg = FrameConfig::default();
     let mut reader = FrameReader::new(stream.try_clone()?, cfg);
     let mut writer = FrameWriter::new(stream, cfg);
-    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Tool, &[Role::Composer])?;
+    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Tool, &[Role::Composer], None)?;
     // Distinct batches, encoded while timing: the sender's encode cost is part of the link.
     let messages: Vec<Message> = (0..8).map(|i| Message::BatchResult(sample_result(args.pixels, i))).collect();
     let mut wire_bytes = 0u64;
@@ -386,7 +386,7 @@ pub fn sink(args: SinkArgs) -> Result<()> {
     let cfg = FrameConfig::default();
     let mut reader = FrameReader::new(BufReader::with_capacity(1 << 18, stream.try_clone()?), cfg);
     let mut writer = FrameWriter::new(stream, cfg);
-    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Tool, Role::Worker])?;
+    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Tool, Role::Worker], None)?;
     let mut received = 0u64;
     loop {
         match reader.read_message()? {
@@ -422,7 +422,7 @@ fn loopback_tokio(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<Loopb
             let (stream, _) = listener.accept().await?;
             stream.set_nodelay(true)?;
             let mut conn = framed(stream, FrameConfig::default());
-            handshake(&mut conn, Role::Composer, &[Role::Tool], timeout).await?;
+            handshake(&mut conn, Role::Composer, &[Role::Tool], None, timeout).await?;
             let mut received = 0u64;
             while let Some(item) = conn.next().await {
                 match item?.map_err(nephele_proto::ProtoError::from)? {
@@ -438,7 +438,7 @@ fn loopback_tokio(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<Loopb
         let stream = tokio::net::TcpStream::connect(addr).await?;
         stream.set_nodelay(true)?;
         let mut conn = framed(stream, FrameConfig::default());
-        handshake(&mut conn, Role::Tool, &[Role::Composer], timeout).await?;
+        handshake(&mut conn, Role::Tool, &[Role::Composer], None, timeout).await?;
         let messages: Vec<Message> = (0..8).map(|i| Message::BatchResult(sample_result(pixels, i))).collect();
         let mut frame_lens = Vec::new();
         for m in &messages {

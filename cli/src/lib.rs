@@ -115,6 +115,9 @@ enum Command {
     /// Ask a process's `/livez` or `/readyz` once: exit 0 on 2xx, 1 otherwise (the
     /// container images' health check).
     Probe(commands::probe::Args),
+    /// Write a fresh farm secret to a file (owner-readable only): the credential that the
+    /// master, the composer and the workers prove to each other when they join.
+    FarmSecret(commands::farm_secret::Args),
     /// Run the whole service locally: master, composer and render workers as child
     /// processes; prints the URL to open; Ctrl-C stops everything.
     ///
@@ -164,6 +167,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Render(args) => commands::render::run(args, &progress),
         Command::Master(args) => commands::master::run(args),
         Command::Probe(args) => commands::probe::run(args),
+        Command::FarmSecret(args) => commands::farm_secret::run(args),
         Command::Up(args) => commands::up::run(args, &progress, cli.log_format),
     }
 }

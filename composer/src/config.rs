@@ -38,6 +38,9 @@ pub struct ComposerConfig {
     pub master: Option<String>,
     /// The composer's name in the master's `GET /v1/farm`.
     pub name: String,
+    /// The farm credential ([`nephele_proto::auth`]): proved to the master and demanded of
+    /// every peer of the results listener; `None` is an open farm.
+    pub farm_secret: Option<nephele_proto::auth::FarmSecret>,
 }
 
 impl Default for ComposerConfig {
@@ -55,6 +58,7 @@ impl Default for ComposerConfig {
             max_sessions: 64,
             master: None,
             name: "composer".into(),
+            farm_secret: None,
         }
     }
 }

@@ -57,7 +57,7 @@ async fn link(shared: &Arc<Shared>, master: &str, results: SocketAddr, stop: &Sh
     let stream = TcpStream::connect(master).await.map_err(|e| format!("connecting: {e}"))?;
     let _ = stream.set_nodelay(true);
     let mut conn = framed(stream, FrameConfig::default());
-    handshake(&mut conn, Role::Composer, &[Role::Master], HANDSHAKE_TIMEOUT)
+    handshake(&mut conn, Role::Composer, &[Role::Master], shared.config.farm_secret.as_ref(), HANDSHAKE_TIMEOUT)
         .await
         .map_err(|e| format!("handshake: {e}"))?;
     let results_address = shared.config.advertise_results.clone().unwrap_or_else(|| results.to_string());
@@ -253,8 +253,15 @@ pub(crate) async fn accept_results(shared: Arc<Shared>, listener: TcpListener, s
 pub(crate) async fn read_results(shared: Arc<Shared>, stream: TcpStream, peer: SocketAddr, stop: Shutdown) {
     let _ = stream.set_nodelay(true);
     let mut conn = framed(stream, FrameConfig::default());
-    let peer_role = match handshake(&mut conn, Role::Composer, &[Role::Worker, Role::Tool], HANDSHAKE_TIMEOUT).await {
+    let accept = [Role::Worker, Role::Tool];
+    let secret = shared.config.farm_secret.as_ref();
+    let peer_role = match handshake(&mut conn, Role::Composer, &accept, secret, HANDSHAKE_TIMEOUT).await {
         Ok(hello) => hello.role,
+        Err(e @ nephele_proto::ProtoError::Unauthenticated(_)) => {
+            shared.metrics.peers_unauthenticated.inc();
+            tracing::warn!(%peer, "results connection refused: {e}");
+            return;
+        }
         Err(e) => {
             shared.metrics.wire_errors.inc();
             tracing::debug!(%peer, "worker handshake: {e}");

@@ -25,6 +25,7 @@ pub struct ComposerMetrics {
     pub(crate) send_errors: Counter,
     pub(crate) wire_errors: Counter,
     pub(crate) worker_connections: Counter,
+    pub(crate) peers_unauthenticated: Counter,
     pub(crate) sessions: Gauge,
     pub(crate) master_linked: Gauge,
     pub(crate) results_after_release: Counter,
@@ -46,6 +47,11 @@ impl ComposerMetrics {
         let send_errors = counter(&mut registry, "send_errors", "Frames that could not be sent");
         let wire_errors = counter(&mut registry, "wire_errors", "Malformed messages on the results listener");
         let worker_connections = counter(&mut registry, "worker_connections", "Worker connections accepted");
+        let peers_unauthenticated = counter(
+            &mut registry,
+            "peers_unauthenticated",
+            "Results connections refused for not proving the farm secret (their results never reach a frame)",
+        );
         let sessions = register(&mut registry, "sessions", "Viewer sessions", Gauge::default());
         let master_linked = register(
             &mut registry,
@@ -80,6 +86,7 @@ impl ComposerMetrics {
             send_errors,
             wire_errors,
             worker_connections,
+            peers_unauthenticated,
             sessions,
             master_linked,
             results_after_release,

@@ -3,9 +3,60 @@
 //! blocks, so each request runs on tokio's blocking pool; it is one request per session
 //! start and end, not a hot path.
 
+use std::path::Path;
+use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
 use crate::LoadError;
+
+/// The environment variable naming a PEM file of certificates that https:// requests trust
+/// instead of the public roots (a master's self-signed certificate, a private CA).
+pub const TLS_CA_ENV: &str = "NEPHELE_TLS_CA";
+
+/// Certificates trusted instead of the public roots, for the whole process: set once at
+/// start-up ([`trust_certificates`], `nephele loadgen --tls-ca`), else read from
+/// `$NEPHELE_TLS_CA` on first use; empty: the public web roots.
+static TRUSTED: OnceLock<Arc<Vec<ureq::tls::Certificate<'static>>>> = OnceLock::new();
+
+/// Reads the PEM certificates of `file` (one or more).
+pub fn read_certificates(file: &Path) -> Result<Vec<ureq::tls::Certificate<'static>>, LoadError> {
+    let shown = file.display();
+    let pem = std::fs::read(file).map_err(|e| LoadError::Http(format!("reading the certificate file {shown}: {e}")))?;
+    let mut certs = Vec::new();
+    for item in ureq::tls::parse_pem(&pem) {
+        match item.map_err(|e| LoadError::Http(format!("{shown}: {e}")))? {
+            ureq::tls::PemItem::Certificate(cert) => certs.push(cert),
+            _ => {}
+        }
+    }
+    if certs.is_empty() {
+        return Err(LoadError::Http(format!("{shown} holds no PEM certificate")));
+    }
+    Ok(certs)
+}
+
+/// Makes every https:// request of this process trust the certificates of `file` (and only
+/// them). Call it once, before the first request; a second call with a different file
+/// is an error.
+pub fn trust_certificates(file: &Path) -> Result<(), LoadError> {
+    let certs = Arc::new(read_certificates(file)?);
+    let set = TRUSTED.get_or_init(|| certs.clone());
+    if set.iter().map(|c| c.der()).ne(certs.iter().map(|c| c.der())) {
+        return Err(LoadError::Http("another set of trusted certificates is already in use".into()));
+    }
+    Ok(())
+}
+
+fn trusted() -> Result<Arc<Vec<ureq::tls::Certificate<'static>>>, LoadError> {
+    if let Some(set) = TRUSTED.get() {
+        return Ok(set.clone());
+    }
+    let from_env = match std::env::var_os(TLS_CA_ENV).filter(|v| !v.is_empty()) {
+        Some(file) => read_certificates(Path::new(&file))?,
+        None => Vec::new(),
+    };
+    Ok(TRUSTED.get_or_init(|| Arc::new(from_env)).clone())
+}
 
 /// The master's URL, `http[s]://HOST[:PORT][/PREFIX]`, without query or trailing slash.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -61,14 +112,54 @@ pub fn request_blocking(
     body: &str,
     timeout: Duration,
 ) -> Result<Response, LoadError> {
+    request_blocking_with(url, method, headers, body, timeout, Verify::Trusted)
+}
+
+/// How an https:// request checks the server's certificate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verify {
+    /// Against the trusted certificates ([`trust_certificates`]), else the public roots.
+    Trusted,
+    /// Not at all, and only to a loopback address: a process probing a child of its own
+    /// whose certificate names the public host, not 127.0.0.1 (`nephele up --tls-cert`).
+    LoopbackUnchecked,
+}
+
+/// [`request_blocking`] with a choice of certificate check.
+pub fn request_blocking_with(
+    url: &str,
+    method: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+    timeout: Duration,
+    verify: Verify,
+) -> Result<Response, LoadError> {
     let what = format!("{method} {url}");
+    if verify == Verify::LoopbackUnchecked {
+        let host = url.split_once("://").map_or("", |(_, rest)| rest);
+        if !["127.0.0.1:", "localhost:", "[::1]:"].iter().any(|p| host.starts_with(p)) {
+            return Err(LoadError::Http(format!("{what}: unchecked TLS is only for loopback addresses")));
+        }
+    }
     let mut builder = ureq::http::Request::builder().method(method).uri(url).header("Content-Type", "application/json");
     for (k, v) in headers {
         builder = builder.header(*k, *v);
     }
     let request = builder.body(body.to_owned()).map_err(|e| LoadError::Http(format!("{what}: {e}")))?;
-    let agent: ureq::Agent =
-        ureq::Agent::config_builder().http_status_as_error(false).timeout_global(Some(timeout)).build().into();
+    let trusted = trusted()?;
+    let mut tls = ureq::tls::TlsConfig::builder();
+    if !trusted.is_empty() {
+        tls = tls.root_certs(ureq::tls::RootCerts::Specific(trusted));
+    }
+    if verify == Verify::LoopbackUnchecked {
+        tls = tls.disable_verification(true);
+    }
+    let agent: ureq::Agent = ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .timeout_global(Some(timeout))
+        .tls_config(tls.build())
+        .build()
+        .into();
     let send = || -> Result<Response, ureq::Error> {
         let mut response = agent.run(request)?;
         let status = response.status().as_u16();

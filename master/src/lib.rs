@@ -12,6 +12,7 @@
 //! * [`links`]: the farm listener and one task per worker or composer connection.
 //! * [`metrics`]: the Prometheus metrics (`GET /metrics`).
 //! * [`service`]: both listeners and graceful shutdown: `nephele master`.
+//! * [`tls`]: HTTPS for the page and the API (certificates, a self-signed one for LAN use).
 
 pub mod client_files;
 pub mod farm;
@@ -21,3 +22,4 @@ pub mod metrics;
 pub mod scenes;
 pub mod service;
 pub mod sessions;
+pub mod tls;

@@ -10,9 +10,11 @@
 //! and the connection carries on.
 
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
+use nephele_proto::auth::FarmSecret;
 use nephele_proto::stream::{Connection, framed, handshake, recv};
 use nephele_proto::{
     ErrorCode, ErrorMessage, FrameConfig, Goodbye, Message, ProtoError, Registered, Role, clip_text, error_message,
@@ -29,13 +31,14 @@ pub const WRITE_TIMEOUT: Duration = Duration::from_secs(10);
 
 type Conn = Connection<TcpStream>;
 
-/// Accepts connections until the task is aborted.
-pub async fn serve(listener: TcpListener, farm: Farm, frame: FrameConfig) {
+/// Accepts connections until the task is aborted. With a `secret`, every peer must prove it
+/// in the handshake ([`nephele_proto::auth`]).
+pub async fn serve(listener: TcpListener, farm: Farm, frame: FrameConfig, secret: Option<Arc<FarmSecret>>) {
     loop {
         match listener.accept().await {
             Ok((stream, peer)) => {
                 tracing::debug!(%peer, "farm connection accepted");
-                tokio::spawn(connection(stream, peer, farm.clone(), frame));
+                tokio::spawn(connection(stream, peer, farm.clone(), frame, secret.clone()));
             }
             Err(e) => {
                 // Out of file descriptors and the like: back off instead of spinning.
@@ -46,14 +49,27 @@ pub async fn serve(listener: TcpListener, farm: Farm, frame: FrameConfig) {
     }
 }
 
-async fn connection(stream: TcpStream, peer: SocketAddr, farm: Farm, frame: FrameConfig) {
+async fn connection(
+    stream: TcpStream,
+    peer: SocketAddr,
+    farm: Farm,
+    frame: FrameConfig,
+    secret: Option<Arc<FarmSecret>>,
+) {
     if let Err(e) = stream.set_nodelay(true) {
         tracing::debug!(%peer, "set_nodelay: {e}");
     }
     let mut conn = framed(stream, frame);
-    let hello = match handshake(&mut conn, Role::Master, &[Role::Worker, Role::Composer], HANDSHAKE_TIMEOUT).await {
+    let accept = [Role::Worker, Role::Composer];
+    let hello = match handshake(&mut conn, Role::Master, &accept, secret.as_deref(), HANDSHAKE_TIMEOUT).await {
         Ok(hello) => hello,
         Err(e) => {
+            let counters = &farm.metrics().links;
+            if matches!(e, ProtoError::Unauthenticated(_)) {
+                counters.peers_unauthenticated.inc();
+            } else {
+                counters.handshakes_failed.inc();
+            }
             tracing::warn!(%peer, "farm connection refused at the handshake: {e}");
             return;
         }

@@ -34,11 +34,13 @@ pub(crate) struct LinkCounters {
     pub sessions_refused: Counter,
     pub sessions_ended_by_peer: Counter,
     pub stale_reports: Counter,
+    pub peers_unauthenticated: Counter,
+    pub handshakes_failed: Counter,
 }
 
 impl LinkCounters {
     fn register(&self, registry: &mut Registry) {
-        let entries: [(&str, &str, &Counter); 12] = [
+        let entries: [(&str, &str, &Counter); 14] = [
             ("workers_joined", "Workers that registered", &self.workers_joined),
             ("workers_left", "Worker links that closed", &self.workers_left),
             ("workers_lost", "Workers dropped for missing their heartbeats", &self.workers_lost),
@@ -55,6 +57,16 @@ impl LinkCounters {
             ),
             ("sessions_ended_by_peer", "Sessions the composer ended (viewer gone)", &self.sessions_ended_by_peer),
             ("stale_reports", "Worker reports for batches no longer in flight", &self.stale_reports),
+            (
+                "farm_peers_unauthenticated",
+                "Farm connections refused for not proving the farm secret (none, or a wrong one)",
+                &self.peers_unauthenticated,
+            ),
+            (
+                "farm_handshakes_failed",
+                "Farm connections that failed their opening otherwise (wrong role or version, garbage, timeout)",
+                &self.handshakes_failed,
+            ),
         ];
         for (name, help, counter) in entries {
             registry.register(name, help, counter.clone());

@@ -15,12 +15,14 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use nephele_proto::FrameConfig;
+use nephele_proto::auth::FarmSecret;
 use thiserror::Error;
 use tokio::net::TcpListener;
 
 use crate::farm::{Farm, FarmConfig};
 use crate::http::{AppState, router};
 use crate::scenes::{Catalog, CatalogError};
+use crate::tls::{ServerTls, TlsListener};
 
 #[derive(Debug, Clone)]
 pub struct MasterConfig {
@@ -30,6 +32,11 @@ pub struct MasterConfig {
     pub farm: String,
     pub farm_config: FarmConfig,
     pub frame: FrameConfig,
+    /// The farm credential every worker and composer must prove ([`nephele_proto::auth`]);
+    /// `None` is an open farm (anything that reaches `farm` may join).
+    pub farm_secret: Option<FarmSecret>,
+    /// HTTPS for the page and the API ([`crate::tls`]); `None`: plain http.
+    pub tls: Option<ServerTls>,
 }
 
 impl Default for MasterConfig {
@@ -39,6 +46,8 @@ impl Default for MasterConfig {
             farm: "127.0.0.1:7070".into(),
             farm_config: FarmConfig::default(),
             frame: FrameConfig::default(),
+            farm_secret: None,
+            tls: None,
         }
     }
 }
@@ -120,9 +129,24 @@ impl Master {
                 }
             }
         });
-        let listener = tokio::spawn(crate::links::serve(farm_listener, farm.clone(), config.frame));
+        if config.farm_secret.is_none() {
+            tracing::warn!(
+                farm = %farm_addr,
+                "the farm is open: any process that reaches the farm port may join as a worker or composer \
+                 (give a secret with NEPHELE_FARM_SECRET_FILE; `nephele up` does)"
+            );
+        }
+        let secret = config.farm_secret.map(Arc::new);
+        let listener = tokio::spawn(crate::links::serve(farm_listener, farm.clone(), config.frame, secret));
         tracing::info!(http = %http_addr, farm = %farm_addr, "master serving");
-        let served = axum::serve(http, router(state)).with_graceful_shutdown(shutdown).await;
+        let app = router(state);
+        let served = match config.tls {
+            Some(tls) => match TlsListener::new(http, tls.config) {
+                Ok(listener) => axum::serve(listener, app).with_graceful_shutdown(shutdown).await,
+                Err(e) => Err(e),
+            },
+            None => axum::serve(http, app).with_graceful_shutdown(shutdown).await,
+        };
         tracing::info!("HTTP server stopped; closing the farm");
         listener.abort();
         farm.shutdown().await;

@@ -65,6 +65,8 @@ pub fn encode_payload_unchecked<B: BufMut>(message: &Message, out: &mut B) -> Re
         Message::FramePlan(m) => body(kind, m, out),
         Message::ReleaseTask(m) => body(kind, m, out),
         Message::CloseStream(m) => body(kind, m, out),
+        Message::Challenge(m) => body(kind, m, out),
+        Message::Proof(m) => body(kind, m, out),
     }
 }
 
@@ -99,6 +101,8 @@ pub fn decode_payload(payload: &[u8]) -> Result<Incoming, ProtoError> {
         MessageKind::FramePlan => Message::FramePlan(from_body(kind, rest)?),
         MessageKind::ReleaseTask => Message::ReleaseTask(from_body(kind, rest)?),
         MessageKind::CloseStream => Message::CloseStream(from_body(kind, rest)?),
+        MessageKind::Challenge => Message::Challenge(from_body(kind, rest)?),
+        MessageKind::Proof => Message::Proof(from_body(kind, rest)?),
     };
     Ok(match validate::message(&message) {
         Ok(()) => Ok(message),

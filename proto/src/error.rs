@@ -38,6 +38,12 @@ pub enum ProtoError {
     Unexpected { expected: &'static str, got: MessageKind },
     #[error("timed out waiting for {0}")]
     Timeout(&'static str),
+    /// The peer did not prove the farm secret ([`crate::auth`]).
+    #[error("farm credential refused: {0}")]
+    Unauthenticated(String),
+    /// The peer closed the opening with an error message of its own.
+    #[error("the peer refused the connection ({code:?}): {message}")]
+    Refused { code: ErrorCode, message: String },
     /// A well-framed message with a field out of range. The stream is still in sync; the
     /// receiver may answer (e.g. [`crate::BatchFailed`]) and carry on, or close.
     #[error(transparent)]
@@ -58,6 +64,8 @@ impl ProtoError {
             ProtoError::VersionMismatch { .. } => ErrorCode::VersionMismatch,
             ProtoError::Invalid(_) | ProtoError::WrongRole(_) | ProtoError::UnknownRole(_) => ErrorCode::InvalidField,
             ProtoError::Unexpected { .. } => ErrorCode::Unexpected,
+            ProtoError::Unauthenticated(_) => ErrorCode::Unauthenticated,
+            ProtoError::Refused { code, .. } => *code,
             ProtoError::Io(_) | ProtoError::Closed | ProtoError::Timeout(_) => ErrorCode::Internal,
             ProtoError::Truncated { .. }
             | ProtoError::EmptyFrame

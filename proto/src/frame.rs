@@ -255,26 +255,54 @@ impl<W: Write> FrameWriter<W> {
     }
 }
 
-/// Blocking handshake: sends our [`Hello`], reads the peer's, and checks that its role is
-/// one of `accept`. On a fatal error it tells the peer why (best effort) before returning.
+/// Blocking twin of [`crate::stream::handshake`]: the `Hello`s, then the farm credential
+/// ([`crate::auth`]). On a fatal error it tells the peer why (best effort) before returning.
 pub fn handshake<R: Read, W: Write>(
     reader: &mut FrameReader<R>,
     writer: &mut FrameWriter<W>,
     role: Role,
     accept: &[Role],
+    secret: Option<&crate::auth::FarmSecret>,
 ) -> Result<Hello, ProtoError> {
-    writer.write_message(&Message::Hello(Hello::new(role)))?;
-    writer.flush()?;
-    let result = match reader.read_message() {
-        Ok(Ok(Message::Hello(hello))) if accept.contains(&hello.role) => return Ok(hello),
-        Ok(Ok(Message::Hello(hello))) => Err(ProtoError::WrongRole(hello.role)),
-        Ok(Ok(other)) => Err(ProtoError::Unexpected { expected: "Hello", got: other.kind() }),
-        Ok(Err(rejected)) => Err(ProtoError::Invalid(rejected)),
-        Err(e) => Err(e),
+    use crate::auth::{self, Challenge};
+    use crate::stream::unexpected;
+    let mut send = |m: &Message| -> Result<(), ProtoError> {
+        writer.write_message(m)?;
+        writer.flush()
     };
-    if let Err(e) = &result {
-        let _ = writer.write_message(&crate::error_message(e));
-        let _ = writer.flush();
+    let mut recv = || -> Result<Message, ProtoError> { reader.read_message()?.map_err(ProtoError::Invalid) };
+    let result = (|| {
+        send(&Message::Hello(Hello::new(role)))?;
+        let hello = match recv()? {
+            Message::Hello(hello) if accept.contains(&hello.role) => hello,
+            Message::Hello(hello) => return Err(ProtoError::WrongRole(hello.role)),
+            other => return Err(unexpected("Hello", other)),
+        };
+        let ours = auth::nonce()?;
+        send(&Message::Challenge(Challenge { nonce: ours }))?;
+        let theirs = match recv()? {
+            Message::Challenge(c) => c.nonce,
+            other => return Err(unexpected("Challenge", other)),
+        };
+        let proof = Message::Proof(auth::prove(secret, role, hello.role, &theirs, &ours));
+        let first = auth::proves_first(role, hello.role);
+        if first {
+            send(&proof)?;
+        }
+        let their_proof = match recv()? {
+            Message::Proof(p) => p,
+            other => return Err(unexpected("Proof", other)),
+        };
+        auth::verify(secret, hello.role, role, &ours, &theirs, &their_proof)?;
+        if !first {
+            send(&proof)?;
+        }
+        Ok(hello)
+    })();
+    if let Err(e) = &result
+        && !matches!(e, ProtoError::Io(_) | ProtoError::Closed | ProtoError::Refused { .. })
+    {
+        let _ = send(&crate::error_message(e));
     }
     result
 }

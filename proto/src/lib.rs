@@ -16,6 +16,7 @@
 //! [`Rejected`] message: the stream is still in sync, so a worker answers a bad
 //! [`RayBatch`] with [`BatchFailed`] and keeps serving everybody else's batches.
 
+pub mod auth;
 pub mod codec;
 pub mod compact;
 mod error;
@@ -38,7 +39,8 @@ pub const MAGIC: [u8; 4] = *b"NPHL";
 /// Version of everything after the `Hello`. Peers of different versions refuse each other.
 /// 2: `BatchIds::task_id` and the composer ⇄ master messages.
 /// 3: compact batch results ([`compact`]).
-pub const PROTOCOL_VERSION: u16 = 4;
+/// 5: the farm credential ([`auth`]: `Challenge` and `Proof` after the `Hello`s).
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// The [`ErrorMessage`] that tells a peer why its connection is being closed.
 pub fn error_message(error: &ProtoError) -> Message {

@@ -23,6 +23,8 @@
 //! | [`FramePlan`] | master → composer | a frame is complete: which task results make up each view |
 //! | [`ReleaseTask`] | master → composer | a task's results are no longer needed |
 //! | [`CloseStream`] | master ⇄ composer | a session ended (closed by its client, or its peer vanished) |
+//! | [`Challenge`] | everyone, both ways | after the `Hello`s: a fresh nonce ([`crate::auth`]) |
+//! | [`Proof`] | everyone, both ways | after the `Challenge`s: proof of the farm secret, bound to the peer's nonce |
 
 use std::fmt;
 
@@ -31,6 +33,7 @@ pub use nephele_geometry::ViewProjection;
 use serde::{Deserialize, Serialize};
 
 use crate::PROTOCOL_VERSION;
+pub use crate::auth::{Challenge, Proof};
 use crate::packed;
 
 /// What a peer is. Sent in [`Hello`] so that each side can refuse the wrong kind of peer.
@@ -287,6 +290,8 @@ pub enum ErrorCode {
     Overloaded,
     ShuttingDown,
     Internal,
+    /// The peer did not prove the farm secret ([`crate::auth`]).
+    Unauthenticated,
 }
 
 /// A protocol error, sent before closing (or, for a rejected message, instead of acting on
@@ -411,6 +416,8 @@ pub enum Message {
     FramePlan(FramePlan),
     ReleaseTask(ReleaseTask),
     CloseStream(CloseStream),
+    Challenge(Challenge),
+    Proof(Proof),
 }
 
 /// The type of a message, as its one-byte tag on the wire.
@@ -434,10 +441,12 @@ pub enum MessageKind {
     FramePlan,
     ReleaseTask,
     CloseStream,
+    Challenge,
+    Proof,
 }
 
 impl MessageKind {
-    pub const ALL: [MessageKind; 18] = [
+    pub const ALL: [MessageKind; 20] = [
         MessageKind::Hello,
         MessageKind::Register,
         MessageKind::Registered,
@@ -456,6 +465,8 @@ impl MessageKind {
         MessageKind::FramePlan,
         MessageKind::ReleaseTask,
         MessageKind::CloseStream,
+        MessageKind::Challenge,
+        MessageKind::Proof,
     ];
 
     /// Wire tag (0 is never used, so a zeroed buffer is not a message).
@@ -479,6 +490,8 @@ impl MessageKind {
             MessageKind::FramePlan => 16,
             MessageKind::ReleaseTask => 17,
             MessageKind::CloseStream => 18,
+            MessageKind::Challenge => 19,
+            MessageKind::Proof => 20,
         }
     }
 
@@ -506,6 +519,8 @@ impl MessageKind {
             MessageKind::FramePlan => "FramePlan",
             MessageKind::ReleaseTask => "ReleaseTask",
             MessageKind::CloseStream => "CloseStream",
+            MessageKind::Challenge => "Challenge",
+            MessageKind::Proof => "Proof",
         }
     }
 }
@@ -537,6 +552,8 @@ impl Message {
             Message::FramePlan(_) => MessageKind::FramePlan,
             Message::ReleaseTask(_) => MessageKind::ReleaseTask,
             Message::CloseStream(_) => MessageKind::CloseStream,
+            Message::Challenge(_) => MessageKind::Challenge,
+            Message::Proof(_) => MessageKind::Proof,
         }
     }
 
@@ -581,4 +598,6 @@ from_variant!(
     FramePlan => FramePlan,
     ReleaseTask => ReleaseTask,
     CloseStream => CloseStream,
+    Challenge => Challenge,
+    Proof => Proof,
 );

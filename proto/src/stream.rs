@@ -5,7 +5,7 @@
 //! use futures_util::{SinkExt, StreamExt};
 //! use nephele_proto::{stream::{framed, handshake}, FrameConfig, Message, Role};
 //! let mut conn = framed(stream, FrameConfig::default());
-//! let peer = handshake(&mut conn, Role::Master, &[Role::Worker], std::time::Duration::from_secs(5)).await?;
+//! let peer = handshake(&mut conn, Role::Master, &[Role::Worker], None, std::time::Duration::from_secs(5)).await?;
 //! while let Some(item) = conn.next().await {
 //!     match item {
 //!         Err(fatal) => { tracing_like_log(&fatal); break }      // close the connection
@@ -24,6 +24,7 @@ use futures_util::{SinkExt, StreamExt};
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio_util::codec::{Decoder, Encoder, Framed};
 
+use crate::auth::{self, Challenge, FarmSecret};
 use crate::codec::{self, Incoming};
 use crate::error::ProtoError;
 use crate::frame::{FrameConfig, HEADER_LEN, encode_frame_into};
@@ -111,27 +112,64 @@ pub async fn recv<T: AsyncRead + AsyncWrite + Unpin>(conn: &mut Connection<T>) -
     }
 }
 
-/// Sends our [`Hello`], waits up to `timeout` for the peer's and checks that its role is one
-/// of `accept`. On failure it tells the peer why (best effort); the caller closes.
+/// The connection's opening: our [`Hello`] and the peer's (its role must be one of
+/// `accept`), then the farm credential ([`crate::auth`]): a [`Challenge`] each way and a
+/// [`Proof`] each way, the lower role (a worker before the composer before the master)
+/// proving first so that a refused peer reads why instead of a proof. All of it within
+/// `timeout`. On failure it tells the peer why (best effort); the caller closes.
 pub async fn handshake<T: AsyncRead + AsyncWrite + Unpin>(
     conn: &mut Connection<T>,
     role: Role,
     accept: &[Role],
+    secret: Option<&FarmSecret>,
     timeout: Duration,
 ) -> Result<Hello, ProtoError> {
-    conn.send(&Message::Hello(Hello::new(role))).await?;
-    let result = match tokio::time::timeout(timeout, recv(conn)).await {
-        Err(_) => Err(ProtoError::Timeout("the peer's Hello")),
-        Ok(Ok(Message::Hello(hello))) if accept.contains(&hello.role) => return Ok(hello),
-        Ok(Ok(Message::Hello(hello))) => Err(ProtoError::WrongRole(hello.role)),
-        Ok(Ok(other)) => Err(ProtoError::Unexpected { expected: "Hello", got: other.kind() }),
-        Ok(Err(e)) => Err(e),
-    };
-    match &result {
-        Err(ProtoError::Io(_) | ProtoError::Closed) | Ok(_) => {}
-        Err(e) => {
-            let _ = tokio::time::timeout(Duration::from_secs(1), conn.send(&crate::error_message(e))).await;
+    let opening = async {
+        conn.send(&Message::Hello(Hello::new(role))).await?;
+        let hello = match recv(conn).await? {
+            Message::Hello(hello) if accept.contains(&hello.role) => hello,
+            Message::Hello(hello) => return Err(ProtoError::WrongRole(hello.role)),
+            other => return Err(unexpected("Hello", other)),
+        };
+        let peer = hello.role;
+        let ours = auth::nonce()?;
+        conn.send(&Message::Challenge(Challenge { nonce: ours })).await?;
+        let theirs = match recv(conn).await? {
+            Message::Challenge(c) => c.nonce,
+            other => return Err(unexpected("Challenge", other)),
+        };
+        let proof = Message::Proof(auth::prove(secret, role, peer, &theirs, &ours));
+        let first = auth::proves_first(role, peer);
+        if first {
+            conn.send(&proof).await?;
         }
+        let theirs_proof = match recv(conn).await? {
+            Message::Proof(p) => p,
+            other => return Err(unexpected("Proof", other)),
+        };
+        auth::verify(secret, peer, role, &ours, &theirs, &theirs_proof)?;
+        if !first {
+            conn.send(&proof).await?;
+        }
+        Ok(hello)
+    };
+    let result = match tokio::time::timeout(timeout, opening).await {
+        Err(_) => Err(ProtoError::Timeout("the peer's Hello, challenge and proof")),
+        Ok(result) => result,
+    };
+    if let Err(e) = &result
+        && !matches!(e, ProtoError::Io(_) | ProtoError::Closed | ProtoError::Refused { .. })
+    {
+        let _ = tokio::time::timeout(Duration::from_secs(1), conn.send(&crate::error_message(e))).await;
     }
     result
+}
+
+/// What an unexpected message during the opening means: the peer's refusal (an `Error`
+/// message) or a protocol violation.
+pub fn unexpected(expected: &'static str, got: Message) -> ProtoError {
+    match got {
+        Message::Error(e) => ProtoError::Refused { code: e.code, message: e.message },
+        other => ProtoError::Unexpected { expected, got: other.kind() },
+    }
 }

@@ -7,6 +7,7 @@ use glam::Mat4;
 use proptest::prelude::*;
 use tokio_util::codec::{Decoder, Encoder};
 
+use crate::auth::FarmSecret;
 use crate::stream::FrameCodec;
 use crate::*;
 
@@ -185,6 +186,8 @@ fn worker_message() -> impl Strategy<Value = Message> {
     let role = prop_oneof![Just(Role::Master), Just(Role::Worker), Just(Role::Composer), Just(Role::Tool)];
     prop_oneof![
         role.prop_map(|r| Message::Hello(Hello::new(r))),
+        any::<[u8; 32]>().prop_map(|nonce| Message::Challenge(Challenge { nonce })),
+        any::<Option<[u8; 32]>>().prop_map(|mac| Message::Proof(Proof { mac })),
         (token(64), 1u32..512, prop::collection::vec(token(32), 1..4), 0.0f64..1e12, "[ -~]{0,40}").prop_map(
             |(name, threads, kernels, rays_per_second, device)| Message::Register(Register {
                 name,
@@ -493,7 +496,7 @@ fn the_frame_limit_is_configurable_both_ways() {
 
 #[test]
 fn unknown_message_types_and_empty_frames_are_fatal() {
-    for tag in [0u8, 19, 99, 255] {
+    for tag in [0u8, 21, 99, 255] {
         let err = decode_one(&raw_frame(tag, &[1, 2, 3])).expect_err("unknown");
         assert!(matches!(err, ProtoError::UnknownMessageType(t) if t == tag));
         assert!(err.is_fatal());
@@ -945,7 +948,7 @@ fn blocking_handshake_over_tcp() {
         let (stream, _) = listener.accept().expect("accept");
         let mut reader = FrameReader::new(stream.try_clone().expect("clone"), cfg());
         let mut writer = FrameWriter::new(stream, cfg());
-        let peer = frame::handshake(&mut reader, &mut writer, Role::Master, &[Role::Worker]).expect("handshake");
+        let peer = frame::handshake(&mut reader, &mut writer, Role::Master, &[Role::Worker], None).expect("handshake");
         assert_eq!(peer.role, Role::Worker);
         let msg = reader.read_message().expect("frame").expect("valid");
         writer.write_message(&msg).expect("echo");
@@ -953,7 +956,7 @@ fn blocking_handshake_over_tcp() {
     let stream = std::net::TcpStream::connect(addr).expect("connect");
     let mut reader = FrameReader::new(stream.try_clone().expect("clone"), cfg());
     let mut writer = FrameWriter::new(stream, cfg());
-    let peer = frame::handshake(&mut reader, &mut writer, Role::Worker, &[Role::Master]).expect("handshake");
+    let peer = frame::handshake(&mut reader, &mut writer, Role::Worker, &[Role::Master], None).expect("handshake");
     assert_eq!(peer, Hello::new(Role::Master));
     let batch = Message::BatchResult(good_result(1000));
     writer.write_message(&batch).expect("send");
@@ -975,21 +978,19 @@ async fn async_handshake_refuses_wrong_roles_and_versions() {
     let server = tokio::spawn(async move {
         let (s, _) = listener.accept().await.expect("accept");
         let mut conn = stream::framed(s, cfg());
-        let err = stream::handshake(&mut conn, Role::Master, &[Role::Composer], timeout).await.expect_err("wrong role");
+        let err =
+            stream::handshake(&mut conn, Role::Master, &[Role::Composer], None, timeout).await.expect_err("wrong role");
         assert!(matches!(err, ProtoError::WrongRole(Role::Worker)));
         let (s, _) = listener.accept().await.expect("accept");
         let mut conn = stream::framed(s, cfg());
-        let err = stream::handshake(&mut conn, Role::Master, &[Role::Worker], timeout).await.expect_err("version");
+        let err =
+            stream::handshake(&mut conn, Role::Master, &[Role::Worker], None, timeout).await.expect_err("version");
         assert!(matches!(err, ProtoError::VersionMismatch { theirs: 9, .. }));
     });
     let mut conn = stream::framed(tokio::net::TcpStream::connect(addr).await.expect("connect"), cfg());
-    let hello =
-        stream::handshake(&mut conn, Role::Worker, &[Role::Master], timeout).await.expect("we accept the master");
-    assert_eq!(hello.role, Role::Master);
-    match conn.next().await {
-        Some(Ok(Ok(Message::Error(e)))) => assert_eq!(e.code, ErrorCode::InvalidField),
-        other => panic!("expected an error message, got {other:?}"),
-    }
+    // We accept the master's Hello; it refuses ours, and says why instead of a challenge.
+    let err = stream::handshake(&mut conn, Role::Worker, &[Role::Master], None, timeout).await.expect_err("refused");
+    assert!(matches!(err, ProtoError::Refused { code: ErrorCode::InvalidField, .. }), "{err}");
 
     // A peer from the future.
     let mut raw = tokio::net::TcpStream::connect(addr).await.expect("connect");
@@ -1005,6 +1006,154 @@ async fn async_handshake_refuses_wrong_roles_and_versions() {
         other => panic!("expected an error message, got {other:?}"),
     }
     server.await.expect("server");
+}
+
+// ---------------------------------------------------------------------------------------
+// The farm credential
+
+fn secret(text: &str) -> FarmSecret {
+    FarmSecret::from_text(text, "test").expect("secret")
+}
+
+/// Runs an async handshake between a `server` role and a `client` role with the given
+/// secrets; returns both sides' results.
+async fn handshake_pair(
+    server: (Role, Option<FarmSecret>),
+    client: (Role, Option<FarmSecret>),
+) -> (Result<Hello, ProtoError>, Result<Hello, ProtoError>) {
+    use std::time::Duration;
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    let timeout = Duration::from_secs(5);
+    let (server_role, server_secret) = server;
+    let accepted = tokio::spawn(async move {
+        let (s, _) = listener.accept().await.expect("accept");
+        let mut conn = stream::framed(s, cfg());
+        let all = [Role::Master, Role::Worker, Role::Composer, Role::Tool];
+        stream::handshake(&mut conn, server_role, &all, server_secret.as_ref(), timeout).await
+    });
+    let mut conn = stream::framed(tokio::net::TcpStream::connect(addr).await.expect("connect"), cfg());
+    let all = [Role::Master, Role::Worker, Role::Composer, Role::Tool];
+    let ours = stream::handshake(&mut conn, client.0, &all, client.1.as_ref(), timeout).await;
+    (accepted.await.expect("server task"), ours)
+}
+
+#[tokio::test]
+async fn the_farm_credential_admits_holders_of_the_secret_and_refuses_the_rest() {
+    let good = || Some(secret("a farm secret of some length"));
+    // Same secret on both sides, every pair of roles that meets in a farm.
+    for (server, client) in [
+        (Role::Master, Role::Worker),
+        (Role::Master, Role::Composer),
+        (Role::Composer, Role::Worker),
+        (Role::Composer, Role::Tool),
+    ] {
+        let (s, c) = handshake_pair((server, good()), (client, good())).await;
+        assert_eq!(s.expect("server admits").role, client);
+        assert_eq!(c.expect("client admits").role, server);
+    }
+    // An open farm: nobody holds a secret.
+    let (s, c) = handshake_pair((Role::Master, None), (Role::Worker, None)).await;
+    assert!(s.is_ok() && c.is_ok());
+
+    // A worker without the secret: the master refuses it; the worker reads why.
+    let (s, c) = handshake_pair((Role::Master, good()), (Role::Worker, None)).await;
+    let s = s.expect_err("no secret");
+    assert!(matches!(&s, ProtoError::Unauthenticated(why) if why.contains("no farm secret")), "{s}");
+    let c = c.expect_err("refused");
+    assert!(matches!(&c, ProtoError::Refused { code: ErrorCode::Unauthenticated, .. }), "{c}");
+
+    // A worker with the wrong secret.
+    let (s, c) =
+        handshake_pair((Role::Master, good()), (Role::Worker, Some(secret("not the farm secret at all")))).await;
+    let s = s.expect_err("wrong secret");
+    assert!(matches!(&s, ProtoError::Unauthenticated(why) if why.contains("wrong")), "{s}");
+    assert!(matches!(c, Err(ProtoError::Refused { code: ErrorCode::Unauthenticated, .. })));
+
+    // Mutual: a worker holding the secret refuses a master (or composer) without it, so a
+    // stranger cannot pose as the farm and collect its results.
+    let (s, c) = handshake_pair((Role::Master, None), (Role::Worker, good())).await;
+    let c = c.expect_err("the master has no secret");
+    assert!(matches!(&c, ProtoError::Unauthenticated(why) if why.contains("master")), "{c}");
+    // (The master, proving last, has finished its side by then; it reads the worker's
+    // refusal where it expects the registration.)
+    drop(s);
+    // Different secrets: the composer (checking first) refuses, the worker reads why.
+    let (s, c) =
+        handshake_pair((Role::Composer, Some(secret("another secret, not ours"))), (Role::Worker, good())).await;
+    assert!(matches!(s, Err(ProtoError::Unauthenticated(_))));
+    assert!(matches!(c, Err(ProtoError::Refused { code: ErrorCode::Unauthenticated, .. })));
+}
+
+#[test]
+fn blocking_handshake_proves_the_secret_too() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    let server = std::thread::spawn(move || {
+        let mut results = Vec::new();
+        for _ in 0..2 {
+            let (stream, _) = listener.accept().expect("accept");
+            let mut reader = FrameReader::new(stream.try_clone().expect("clone"), cfg());
+            let mut writer = FrameWriter::new(stream, cfg());
+            let s = secret("the blocking farm secret");
+            results.push(frame::handshake(&mut reader, &mut writer, Role::Master, &[Role::Worker], Some(&s)).is_ok());
+        }
+        results
+    });
+    for (text, ok) in [("the blocking farm secret", true), ("a different farm secret", false)] {
+        let stream = std::net::TcpStream::connect(addr).expect("connect");
+        let mut reader = FrameReader::new(stream.try_clone().expect("clone"), cfg());
+        let mut writer = FrameWriter::new(stream, cfg());
+        let r = frame::handshake(&mut reader, &mut writer, Role::Worker, &[Role::Master], Some(&secret(text)));
+        assert_eq!(r.is_ok(), ok, "{r:?}");
+    }
+    assert_eq!(server.join().expect("server"), vec![true, false]);
+}
+
+#[test]
+fn proofs_are_bound_to_the_nonce_and_the_roles() {
+    use crate::auth::{prove, verify};
+    let s = secret("the farm secret for proofs");
+    let (a, b, c) = ([1u8; 32], [2u8; 32], [3u8; 32]);
+    let proof = prove(Some(&s), Role::Worker, Role::Master, &a, &b);
+    assert!(verify(Some(&s), Role::Worker, Role::Master, &a, &b, &proof).is_ok());
+    // Replayed against a fresh challenge.
+    assert!(verify(Some(&s), Role::Worker, Role::Master, &c, &b, &proof).is_err());
+    // Reflected: the master's own proof does not pass for a worker's.
+    let reflected = prove(Some(&s), Role::Master, Role::Worker, &a, &b);
+    assert!(verify(Some(&s), Role::Worker, Role::Master, &a, &b, &reflected).is_err());
+    // Another secret, no secret, a flipped bit.
+    let other = secret("some other farm secret");
+    assert!(verify(Some(&other), Role::Worker, Role::Master, &a, &b, &proof).is_err());
+    assert!(verify(Some(&s), Role::Worker, Role::Master, &a, &b, &Proof { mac: None }).is_err());
+    let mut flipped = proof;
+    if let Some(m) = flipped.mac.as_mut() {
+        m[7] ^= 1;
+    }
+    assert!(verify(Some(&s), Role::Worker, Role::Master, &a, &b, &flipped).is_err());
+    // An open side accepts anything and proves nothing.
+    assert!(verify(None, Role::Worker, Role::Master, &a, &b, &Proof { mac: None }).is_ok());
+    assert_eq!(prove(None, Role::Worker, Role::Master, &a, &b).mac, None);
+}
+
+#[test]
+fn farm_secrets_are_trimmed_long_enough_fresh_and_never_printed() {
+    let s = FarmSecret::from_text("  0123456789abcdef-secret\n", "env").expect("secret");
+    assert_eq!(s.expose(), "0123456789abcdef-secret");
+    let short = FarmSecret::from_text("short\n", "env").expect_err("too short");
+    assert!(short.to_string().contains("at least 16"), "{short}");
+    let (g1, g2) = (FarmSecret::generate().expect("random"), FarmSecret::generate().expect("random"));
+    assert_eq!(g1.expose().len(), 64);
+    assert!(g1.expose().bytes().all(|b| b.is_ascii_hexdigit()));
+    assert_ne!(g1, g2);
+    assert!(!format!("{g1:?}").contains(g1.expose()));
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("farm-secret");
+    std::fs::write(&path, format!("{}\n", g1.expose())).expect("write");
+    assert_eq!(FarmSecret::read_file(&path).expect("read"), g1);
+    std::fs::write(&path, vec![b'x'; 10_000]).expect("write");
+    assert!(FarmSecret::read_file(&path).is_err(), "a huge file is refused");
+    assert!(FarmSecret::read_file(&dir.path().join("missing")).is_err());
 }
 
 /// Writes one valid frame of every message kind (and a few broken ones) as seeds for the

@@ -60,7 +60,7 @@ pub fn message(message: &Message) -> Result<(), ValidationError> {
         Message::StreamOpened(m) => stream_opened(m),
         Message::ClientPose(m) => client_pose(m),
         Message::FramePlan(m) => frame_plan(m),
-        Message::ReleaseTask(_) => Ok(()),
+        Message::ReleaseTask(_) | Message::Challenge(_) | Message::Proof(_) => Ok(()),
         Message::CloseStream(m) => close_stream(m),
     }
 }

@@ -150,6 +150,16 @@ impl TestFarm {
     /// Serves `nephele_master::http::router` over this farm on a loopback port (on the current
     /// tokio runtime); returns the address.
     pub async fn serve(&self) -> Result<SocketAddr, FarmError> {
+        self.serve_with(None).await
+    }
+
+    /// [`TestFarm::serve`] over HTTPS with `tls` (`nephele_master::tls`, as `nephele master
+    /// --tls-...` serves).
+    pub async fn serve_tls(&self, tls: nephele_master::tls::ServerTls) -> Result<SocketAddr, FarmError> {
+        self.serve_with(Some(tls)).await
+    }
+
+    async fn serve_with(&self, tls: Option<nephele_master::tls::ServerTls>) -> Result<SocketAddr, FarmError> {
         let start = Instant::now();
         let state = AppState::new(
             Arc::new(self.clone()),
@@ -158,11 +168,24 @@ impl TestFarm {
         );
         let listener = tokio::net::TcpListener::bind(("127.0.0.1", 0)).await?;
         let addr = listener.local_addr()?;
-        tokio::spawn(async move {
-            if let Err(e) = axum::serve(listener, nephele_master::http::router(state)).await {
-                tracing::error!("test master stopped: {e}");
+        let app = nephele_master::http::router(state);
+        match tls {
+            None => {
+                tokio::spawn(async move {
+                    if let Err(e) = axum::serve(listener, app).await {
+                        tracing::error!("test master stopped: {e}");
+                    }
+                });
             }
-        });
+            Some(tls) => {
+                let listener = nephele_master::tls::TlsListener::new(listener, tls.config)?;
+                tokio::spawn(async move {
+                    if let Err(e) = axum::serve(listener, app).await {
+                        tracing::error!("test master stopped: {e}");
+                    }
+                });
+            }
+        }
         Ok(addr)
     }
 

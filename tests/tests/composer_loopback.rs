@@ -148,7 +148,7 @@ async fn worker_results_over_tcp_become_the_streamed_picture() {
     let results = || async {
         let stream = TcpStream::connect(composer.results_addr()).await.unwrap();
         let mut conn = framed(stream, FrameConfig::default());
-        handshake(&mut conn, Role::Tool, &[Role::Composer], WAIT).await.unwrap();
+        handshake(&mut conn, Role::Tool, &[Role::Composer], None, WAIT).await.unwrap();
         conn
     };
     let mut farm = results().await;
@@ -221,7 +221,7 @@ async fn worker_results_over_tcp_become_the_streamed_picture() {
     // Only a tool may plan frames: a worker's plan is ignored.
     let stream = TcpStream::connect(composer.results_addr()).await.unwrap();
     let mut worker = framed(stream, FrameConfig::default());
-    handshake(&mut worker, Role::Worker, &[Role::Composer], WAIT).await.unwrap();
+    handshake(&mut worker, Role::Worker, &[Role::Composer], None, WAIT).await.unwrap();
     worker.send(&Message::FramePlan(plan(11, vec![PlanPart { view: 0, task_id: 100, object_id: 0 }]))).await.unwrap();
     tokio::time::sleep(Duration::from_millis(300)).await;
     let report = composer.sessions().remove(0);

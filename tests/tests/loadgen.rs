@@ -89,3 +89,44 @@ fn the_command_prints_a_table_and_writes_json() {
     let err = nephele_tests::nephele_err(&["loadgen", "--url", "ftp://x", "--seconds", "1"]);
     assert!(err.contains("only http://"), "{err}");
 }
+
+/// HTTPS (issue 15): the master's router behind the TLS listener with a self-signed
+/// certificate; `nephele loadgen` refuses it until told to trust that certificate, then
+/// streams through it.
+#[test]
+fn loadgen_streams_from_an_https_master_that_it_trusts() {
+    let rt = runtime();
+    let farm = TestFarm::new(true).expect("test farm");
+    let dir = tempfile::tempdir().expect("temp dir");
+    let names = ["localhost".to_string(), "127.0.0.1".to_string()];
+    let (tls, made) = nephele_master::tls::ServerTls::self_signed(dir.path(), &names).expect("certificate");
+    assert!(made);
+    let cert = tls.cert_path.to_str().expect("utf-8 path").to_string();
+    let addr = rt.block_on(farm.serve_tls(tls)).expect("serving the master over https");
+    let url = format!("https://127.0.0.1:{}/", addr.port());
+
+    // The page itself comes over https to a client that trusts the certificate.
+    let certs = nephele_loadgen::http::read_certificates(std::path::Path::new(&cert)).expect("pem");
+    assert_eq!(certs.len(), 1);
+
+    // Not trusted: no user can stream, and the reason names the certificate.
+    let err = nephele_tests::nephele_err(&["loadgen", "--url", &url, "--seconds", "1", "--size", "160x120"]);
+    assert!(err.contains("no user could stream"), "{err}");
+    assert!(err.to_lowercase().contains("certificate") || err.contains("UnknownIssuer"), "{err}");
+
+    // Trusted: streams.
+    let out = nephele_tests::nephele_ok(&[
+        "loadgen",
+        "--url",
+        &url,
+        "--users",
+        "1",
+        "--seconds",
+        "1",
+        "--size",
+        "160x120",
+        "--tls-ca",
+        &cert,
+    ]);
+    assert!(out.contains("1 of 1 users streamed"), "{out}");
+}

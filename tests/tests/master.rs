@@ -87,9 +87,14 @@ struct MasterProcess {
 
 impl MasterProcess {
     fn start(extra: &[&str]) -> MasterProcess {
+        MasterProcess::start_with(extra, &[])
+    }
+
+    fn start_with(extra: &[&str], env: &[(&str, &str)]) -> MasterProcess {
         let mut child = Command::new(nephele_bin())
             .args(["--quiet", "master", "--http", "127.0.0.1:0", "--farm-listen", "127.0.0.1:0"])
             .args(extra)
+            .envs(env.iter().copied())
             .env("NEPHELE_LOG", if logs() { "debug" } else { "warn" })
             .stdout(Stdio::piped())
             .stderr(if logs() { Stdio::inherit() } else { Stdio::null() })
@@ -112,8 +117,13 @@ impl MasterProcess {
 /// exact f32 results, every other one compact results (the default), so the end-to-end check
 /// sees both encodings.
 fn start_worker(farm: SocketAddr, assets: &Path, name: &str, log: &Path) -> Process {
+    start_worker_with(farm, assets, name, log, &[])
+}
+
+fn start_worker_with(farm: SocketAddr, assets: &Path, name: &str, log: &Path, env: &[(&str, &str)]) -> Process {
     let file = std::fs::File::create(log).expect("worker log");
     let child = Command::new(nephele_bin())
+        .envs(env.iter().copied())
         .args(["--quiet", "--threads", "1", "worker", "--master", &farm.to_string(), "--name", name])
         .arg("--assets")
         .arg(assets)
@@ -198,7 +208,9 @@ fn connect_composer(farm: SocketAddr, name: &str) -> Result<TestComposer, Box<Me
                 let mut reader =
                     FrameReader::new(BufReader::new(stream.try_clone().expect("clone")), FrameConfig::default());
                 let mut writer = FrameWriter::new(stream, FrameConfig::default());
-                if nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Worker]).is_err() {
+                if nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Worker], None)
+                    .is_err()
+                {
                     return;
                 }
                 while let Ok(incoming) = reader.read_message() {
@@ -219,7 +231,7 @@ fn connect_composer(farm: SocketAddr, name: &str) -> Result<TestComposer, Box<Me
     stream.set_nodelay(true).expect("nodelay");
     let mut reader = FrameReader::new(BufReader::new(stream.try_clone().expect("clone")), FrameConfig::default());
     let mut writer = FrameWriter::new(stream, FrameConfig::default());
-    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Master])
+    nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Master], None)
         .expect("handshake with the master");
     writer
         .write_message(&Message::ComposerRegister(ComposerRegister { name: name.into(), results_address }))
@@ -854,5 +866,104 @@ fn bench_live_loop() {
     }
     println!(
         "e2e: pose sent by the test composer -> first frame plan for it received (ms); in: the master's pose received -> plan sent (ms); round: scheduler tick (us)"
+    );
+}
+
+/// The farm credential (issue 15): a master and a composer holding a secret admit the
+/// processes that prove it, refuse (and count) every peer that does not, and a result sent
+/// to the composer by a peer without the secret never gets in.
+#[test]
+fn the_farm_admits_only_peers_that_prove_its_secret() {
+    use nephele_proto::ProtoError;
+    use nephele_proto::auth::FarmSecret;
+    const SECRET: &str = "the test farm's secret, long enough";
+    let env = [("NEPHELE_FARM_SECRET", SECRET)];
+    let dir = tempfile::tempdir().expect("temp dir");
+    let assets = dir.path().join("assets");
+    std::fs::create_dir(&assets).expect("assets");
+    let master = MasterProcess::start_with(&[], &env);
+
+    // Strangers at the farm port: no secret, a wrong one, as a worker or as a composer.
+    let try_join = |addr: SocketAddr, role: Role, accept: Role, secret: Option<&str>| -> Result<(), ProtoError> {
+        let stream = TcpStream::connect(addr).expect("connect");
+        let mut reader = FrameReader::new(stream.try_clone().expect("clone"), FrameConfig::default());
+        let mut writer = FrameWriter::new(stream, FrameConfig::default());
+        let secret = secret.map(|t| FarmSecret::from_text(t, "test").expect("secret"));
+        nephele_proto::frame::handshake(&mut reader, &mut writer, role, &[accept], secret.as_ref()).map(|_| ())
+    };
+    for (role, secret) in [
+        (Role::Worker, None),
+        (Role::Worker, Some("a wrong farm secret, guessed")),
+        (Role::Composer, Some("another wrong one, guessed")),
+    ] {
+        let err = try_join(master.farm, role, Role::Master, secret).expect_err("a stranger is refused");
+        assert!(matches!(err, ProtoError::Refused { code: ErrorCode::Unauthenticated, .. }), "{err}");
+    }
+    // A worker process given the wrong secret file stops at once, saying why.
+    let wrong = dir.path().join("wrong-secret");
+    std::fs::write(&wrong, "not the secret of this farm\n").expect("write");
+    let out = Command::new(nephele_bin())
+        .args(["--quiet", "worker", "--master", &master.farm.to_string(), "--reconnect-secs", "60"])
+        .arg("--assets")
+        .arg(&assets)
+        .arg("--farm-secret-file")
+        .arg(&wrong)
+        .output()
+        .expect("running a worker");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("farm secret"), "{stderr}");
+
+    // The real composer and worker, holding the secret, join.
+    let results = TcpListener::bind("127.0.0.1:0").expect("a free port").local_addr().expect("addr");
+    let mut composer = Command::new(nephele_bin())
+        .args(["--quiet", "composer", "--master", &master.farm.to_string(), "--http", "127.0.0.1:0"])
+        .args(["--results", &results.to_string()])
+        .envs(env)
+        .stdout(Stdio::piped())
+        .stderr(if logs() { Stdio::inherit() } else { Stdio::null() })
+        .spawn()
+        .expect("starting nephele composer");
+    let mut banner = String::new();
+    BufReader::new(composer.stdout.take().expect("stdout")).read_line(&mut banner).expect("the composer's banner");
+    let composer_http: SocketAddr = banner
+        .split("http://")
+        .nth(1)
+        .and_then(|r| r.split('/').next())
+        .and_then(|a| a.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {banner:?}"));
+    let _composer = Process { child: composer, name: "composer".into() };
+    let _worker = start_worker_with(master.farm, &assets, "trusted", &dir.path().join("trusted.log"), &env);
+    wait_for_farm(&master, "the composer and the worker", |s| {
+        !s["composer"].is_null() && s["workers"].as_array().is_some_and(|w| w.len() == 1)
+    });
+
+    // A forged result: a peer without the secret at the composer's results port is refused
+    // before it can send one (a tool may even send frame plans there once admitted).
+    let err = try_join(results, Role::Tool, Role::Composer, None).expect_err("refused");
+    assert!(matches!(err, ProtoError::Refused { code: ErrorCode::Unauthenticated, .. }), "{err}");
+    let err = try_join(results, Role::Worker, Role::Composer, Some("a forger's guess at it")).expect_err("refused");
+    assert!(matches!(err, ProtoError::Refused { code: ErrorCode::Unauthenticated, .. }), "{err}");
+    // ... while a peer holding it gets in.
+    try_join(results, Role::Tool, Role::Composer, Some(SECRET)).expect("a tool with the secret is admitted");
+
+    // Counted: three strangers and the misconfigured worker at the master, two at the composer.
+    let scrape = |addr: SocketAddr| {
+        let url = format!("http://{addr}/metrics");
+        nephele_loadgen::http::request_blocking(&url, "GET", &[], "", WAIT).expect("metrics").body
+    };
+    let value = |text: &str, series: &str| -> Option<f64> {
+        text.lines().find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.trim().parse().ok())
+    };
+    let master_metrics = scrape(master.http);
+    assert_eq!(
+        value(&master_metrics, "nephele_master_farm_peers_unauthenticated_total"),
+        Some(4.0),
+        "{master_metrics}"
+    );
+    let composer_metrics = scrape(composer_http);
+    assert_eq!(
+        value(&composer_metrics, "nephele_composer_peers_unauthenticated_total"),
+        Some(2.0),
+        "{composer_metrics}"
     );
 }

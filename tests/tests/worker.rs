@@ -137,7 +137,7 @@ impl Master {
         let stream = self.accept_stream();
         let mut reader = FrameReader::new(stream.try_clone().expect("clone"), FrameConfig::default());
         let mut writer = FrameWriter::new(stream, FrameConfig::default());
-        let hello = nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Master, &[Role::Worker])
+        let hello = nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Master, &[Role::Worker], None)
             .expect("handshake");
         assert_eq!(hello, Hello::new(Role::Worker));
         let register = match reader.read_message().expect("registration") {
@@ -220,7 +220,7 @@ impl Composer {
                     let mut reader =
                         FrameReader::new(BufReader::new(stream.try_clone().expect("clone")), FrameConfig::default());
                     let mut writer = FrameWriter::new(stream, FrameConfig::default());
-                    if nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Worker])
+                    if nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Composer, &[Role::Worker], None)
                         .is_err()
                     {
                         return;

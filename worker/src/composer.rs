@@ -10,6 +10,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use futures_util::{FutureExt, SinkExt, StreamExt};
+use nephele_proto::auth::FarmSecret;
 use nephele_proto::stream::{Connection, framed, handshake};
 use nephele_proto::{FrameConfig, Message, ProtoError, Role};
 use tokio::net::TcpStream;
@@ -24,11 +25,12 @@ pub struct ComposerLinks {
     frame: FrameConfig,
     timeout: Duration,
     max_links: usize,
+    secret: Option<FarmSecret>,
 }
 
 impl ComposerLinks {
-    pub fn new(frame: FrameConfig, timeout: Duration) -> ComposerLinks {
-        ComposerLinks { links: Mutex::new(HashMap::new()), frame, timeout, max_links: 64 }
+    pub fn new(frame: FrameConfig, timeout: Duration, secret: Option<FarmSecret>) -> ComposerLinks {
+        ComposerLinks { links: Mutex::new(HashMap::new()), frame, timeout, max_links: 64, secret }
     }
 
     /// Sends `message` to the composer at `addr`, connecting (or reconnecting once) as
@@ -75,7 +77,7 @@ impl ComposerLinks {
             .map_err(|_| ProtoError::Timeout("connecting to the composer"))??;
         stream.set_nodelay(true)?;
         let mut conn = framed(stream, self.frame);
-        handshake(&mut conn, Role::Worker, &[Role::Composer, Role::Tool], self.timeout).await?;
+        handshake(&mut conn, Role::Worker, &[Role::Composer, Role::Tool], self.secret.as_ref(), self.timeout).await?;
         tracing::debug!(composer = addr, "connected to composer");
         Ok(conn)
     }

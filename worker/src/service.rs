@@ -65,6 +65,9 @@ pub struct WorkerConfig {
     pub result_encoding: ResultEncoding,
     /// Counters and readiness (serve them with `nephele_telemetry::ops_router`).
     pub metrics: Arc<WorkerMetrics>,
+    /// The farm credential ([`nephele_proto::auth`]) proved to the master and the composers,
+    /// and demanded of them; `None` joins only an open farm.
+    pub farm_secret: Option<nephele_proto::auth::FarmSecret>,
 }
 
 impl WorkerConfig {
@@ -84,6 +87,7 @@ impl WorkerConfig {
             calibration_size: 64,
             result_encoding: ResultEncoding::Compact,
             metrics: Arc::new(WorkerMetrics::new()),
+            farm_secret: None,
         }
     }
 }
@@ -96,6 +100,8 @@ pub enum WorkerError {
     Pool(#[from] rayon::ThreadPoolBuildError),
     #[error("calibration render failed: {0}")]
     Calibration(String),
+    #[error("the master at {addr} and this worker disagree on the farm secret: {reason}")]
+    FarmCredential { addr: String, reason: String },
     #[error("gave up on the master at {addr} after {seconds:.0} s: {last_error}")]
     MasterUnreachable { addr: String, seconds: f64, last_error: String },
 }
@@ -128,7 +134,7 @@ pub async fn run<F: Future<Output = ()>>(
     let shared = Arc::new(Shared {
         pool: Arc::new(pool),
         loader,
-        composers: ComposerLinks::new(config.frame, config.io_timeout),
+        composers: ComposerLinks::new(config.frame, config.io_timeout, config.farm_secret.clone()),
         worker_id: AtomicU64::new(0),
         result_encoding: config.result_encoding,
         metrics: config.metrics.clone(),
@@ -173,6 +179,12 @@ pub async fn run<F: Future<Output = ()>>(
                         lost_since = Instant::now();
                     }
                 }
+            }
+            Err(
+                e @ (ProtoError::Unauthenticated(_) | ProtoError::Refused { code: ErrorCode::Unauthenticated, .. }),
+            ) => {
+                // Retrying cannot help: the secret is wrong on one side.
+                return Err(WorkerError::FarmCredential { addr: config.master.clone(), reason: e.to_string() });
             }
             Err(e) => {
                 let waited = lost_since.elapsed();
@@ -225,12 +237,12 @@ async fn connect_and_register(
         .map_err(|_| ProtoError::Timeout("connecting to the master"))??;
     stream.set_nodelay(true)?;
     let mut conn = framed(stream, config.frame);
-    handshake(&mut conn, Role::Worker, &[Role::Master], config.io_timeout).await?;
+    handshake(&mut conn, Role::Worker, &[Role::Master], config.farm_secret.as_ref(), config.io_timeout).await?;
     conn.send(&Message::Register(register.clone())).await?;
     match tokio::time::timeout(config.io_timeout, recv(&mut conn)).await {
         Err(_) => Err(ProtoError::Timeout("Registered")),
         Ok(Ok(Message::Registered(registered))) => Ok((conn, registered)),
-        Ok(Ok(other)) => Err(ProtoError::Unexpected { expected: "Registered", got: other.kind() }),
+        Ok(Ok(other)) => Err(nephele_proto::stream::unexpected("Registered", other)),
         Ok(Err(e)) => Err(e),
     }
 }

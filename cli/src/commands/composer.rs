@@ -75,6 +75,8 @@ pub struct Args {
     /// The composer's name in the master's `GET /v1/farm`.
     #[arg(long, default_value = "composer")]
     name: String,
+    #[command(flatten)]
+    farm_secret: crate::commands::FarmSecretArgs,
 }
 
 fn parse_host_port(text: &str) -> Result<String, String> {
@@ -118,6 +120,7 @@ pub fn run(args: Args) -> Result<()> {
         max_sessions: args.max_sessions,
         master: args.master,
         name: args.name,
+        farm_secret: args.farm_secret.resolve()?,
     };
     let runtime =
         tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the async runtime")?;

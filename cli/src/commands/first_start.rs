@@ -135,12 +135,17 @@ impl BakeQuality {
 /// `$XDG_CACHE_HOME/nephele`, else `$HOME/.cache/nephele`, else the temporary folder; then
 /// `assets/<quality>`.
 pub fn default_asset_dir(quality: BakeQuality) -> PathBuf {
+    cache_root().join("assets").join(quality.folder())
+}
+
+/// Nephele's cache folder: `$NEPHELE_CACHE`, else `$XDG_CACHE_HOME/nephele`, else
+/// `~/.cache/nephele`.
+pub fn cache_root() -> PathBuf {
     let env = |name: &str| std::env::var_os(name).filter(|v| !v.is_empty()).map(PathBuf::from);
-    let root = env("NEPHELE_CACHE")
+    env("NEPHELE_CACHE")
         .or_else(|| env("XDG_CACHE_HOME").map(|d| d.join("nephele")))
         .or_else(|| env("HOME").map(|d| d.join(".cache").join("nephele")))
-        .unwrap_or_else(|| std::env::temp_dir().join("nephele-cache"));
-    root.join("assets").join(quality.folder())
+        .unwrap_or_else(|| std::env::temp_dir().join("nephele-cache"))
 }
 
 /// What the first start found or made for one object.

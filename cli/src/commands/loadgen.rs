@@ -53,11 +53,19 @@ pub struct Args {
     /// Write the per-user reports as JSON.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
+    /// For an https:// master: trust the certificates of this PEM file (and only them), e.g.
+    /// the self-signed one of `nephele master --tls-self-signed` (its path is printed at
+    /// start). Default: $NEPHELE_TLS_CA, else the public web roots.
+    #[arg(long, value_name = "PEM")]
+    tls_ca: Option<PathBuf>,
 }
 
 pub fn run(args: Args, progress: &Progress) -> Result<()> {
     if !(args.seconds > 0.0 && args.seconds <= 86_400.0) {
         bail!("--seconds must be in (0, 86400], got {}", args.seconds);
+    }
+    if let Some(file) = &args.tls_ca {
+        nephele_loadgen::http::trust_certificates(file)?;
     }
     let (width, height) = args.size;
     let config = LoadConfig {

@@ -66,6 +66,10 @@ pub struct Args {
     /// Largest protocol frame accepted or sent, MiB.
     #[arg(long, default_value_t = 64)]
     max_frame_mib: usize,
+    #[command(flatten)]
+    farm_secret: crate::commands::FarmSecretArgs,
+    #[command(flatten)]
+    tls: crate::commands::TlsArgs,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -116,7 +120,10 @@ pub fn run(args: Args) -> Result<()> {
             ice_servers: json!(ice_servers),
         },
         frame: FrameConfig { max_frame: args.max_frame_mib.saturating_mul(1 << 20) },
+        farm_secret: args.farm_secret.resolve()?,
+        tls: args.tls.resolve()?,
     };
+    let tls = config.tls.as_ref().map(|t| (t.fingerprint.clone(), t.cert_path.clone()));
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -129,9 +136,13 @@ pub fn run(args: Args) -> Result<()> {
         let master = Master::bind(config).await?;
         let mut out = std::io::stdout().lock();
         writeln!(out, "listening: http={} farm={}", master.http_addr(), master.farm_addr())?;
+        if let Some((fingerprint, cert)) = &tls {
+            writeln!(out, "tls: sha256={fingerprint} certificate={}", cert.display())?;
+        }
         out.flush()?;
         drop(out);
-        tracing::info!("web client at http://{}/", master.http_addr());
+        let scheme = if tls.is_some() { "https" } else { "http" };
+        tracing::info!("web client at {scheme}://{}/", master.http_addr());
         master.run(async move { shutdown.wait().await }).await.map_err(anyhow::Error::from)
     });
     runtime.shutdown_timeout(Duration::from_secs(1));

@@ -4,6 +4,7 @@ pub mod bake;
 pub mod composer;
 pub mod dataset;
 pub mod eval;
+pub mod farm_secret;
 pub mod first_start;
 pub mod loadgen;
 pub mod master;
@@ -84,5 +85,102 @@ mod tests {
         assert!(parse_vec3("1,nan,2").is_err());
         assert_eq!(parse_background("white"), Ok([1.0; 3]));
         assert!(parse_background("2,0,0").is_err());
+    }
+}
+
+/// The farm's credential options, shared by `master`, `composer`, `worker` and `up`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct FarmSecretArgs {
+    /// File holding the farm secret that the master, the composer and every worker must
+    /// share (at least 16 bytes; `nephele farm-secret --out FILE` writes a fresh one).
+    /// Without it the secret comes from the file named by $NEPHELE_FARM_SECRET_FILE, else
+    /// from $NEPHELE_FARM_SECRET itself; with neither, the farm is open (any process that
+    /// reaches the farm port may join). Never on the command line, where `ps` would show it.
+    #[arg(long, value_name = "FILE")]
+    pub farm_secret_file: Option<std::path::PathBuf>,
+}
+
+impl FarmSecretArgs {
+    /// The secret, from the flag, then the environment; `None`: an open farm.
+    pub fn resolve(&self) -> Result<Option<nephele_proto::auth::FarmSecret>> {
+        use nephele_proto::auth::{FarmSecret, SECRET_ENV, SECRET_FILE_ENV};
+        let file = self.farm_secret_file.clone().or_else(|| std::env::var_os(SECRET_FILE_ENV).map(Into::into));
+        if let Some(path) = file {
+            return Ok(Some(FarmSecret::read_file(&path)?));
+        }
+        match std::env::var(SECRET_ENV) {
+            Ok(text) => Ok(Some(FarmSecret::from_text(&text, SECRET_ENV)?)),
+            Err(std::env::VarError::NotPresent) => Ok(None),
+            Err(e) => anyhow::bail!("${SECRET_ENV}: {e}"),
+        }
+    }
+}
+
+/// HTTPS for the master's page and API, shared by `master` and `up`.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct TlsArgs {
+    /// Serve the page and the API over HTTPS with this certificate chain (PEM, leaf first),
+    /// with `--tls-key`.
+    #[arg(long, value_name = "PEM", requires = "tls_key", conflicts_with = "tls_self_signed")]
+    pub tls_cert: Option<std::path::PathBuf>,
+    /// The private key of `--tls-cert` (PEM).
+    #[arg(long, value_name = "PEM", requires = "tls_cert")]
+    pub tls_key: Option<std::path::PathBuf>,
+    /// Serve HTTPS with a self-signed certificate made for this machine (localhost, the
+    /// loopback addresses, the host name, its LAN address and every `--tls-name`), cached in
+    /// `--tls-dir` and valid for a year. Browsers warn once: compare the SHA-256 fingerprint
+    /// printed at start with theirs. Browsers show WebXR only on secure pages, so this is what
+    /// lets a headset on the LAN enter VR. `nephele loadgen --tls-ca DIR/cert.pem` trusts it.
+    #[arg(long)]
+    pub tls_self_signed: bool,
+    /// Another name or address the self-signed certificate covers (repeatable).
+    #[arg(long = "tls-name", value_name = "NAME", requires = "tls_self_signed")]
+    pub tls_names: Vec<String>,
+    /// Folder of the self-signed certificate [default: the cache folder's `tls/`].
+    #[arg(long, value_name = "DIR", requires = "tls_self_signed")]
+    pub tls_dir: Option<std::path::PathBuf>,
+}
+
+impl TlsArgs {
+    /// Where the self-signed certificate lives.
+    pub fn self_signed_dir(&self) -> std::path::PathBuf {
+        self.tls_dir.clone().unwrap_or_else(|| first_start::cache_root().join("tls"))
+    }
+
+    /// The server configuration asked for, if any (making the self-signed certificate when
+    /// needed), with a line for the user about it.
+    pub fn resolve(&self) -> Result<Option<nephele_master::tls::ServerTls>> {
+        use nephele_master::tls::{ServerTls, default_names};
+        if let (Some(cert), Some(key)) = (&self.tls_cert, &self.tls_key) {
+            return Ok(Some(ServerTls::from_pem_files(cert, key)?));
+        }
+        if !self.tls_self_signed {
+            return Ok(None);
+        }
+        let names = default_names(&self.tls_names);
+        let dir = self.self_signed_dir();
+        let (tls, made) = ServerTls::self_signed(&dir, &names)?;
+        tracing::info!(
+            certificate = %tls.cert_path.display(),
+            names = %names.join(", "),
+            "{} self-signed certificate",
+            if made { "made a" } else { "using the cached" }
+        );
+        Ok(Some(tls))
+    }
+
+    /// The same flags, for a child `nephele master`.
+    pub fn to_args(&self) -> Vec<std::ffi::OsString> {
+        let mut args: Vec<std::ffi::OsString> = Vec::new();
+        if let (Some(cert), Some(key)) = (&self.tls_cert, &self.tls_key) {
+            args.extend(["--tls-cert".into(), cert.into(), "--tls-key".into(), key.into()]);
+        }
+        if self.tls_self_signed {
+            args.extend(["--tls-self-signed".into(), "--tls-dir".into(), self.self_signed_dir().into()]);
+            for name in &self.tls_names {
+                args.extend(["--tls-name".into(), name.into()]);
+            }
+        }
+        args
     }
 }

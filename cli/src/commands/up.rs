@@ -69,6 +69,12 @@ pub struct Args {
     /// asked work would pass this fraction of the farm's measured throughput, e.g. 0.9.
     #[arg(long, value_name = "FRACTION")]
     admit_up_to: Option<f64>,
+    #[command(flatten)]
+    tls: crate::commands::TlsArgs,
+    /// The farm secret (see `nephele master --help`); without one `up` makes a fresh secret
+    /// for its own processes, so nothing else can join its farm.
+    #[command(flatten)]
+    farm_secret: crate::commands::FarmSecretArgs,
 }
 
 fn free_port() -> Result<SocketAddr> {
@@ -77,18 +83,45 @@ fn free_port() -> Result<SocketAddr> {
 }
 
 /// A blocking `GET` of one of the master's JSON endpoints (the workspace's one HTTP client).
-fn http_get(addr: SocketAddr, path: &str) -> Result<String> {
-    let url = format!("http://{addr}{path}");
-    let response = nephele_loadgen::http::request_blocking(&url, "GET", &[], "", Duration::from_secs(5))?;
+fn http_get(addr: SocketAddr, path: &str, tls: &Probe) -> Result<String> {
+    use nephele_loadgen::http::{Verify, request_blocking_with};
+    let (scheme, verify) = match tls {
+        Probe::Plain => ("http", Verify::Trusted),
+        Probe::SelfSigned => ("https", Verify::Trusted),
+        Probe::OperatorCertificate => ("https", Verify::LoopbackUnchecked),
+    };
+    // The probe goes to loopback, whatever address the master listens on.
+    let url = format!("{scheme}://127.0.0.1:{}{path}", addr.port());
+    let response = request_blocking_with(&url, "GET", &[], "", Duration::from_secs(5), verify)?;
     if response.status != 200 {
         bail!("GET {path}: status {}", response.status);
     }
     Ok(response.body)
 }
 
+/// The host and port to put in the page's URL: the listening address, or this machine's
+/// LAN address when it listens on every interface.
+fn page_host(http: SocketAddr) -> String {
+    match nephele_master::tls::lan_address() {
+        Some(ip) if http.ip().is_unspecified() => SocketAddr::new(ip, http.port()).to_string(),
+        _ => http.to_string(),
+    }
+}
+
+/// How `up` reaches its own master.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Probe {
+    Plain,
+    /// Its self-signed certificate, trusted for this process (it names 127.0.0.1).
+    SelfSigned,
+    /// The operator's certificate names the public host, not 127.0.0.1: a loopback probe
+    /// without the check.
+    OperatorCertificate,
+}
+
 /// `(composer registered, workers registered)` from the master's `GET /v1/farm`.
-fn farm_members(http: SocketAddr) -> Option<(bool, usize)> {
-    let farm: serde_json::Value = serde_json::from_str(&http_get(http, "/v1/farm").ok()?).ok()?;
+fn farm_members(http: SocketAddr, tls: &Probe) -> Option<(bool, usize)> {
+    let farm: serde_json::Value = serde_json::from_str(&http_get(http, "/v1/farm", tls).ok()?).ok()?;
     let workers = farm.get("workers").and_then(|w| w.as_array()).map_or(0, Vec::len);
     Some((farm.get("composer").is_some_and(|c| !c.is_null()), workers))
 }
@@ -135,19 +168,39 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
         println!("assets ready in {} ({} objects)", assets.display(), baked.len());
         return Ok(());
     }
+    // The certificate first (made and cached here, so the master finds it), and how to
+    // probe the master with it.
+    let tls = args.tls.resolve()?;
+    let probe = match (&tls, args.tls.tls_self_signed) {
+        (None, _) => Probe::Plain,
+        (Some(tls), true) => {
+            nephele_loadgen::http::trust_certificates(&tls.cert_path)?;
+            Probe::SelfSigned
+        }
+        (Some(_), false) => Probe::OperatorCertificate,
+    };
     let stop = Shutdown::on_signals().context("installing the Ctrl-C and SIGTERM handlers")?;
     let exe = std::env::current_exe().context("locating the nephele executable")?;
     let farm = free_port()?;
     let (composer_http, composer_results) = (free_port()?, free_port()?);
     let mut supervisor = Supervisor::new();
+    // The farm credential: the one given (so that workers on other machines holding the
+    // same file can join this farm), else a fresh one for this run. The children get it in
+    // their environment, which `ps` does not show to other users.
+    let secret = match args.farm_secret.resolve()? {
+        Some(secret) => secret,
+        None => nephele_proto::auth::FarmSecret::generate()?,
+    };
     // `nephele ROLE --log-format F ...`: every process logs in the format asked of `nephele up`.
     let nephele = |role: &str| {
         let mut command = Command::new(&exe);
         command.args([role, "--log-format", &log_format.to_string()]);
+        command.env_remove(nephele_proto::auth::SECRET_FILE_ENV).env(nephele_proto::auth::SECRET_ENV, secret.expose());
         command
     };
     let mut master = nephele("master");
     master.args(["--http", &args.http.to_string(), "--farm-listen", &farm.to_string()]);
+    master.args(args.tls.to_args());
     if let Some(fraction) = args.admit_up_to {
         master.args(["--admit-up-to", &fraction.to_string()]);
     }
@@ -195,7 +248,7 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
             supervisor.shutdown(Duration::from_secs(10));
             bail!("{name} exited while starting ({status}); everything stopped");
         }
-        if let Some((true, n)) = farm_members(args.http)
+        if let Some((true, n)) = farm_members(args.http, &probe)
             && n >= args.workers
         {
             break;
@@ -222,7 +275,13 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
         println!("scene '{}': {} path traced at {} spp (no baked asset)", args.scene, list(&traced), args.spp);
     }
     println!("composer counters and latency: http://{composer_http}/v1/sessions");
-    println!("open http://{}/?scene={}", args.http, args.scene);
+    match &tls {
+        Some(tls) => {
+            println!("open https://{}/?scene={}", page_host(args.http), args.scene);
+            println!("TLS certificate SHA-256 {} ({})", tls.fingerprint, tls.cert_path.display());
+        }
+        None => println!("open http://{}/?scene={}", args.http, args.scene),
+    }
     let end = supervisor.watch(&stop)?;
     for (name, restarts) in supervisor.restart_counts() {
         println!("nephele up: {name} was restarted {restarts} time(s)");

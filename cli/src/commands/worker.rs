@@ -72,6 +72,8 @@ pub struct Args {
     /// Asset rendered at start-up to measure this worker's throughput.
     #[arg(long, default_value = "diffuse")]
     calibration_asset: String,
+    #[command(flatten)]
+    farm_secret: crate::commands::FarmSecretArgs,
 }
 
 /// `worker-<host>-<pid>`: unique across containers too (every container's worker is pid 1;
@@ -114,6 +116,7 @@ pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
     config.drain_timeout = Duration::from_secs(args.drain_secs);
     config.calibration_asset = args.calibration_asset;
     config.device = device;
+    config.farm_secret = args.farm_secret.resolve()?;
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
