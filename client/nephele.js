@@ -203,9 +203,12 @@
     await waitForIceGathering(pc, 2000);
     let response;
     try {
+      // An invitation link (`?invite=...`) opens a master that requires one.
+      const headers = { 'content-type': 'application/json' };
+      if (params.get('invite')) headers.authorization = `Bearer ${params.get('invite')}`;
       response = await fetch('v1/sessions', {
         method: 'POST',
-        headers: { 'content-type': 'application/json' },
+        headers,
         body: JSON.stringify({
           sdp: pc.localDescription.sdp,
           scene: params.get('scene') || $('scene').value,
@@ -219,9 +222,9 @@
       scheduleReconnect(`master unreachable: ${error}`);
       return;
     }
-    if (response.status === 503) {
+    if (response.status === 503 || response.status === 429) {
       const retry = Number(response.headers.get('retry-after')) || 2;
-      setState(`farm busy, retrying in ${retry} s`);
+      setState(response.status === 503 ? `farm busy, retrying in ${retry} s` : `too many requests, retrying in ${retry} s`);
       teardown(false);
       client.timers.push(setTimeout(() => { if (client.wantConnected) connect(); }, retry * 1000));
       return;

@@ -115,9 +115,13 @@ enum Command {
     /// Ask a process's `/livez` or `/readyz` once: exit 0 on 2xx, 1 otherwise (the
     /// container images' health check).
     Probe(commands::probe::Args),
-    /// Write a fresh farm secret to a file (owner-readable only): the credential that the
-    /// master, the composer and the workers prove to each other when they join.
-    FarmSecret(commands::farm_secret::Args),
+    /// Write a fresh secret to a file (owner-readable only): a farm secret (the credential
+    /// that the master, the composer and the workers prove to each other when they join) or
+    /// a viewer key (what `nephele invite` signs invitations with).
+    Secret(commands::secret::Args),
+    /// Print an invitation link: a session on one scene (or all) until a given time, signed
+    /// with the master's viewer key (`nephele master --viewer-key-file`).
+    Invite(commands::invite::Args),
     /// Run the whole service locally: master, composer and render workers as child
     /// processes; prints the URL to open; Ctrl-C stops everything.
     ///
@@ -167,7 +171,8 @@ fn run(cli: Cli) -> Result<()> {
         Command::Render(args) => commands::render::run(args, &progress),
         Command::Master(args) => commands::master::run(args),
         Command::Probe(args) => commands::probe::run(args),
-        Command::FarmSecret(args) => commands::farm_secret::run(args),
+        Command::Secret(args) => commands::secret::run(args),
+        Command::Invite(args) => commands::invite::run(args),
         Command::Up(args) => commands::up::run(args, &progress, cli.log_format),
     }
 }

@@ -24,9 +24,8 @@ pub fn read_certificates(file: &Path) -> Result<Vec<ureq::tls::Certificate<'stat
     let pem = std::fs::read(file).map_err(|e| LoadError::Http(format!("reading the certificate file {shown}: {e}")))?;
     let mut certs = Vec::new();
     for item in ureq::tls::parse_pem(&pem) {
-        match item.map_err(|e| LoadError::Http(format!("{shown}: {e}")))? {
-            ureq::tls::PemItem::Certificate(cert) => certs.push(cert),
-            _ => {}
+        if let ureq::tls::PemItem::Certificate(cert) = item.map_err(|e| LoadError::Http(format!("{shown}: {e}")))? {
+            certs.push(cert);
         }
     }
     if certs.is_empty() {
@@ -63,6 +62,8 @@ fn trusted() -> Result<Arc<Vec<ureq::tls::Certificate<'static>>>, LoadError> {
 pub struct BaseUrl {
     /// `scheme://authority[/prefix]`: the API paths are appended to it.
     pub root: String,
+    /// The invitation of an invitation link (`?invite=...`), sent with session requests.
+    pub invite: Option<String>,
 }
 
 impl BaseUrl {
@@ -72,7 +73,14 @@ impl BaseUrl {
         if scheme != "http" && scheme != "https" {
             return Err(bad("only http:// and https:// URLs are supported"));
         }
-        // The page URL may carry a query (`?width=...`): signalling ignores it.
+        // The page URL may carry a query (`?width=...`): signalling ignores it but for an
+        // invitation.
+        let invite = rest
+            .split_once('?')
+            .map(|(_, query)| query.split('#').next().unwrap_or(""))
+            .and_then(|query| query.split('&').find_map(|pair| pair.strip_prefix("invite=")))
+            .filter(|token| !token.is_empty())
+            .map(str::to_string);
         let rest = rest.split(['?', '#']).next().unwrap_or("");
         let (authority, path) = rest.split_once('/').unwrap_or((rest, ""));
         if authority.is_empty() || authority.starts_with(':') {
@@ -84,7 +92,7 @@ impl BaseUrl {
         } else {
             format!("{scheme}://{authority}/{prefix}")
         };
-        Ok(BaseUrl { root })
+        Ok(BaseUrl { root, invite })
     }
 }
 
@@ -209,6 +217,9 @@ mod tests {
         assert_eq!(u.root, "http://127.0.0.1:8080");
         let u = BaseUrl::parse("https://farm.example/nephele/?width=64").expect("url");
         assert_eq!(u.root, "https://farm.example/nephele");
+        assert_eq!(u.invite, None);
+        let u = BaseUrl::parse("https://farm.example/?scene=default&invite=v1.default.9.ab#x").expect("url");
+        assert_eq!((u.root.as_str(), u.invite.as_deref()), ("https://farm.example", Some("v1.default.9.ab")));
         assert!(BaseUrl::parse("ftp://x:1").is_err());
         assert!(BaseUrl::parse("http:///x").is_err());
         assert!(BaseUrl::parse("localhost:8080").is_err());

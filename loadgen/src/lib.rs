@@ -59,7 +59,7 @@ pub enum LoadError {
     Http(String),
     #[error("the master refused the session ({status}): {body}")]
     Refused { status: u16, body: String },
-    #[error("the farm stayed busy (503) through {0} retries")]
+    #[error("the farm stayed busy (503 or 429) through {0} retries")]
     Busy(u32),
     #[error("timed out waiting for {0}")]
     Timeout(&'static str),
@@ -96,7 +96,7 @@ pub struct LoadConfig {
     pub stagger: Duration,
     /// Longest wait for ICE gathering, the answer and the data channel.
     pub connect_timeout: Duration,
-    /// How many `503 Retry-After` answers a user waits through before giving up.
+    /// How many `503` / `429` + `Retry-After` answers a user waits through before giving up.
     pub max_busy_retries: u32,
 }
 
@@ -370,15 +370,19 @@ async fn stream_user(
 
     let posted = Instant::now();
     let answer = loop {
-        let response = http::request(base, "POST", "/v1/sessions", &[], &body, config.connect_timeout).await?;
+        let bearer = base.invite.as_ref().map(|token| format!("Bearer {token}"));
+        let headers: Vec<(&str, &str)> = bearer.iter().map(|b| ("Authorization", b.as_str())).collect();
+        let response = http::request(base, "POST", "/v1/sessions", &headers, &body, config.connect_timeout).await?;
         match response.status {
             201 => break response,
-            503 if report.busy_retries < config.max_busy_retries => {
+            // 503: the farm is full; 429: this address asked too often. Both say when to
+            // come back.
+            503 | 429 if report.busy_retries < config.max_busy_retries => {
                 report.busy_retries += 1;
                 let wait = response.header("retry-after").and_then(|v| v.parse::<u64>().ok()).unwrap_or(2).clamp(1, 60);
                 tokio::time::sleep(Duration::from_secs(wait)).await;
             }
-            503 => return Err(LoadError::Busy(report.busy_retries)),
+            503 | 429 => return Err(LoadError::Busy(report.busy_retries)),
             status => return Err(LoadError::Refused { status, body: response.body.chars().take(500).collect() }),
         }
     };

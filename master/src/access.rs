@@ -193,7 +193,8 @@ mod tests {
         assert_eq!(k.check(&other, "room-day", 10), Err(Denied::BadSignature));
         let foreign = ViewerKey::new(b"somebody else's viewer key").expect("key").invite("default", 1_000);
         assert_eq!(k.check(&foreign, "default", 10), Err(Denied::BadSignature));
-        for garbage in ["", "v1", "v1.default.1000", "v2.default.1000.00", "v1.default.x.00", &token[..token.len() - 1]] {
+        for garbage in ["", "v1", "v1.default.1000", "v2.default.1000.00", "v1.default.x.00", &token[..token.len() - 1]]
+        {
             assert_eq!(k.check(garbage, "default", 10), Err(Denied::Malformed), "{garbage:?}");
         }
         let not_hex = format!("v1.default.1000.{}", "zz".repeat(32));

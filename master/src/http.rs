@@ -15,7 +15,7 @@ use std::pin::Pin;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use axum::extract::{DefaultBodyLimit, Path, State};
+use axum::extract::{ConnectInfo, DefaultBodyLimit, Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post};
@@ -23,6 +23,7 @@ use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
+use crate::access::{Denied, RateLimiter, ViewerKey};
 use crate::client_files;
 use crate::metrics::MasterMetrics;
 use crate::sessions::{AccessError, SessionRequest, SessionTable};
@@ -92,6 +93,34 @@ pub struct AppState {
     pub backend: Arc<dyn FarmBackend>,
     pub metrics: Arc<MasterMetrics>,
     clock: Box<dyn Fn() -> f64 + Send + Sync>,
+    /// Who may open sessions ([`crate::access`]); the default admits everyone.
+    pub access: AccessPolicy,
+}
+
+/// A client's address, as the HTTP server records it for each connection (plain or TLS):
+/// what the per-address rate limit counts by.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ClientAddr(pub std::net::SocketAddr);
+
+impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, tokio::net::TcpListener>> for ClientAddr {
+    fn connect_info(stream: axum::serve::IncomingStream<'_, tokio::net::TcpListener>) -> ClientAddr {
+        ClientAddr(*stream.remote_addr())
+    }
+}
+
+impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, crate::tls::TlsListener>> for ClientAddr {
+    fn connect_info(stream: axum::serve::IncomingStream<'_, crate::tls::TlsListener>) -> ClientAddr {
+        ClientAddr(*stream.remote_addr())
+    }
+}
+
+/// The viewer access policy of `POST /v1/sessions`.
+#[derive(Debug, Default)]
+pub struct AccessPolicy {
+    /// Invitations are required (signed with this key) when set.
+    pub viewer_key: Option<ViewerKey>,
+    /// Per-address limit on session requests.
+    pub rate_limit: Option<RateLimiter>,
 }
 
 impl std::fmt::Debug for AppState {
@@ -106,7 +135,17 @@ impl AppState {
         metrics: Arc<MasterMetrics>,
         clock: Box<dyn Fn() -> f64 + Send + Sync>,
     ) -> Arc<AppState> {
-        Arc::new(AppState { sessions: Mutex::new(SessionTable::new()), backend, metrics, clock })
+        AppState::with_access(backend, metrics, clock, AccessPolicy::default())
+    }
+
+    /// [`AppState::new`] with a viewer access policy.
+    pub fn with_access(
+        backend: Arc<dyn FarmBackend>,
+        metrics: Arc<MasterMetrics>,
+        clock: Box<dyn Fn() -> f64 + Send + Sync>,
+        access: AccessPolicy,
+    ) -> Arc<AppState> {
+        Arc::new(AppState { sessions: Mutex::new(SessionTable::new()), backend, metrics, clock, access })
     }
 
     fn sessions(&self) -> std::sync::MutexGuard<'_, SessionTable> {
@@ -183,7 +222,26 @@ fn default_fps() -> f32 {
     30.0
 }
 
-async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Bytes) -> Response {
+async fn open_session(
+    State(state): State<Arc<AppState>>,
+    headers: HeaderMap,
+    extensions: axum::http::Extensions,
+    body: axum::body::Bytes,
+) -> Response {
+    // The rate limit before anything else is looked at (served with connect info; a router
+    // served without it, as in tests, has no client address and no limit).
+    if let (Some(limiter), Some(ConnectInfo(ClientAddr(peer)))) =
+        (&state.access.rate_limit, extensions.get::<ConnectInfo<ClientAddr>>())
+        && let Err(wait) = limiter.take(peer.ip(), (state.clock)())
+    {
+        state.metrics.links.sessions_rate_limited.inc();
+        tracing::info!(%peer, "session request over the rate limit");
+        let mut response =
+            error(StatusCode::TOO_MANY_REQUESTS, "too many session requests from this address; retry later");
+        let seconds = wait.as_secs_f64().ceil().max(1.0) as u64;
+        response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(seconds));
+        return response;
+    }
     // Parse by hand so that every malformed body gets our JSON error, not axum's text.
     let body: OpenBody = match serde_json::from_slice(&body) {
         Ok(body) => body,
@@ -217,6 +275,28 @@ async fn open_session(State(state): State<Arc<AppState>>, body: axum::body::Byte
         );
     };
     let view = view.clone();
+    if let Some(key) = &state.access.viewer_key {
+        let presented = headers
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .map(str::trim);
+        let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+        let checked = match presented {
+            None => Err(Denied::Missing),
+            Some(token) => key.check(token, &request.scene, now),
+        };
+        if let Err(denied) = checked {
+            state.metrics.links.sessions_denied.inc();
+            tracing::info!(scene = %request.scene, "session request denied: {denied}");
+            if denied.is_missing() {
+                let mut response = error(StatusCode::UNAUTHORIZED, denied);
+                response.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+                return response;
+            }
+            return error(StatusCode::FORBIDDEN, denied);
+        }
+    }
     if let Admission::Refuse { retry_after } = state.backend.admission() {
         tracing::info!(retry_after_s = retry_after.as_secs_f64(), "session refused by admission control");
         state.metrics.links.sessions_refused.inc();
@@ -395,6 +475,77 @@ mod tests {
     }
 
     const OFFER: &str = r#"{"sdp": "v=0\r\nm=video 9 UDP/TLS/RTP/SAVPF 96\r\n", "scene": "default"}"#;
+
+    /// Invitations (issue 15): none presented 401 (with `WWW-Authenticate`), a wrong,
+    /// altered, expired or other-scene one 403, a valid one opens the session; the farm
+    /// never sees the refused ones.
+    #[tokio::test]
+    async fn a_master_with_a_viewer_key_opens_sessions_only_for_valid_invitations() {
+        use crate::access::{ANY_SCENE, ViewerKey};
+        let farm = Arc::new(FakeFarm::default());
+        let key = ViewerKey::new(b"the viewer key of the http test").expect("key");
+        let policy = AccessPolicy { viewer_key: Some(key.clone()), rate_limit: None };
+        let state = AppState::with_access(farm.clone(), Arc::new(MasterMetrics::new()), Box::new(|| 0.0), policy);
+        let app = router(state.clone());
+        let with = |token: &str| {
+            let mut request = post(OFFER);
+            request
+                .headers_mut()
+                .insert(header::AUTHORIZATION, HeaderValue::from_str(&format!("Bearer {token}")).expect("header"));
+            request
+        };
+        let (status, headers, body) = call(&app, post(OFFER)).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED, "{body}");
+        assert_eq!(headers.get(header::WWW_AUTHENTICATE).and_then(|v| v.to_str().ok()), Some("Bearer"));
+        assert!(body["error"].as_str().is_some_and(|e| e.contains("invitation")), "{body}");
+        let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).expect("clock").as_secs();
+        let valid = key.invite("default", now + 3600);
+        let other_key = ViewerKey::new(b"not the key of this master").expect("key");
+        let refused = [
+            ("garbage".to_string(), "malformed"),
+            (other_key.invite("default", now + 3600), "signature"),
+            (valid.replacen(&format!(".{}.", now + 3600), &format!(".{}.", now + 999_999), 1), "signature"),
+            (key.invite("default", now - 5), "expired"),
+            (key.invite("room-day", now + 3600), "scene"),
+        ];
+        for (token, why) in &refused {
+            let (status, _, body) = call(&app, with(token)).await;
+            assert_eq!(status, StatusCode::FORBIDDEN, "{token}: {body}");
+            assert!(body["error"].as_str().is_some_and(|e| e.contains(why)), "{why}: {body}");
+        }
+        assert_eq!(farm.opened.load(Ordering::SeqCst), 0, "refused requests never reach the farm");
+        let (status, _, body) = call(&app, with(&valid)).await;
+        assert_eq!(status, StatusCode::CREATED, "{body}");
+        let (status, _, body) = call(&app, with(&key.invite(ANY_SCENE, now + 60))).await;
+        assert_eq!(status, StatusCode::CREATED, "{body}");
+        let metrics = state.metrics.render();
+        assert!(metrics.contains("nephele_master_sessions_denied_total 6"), "{metrics}");
+    }
+
+    /// The per-address rate limit (issue 15): a burst, then 429 with `Retry-After`; another
+    /// address is not affected.
+    #[tokio::test]
+    async fn session_requests_over_the_rate_limit_get_429() {
+        use axum::extract::ConnectInfo;
+        let farm = Arc::new(FakeFarm::default());
+        let policy = AccessPolicy { viewer_key: None, rate_limit: crate::access::RateLimiter::new(2, 6) };
+        let state = AppState::with_access(farm.clone(), Arc::new(MasterMetrics::new()), Box::new(|| 0.0), policy);
+        let app = router(state.clone());
+        let from = |addr: &str| {
+            let mut request = post(OFFER);
+            request.extensions_mut().insert(ConnectInfo(ClientAddr(addr.parse().expect("addr"))));
+            request
+        };
+        for _ in 0..2 {
+            assert_eq!(call(&app, from("10.1.1.1:5000")).await.0, StatusCode::CREATED);
+        }
+        let (status, headers, body) = call(&app, from("10.1.1.1:5001")).await;
+        assert_eq!(status, StatusCode::TOO_MANY_REQUESTS, "{body}");
+        assert_eq!(headers.get(header::RETRY_AFTER).and_then(|v| v.to_str().ok()), Some("10"));
+        assert_eq!(call(&app, from("10.2.2.2:5000")).await.0, StatusCode::CREATED);
+        assert_eq!(farm.opened.load(Ordering::SeqCst), 3);
+        assert!(state.metrics.render().contains("nephele_master_sessions_rate_limited_total 1"));
+    }
 
     #[tokio::test]
     async fn ready_only_with_a_composer_and_a_worker() {

@@ -5,6 +5,7 @@
 //! Depends on `nephele-proto`, `nephele-scheduler`, `nephele-geometry` and `nephele-pathtracer`
 //! (the scene catalog's object bounds); never on kernels, trainers or another service.
 //!
+//! * [`access`]: who may open viewer sessions (signed invitations, a rate limit).
 //! * [`http`]: the HTTP API and the [`http::FarmBackend`] trait the farm implements.
 //! * [`sessions`]: the HTTP session table (ids, tokens, validated requests).
 //! * [`scenes`]: the scene catalog (objects placed in the world, first views).
@@ -14,6 +15,7 @@
 //! * [`service`]: both listeners and graceful shutdown: `nephele master`.
 //! * [`tls`]: HTTPS for the page and the API (certificates, a self-signed one for LAN use).
 
+pub mod access;
 pub mod client_files;
 pub mod farm;
 pub mod http;

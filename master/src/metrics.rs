@@ -35,12 +35,14 @@ pub(crate) struct LinkCounters {
     pub sessions_ended_by_peer: Counter,
     pub stale_reports: Counter,
     pub peers_unauthenticated: Counter,
+    pub sessions_denied: Counter,
+    pub sessions_rate_limited: Counter,
     pub handshakes_failed: Counter,
 }
 
 impl LinkCounters {
     fn register(&self, registry: &mut Registry) {
-        let entries: [(&str, &str, &Counter); 14] = [
+        let entries: [(&str, &str, &Counter); 16] = [
             ("workers_joined", "Workers that registered", &self.workers_joined),
             ("workers_left", "Worker links that closed", &self.workers_left),
             ("workers_lost", "Workers dropped for missing their heartbeats", &self.workers_lost),
@@ -61,6 +63,16 @@ impl LinkCounters {
                 "farm_peers_unauthenticated",
                 "Farm connections refused for not proving the farm secret (none, or a wrong one)",
                 &self.peers_unauthenticated,
+            ),
+            (
+                "sessions_denied",
+                "Session requests refused for lacking a valid invitation (401 or 403)",
+                &self.sessions_denied,
+            ),
+            (
+                "sessions_rate_limited",
+                "Session requests refused by the per-address rate limit (429)",
+                &self.sessions_rate_limited,
             ),
             (
                 "farm_handshakes_failed",

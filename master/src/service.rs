@@ -19,10 +19,15 @@ use nephele_proto::auth::FarmSecret;
 use thiserror::Error;
 use tokio::net::TcpListener;
 
+use crate::access::{RateLimiter, ViewerKey};
 use crate::farm::{Farm, FarmConfig};
-use crate::http::{AppState, router};
+use crate::http::{AccessPolicy, AppState, ClientAddr, router};
 use crate::scenes::{Catalog, CatalogError};
 use crate::tls::{ServerTls, TlsListener};
+
+/// Session requests one address may make: 30 at once, then 60 a minute (a page that
+/// reconnects, a load test's users and their retries from one machine stay well inside).
+pub const DEFAULT_SESSION_RATE: (u32, u32) = (30, 60);
 
 #[derive(Debug, Clone)]
 pub struct MasterConfig {
@@ -37,6 +42,10 @@ pub struct MasterConfig {
     pub farm_secret: Option<FarmSecret>,
     /// HTTPS for the page and the API ([`crate::tls`]); `None`: plain http.
     pub tls: Option<ServerTls>,
+    /// Invitations required to open a session, signed with this key ([`crate::access`]).
+    pub viewer_key: Option<ViewerKey>,
+    /// Session requests per client address: `(burst, per minute)`; a 0 turns the limit off.
+    pub session_rate: (u32, u32),
 }
 
 impl Default for MasterConfig {
@@ -48,6 +57,8 @@ impl Default for MasterConfig {
             frame: FrameConfig::default(),
             farm_secret: None,
             tls: None,
+            viewer_key: None,
+            session_rate: DEFAULT_SESSION_RATE,
         }
     }
 }
@@ -114,10 +125,15 @@ impl Master {
         let Master { http, farm_listener, config, catalog } = self;
         let (farm, farm_task, mut ended) = Farm::start(config.farm_config, catalog)?;
         let start = Instant::now();
-        let state = AppState::new(
+        let access = AccessPolicy {
+            viewer_key: config.viewer_key,
+            rate_limit: RateLimiter::new(config.session_rate.0, config.session_rate.1),
+        };
+        let state = AppState::with_access(
             Arc::new(farm.clone()),
             farm.metrics().clone(),
             Box::new(move || start.elapsed().as_secs_f64()),
+            access,
         );
         // Sessions the farm ended on its own (client vanished, composer gone) leave the
         // HTTP table too, so that their ids answer 404.
@@ -139,7 +155,8 @@ impl Master {
         let secret = config.farm_secret.map(Arc::new);
         let listener = tokio::spawn(crate::links::serve(farm_listener, farm.clone(), config.frame, secret));
         tracing::info!(http = %http_addr, farm = %farm_addr, "master serving");
-        let app = router(state);
+        // With each connection's address, for the per-address rate limit.
+        let app = router(state).into_make_service_with_connect_info::<ClientAddr>();
         let served = match config.tls {
             Some(tls) => match TlsListener::new(http, tls.config) {
                 Ok(listener) => axum::serve(listener, app).with_graceful_shutdown(shutdown).await,

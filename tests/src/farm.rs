@@ -150,21 +150,27 @@ impl TestFarm {
     /// Serves `nephele_master::http::router` over this farm on a loopback port (on the current
     /// tokio runtime); returns the address.
     pub async fn serve(&self) -> Result<SocketAddr, FarmError> {
-        self.serve_with(None).await
+        self.serve_configured(None, Default::default()).await
     }
 
     /// [`TestFarm::serve`] over HTTPS with `tls` (`nephele_master::tls`, as `nephele master
     /// --tls-...` serves).
     pub async fn serve_tls(&self, tls: nephele_master::tls::ServerTls) -> Result<SocketAddr, FarmError> {
-        self.serve_with(Some(tls)).await
+        self.serve_configured(Some(tls), Default::default()).await
     }
 
-    async fn serve_with(&self, tls: Option<nephele_master::tls::ServerTls>) -> Result<SocketAddr, FarmError> {
+    /// [`TestFarm::serve`] with HTTPS and a viewer access policy of the caller's.
+    pub async fn serve_configured(
+        &self,
+        tls: Option<nephele_master::tls::ServerTls>,
+        access: nephele_master::http::AccessPolicy,
+    ) -> Result<SocketAddr, FarmError> {
         let start = Instant::now();
-        let state = AppState::new(
+        let state = AppState::with_access(
             Arc::new(self.clone()),
             Arc::new(nephele_master::metrics::MasterMetrics::new()),
             Box::new(move || start.elapsed().as_secs_f64()),
+            access,
         );
         let listener = tokio::net::TcpListener::bind(("127.0.0.1", 0)).await?;
         let addr = listener.local_addr()?;

@@ -157,9 +157,18 @@ fn build_context(binary: &Path) -> tempfile::TempDir {
     }
     let root = repo_root();
     std::fs::copy(root.join("deploy/Dockerfile"), context.path().join("Dockerfile")).expect("Dockerfile");
-    let data = context.path().join("deploy/image/var-lib-nephele/assets");
-    std::fs::create_dir_all(&data).expect("data folder");
-    std::fs::copy(root.join("deploy/image/var-lib-nephele/assets/README.md"), data.join("README.md")).expect("data");
+    // The data folder's tree (assets/, secrets/), as the Dockerfile copies it.
+    let image_data = root.join("deploy/image/var-lib-nephele");
+    for folder in std::fs::read_dir(&image_data).expect("deploy/image/var-lib-nephele") {
+        let folder = folder.expect("entry").path();
+        let name = folder.file_name().expect("a name").to_owned();
+        let into = context.path().join("deploy/image/var-lib-nephele").join(name);
+        std::fs::create_dir_all(&into).expect("data folder");
+        for file in std::fs::read_dir(&folder).expect("data folder") {
+            let file = file.expect("entry").path();
+            std::fs::copy(&file, into.join(file.file_name().expect("a name"))).expect("data file");
+        }
+    }
     context
 }
 

@@ -252,7 +252,7 @@ fn help_of(role: Option<&str>) -> String {
 
 /// Every `--flag` of a `nephele` command line is one its subcommand's `--help` lists.
 fn check_flags(what: &str, args: &[&str]) {
-    const ROLES: [&str; 6] = ["master", "composer", "worker", "up", "loadgen", "probe"];
+    const ROLES: [&str; 7] = ["master", "composer", "worker", "up", "loadgen", "probe", "secret"];
     let Some(role_at) = args.iter().position(|a| ROLES.contains(a)) else {
         panic!("{what}: no nephele role in {args:?}")
     };
@@ -295,4 +295,16 @@ fn the_compose_file_runs_real_commands_on_a_private_network() {
     assert_eq!(published, ["composer", "master"]);
     assert_eq!(services["worker"]["scale"], 3, "three workers by default");
     assert!(services["worker"]["restart"].as_str().is_some_and(|r| r != "no"), "workers restart");
+    // The farm is authenticated: every farm process reads the secret the one-shot job writes.
+    for role in ["master", "composer", "worker"] {
+        let env = &services[role]["environment"];
+        assert_eq!(env["NEPHELE_FARM_SECRET_FILE"], "/var/lib/nephele/secrets/farm", "{role}: farm secret");
+        assert!(
+            items(&services[role], "/volumes")
+                .iter()
+                .any(|v| v.as_str() == Some("secrets:/var/lib/nephele/secrets:ro")),
+            "{role}: the secret volume, read-only"
+        );
+        assert_eq!(services[role]["depends_on"]["secret"]["condition"], "service_completed_successfully", "{role}");
+    }
 }

@@ -130,3 +130,41 @@ fn loadgen_streams_from_an_https_master_that_it_trusts() {
     ]);
     assert!(out.contains("1 of 1 users streamed"), "{out}");
 }
+
+/// Viewer access (issue 15): a master with a viewer key refuses a user without an
+/// invitation (401, saying so); `nephele invite` makes a link from the same key file, and
+/// loadgen given that link streams.
+#[test]
+fn loadgen_follows_an_invitation_link_and_is_refused_without_one() {
+    let rt = runtime();
+    let farm = TestFarm::new(true).expect("test farm");
+    let dir = tempfile::tempdir().expect("temp dir");
+    let key_file = dir.path().join("viewer.key");
+    let out = nephele_tests::nephele_ok(&["secret", "--out", key_file.to_str().expect("utf-8 path")]);
+    assert!(out.contains("secret written"), "{out}");
+    let text = std::fs::read_to_string(&key_file).expect("key file");
+    let key = nephele_master::access::ViewerKey::new(text.trim().as_bytes()).expect("viewer key");
+    let access = nephele_master::http::AccessPolicy { viewer_key: Some(key), rate_limit: None };
+    let addr = rt.block_on(farm.serve_configured(None, access)).expect("serving the master");
+    let base = format!("http://{addr}/");
+
+    let link = nephele_tests::nephele_ok(&[
+        "invite",
+        "--scene",
+        "default",
+        "--hours",
+        "1",
+        "--url",
+        &base,
+        "--viewer-key-file",
+        key_file.to_str().expect("utf-8 path"),
+    ]);
+    let link = link.trim();
+    assert!(link.starts_with(&format!("{base}?scene=default&invite=v1.default.")), "{link}");
+
+    let err = nephele_tests::nephele_err(&["loadgen", "--url", &base, "--seconds", "1", "--size", "160x120"]);
+    assert!(err.contains("401") && err.contains("invitation"), "{err}");
+    let out =
+        nephele_tests::nephele_ok(&["loadgen", "--url", link, "--users", "1", "--seconds", "1", "--size", "160x120"]);
+    assert!(out.contains("1 of 1 users streamed"), "{out}");
+}

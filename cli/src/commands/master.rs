@@ -70,6 +70,16 @@ pub struct Args {
     farm_secret: crate::commands::FarmSecretArgs,
     #[command(flatten)]
     tls: crate::commands::TlsArgs,
+    #[command(flatten)]
+    viewer_key: crate::commands::ViewerKeyArgs,
+    /// Session requests one client address may make at once (then
+    /// `--sessions-per-minute`); beyond, `POST /v1/sessions` answers 429 with Retry-After.
+    /// 0 turns the limit off (behind a reverse proxy every client has the proxy's address).
+    #[arg(long, value_name = "N", default_value_t = nephele_master::service::DEFAULT_SESSION_RATE.0)]
+    session_burst: u32,
+    /// Session requests per minute one client address may make after its burst.
+    #[arg(long, value_name = "N", default_value_t = nephele_master::service::DEFAULT_SESSION_RATE.1)]
+    sessions_per_minute: u32,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -122,6 +132,8 @@ pub fn run(args: Args) -> Result<()> {
         frame: FrameConfig { max_frame: args.max_frame_mib.saturating_mul(1 << 20) },
         farm_secret: args.farm_secret.resolve()?,
         tls: args.tls.resolve()?,
+        viewer_key: args.viewer_key.resolve()?,
+        session_rate: (args.session_burst, args.sessions_per_minute),
     };
     let tls = config.tls.as_ref().map(|t| (t.fingerprint.clone(), t.cert_path.clone()));
 

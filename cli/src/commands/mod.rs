@@ -4,14 +4,15 @@ pub mod bake;
 pub mod composer;
 pub mod dataset;
 pub mod eval;
-pub mod farm_secret;
 pub mod first_start;
+pub mod invite;
 pub mod loadgen;
 pub mod master;
 pub mod pathtrace;
 pub mod probe;
 pub mod render;
 pub mod scenes;
+pub mod secret;
 pub mod simulate;
 pub mod train;
 pub mod train_gi;
@@ -92,7 +93,7 @@ mod tests {
 #[derive(Debug, Clone, clap::Args)]
 pub struct FarmSecretArgs {
     /// File holding the farm secret that the master, the composer and every worker must
-    /// share (at least 16 bytes; `nephele farm-secret --out FILE` writes a fresh one).
+    /// share (at least 16 bytes; `nephele secret --out FILE` writes a fresh one).
     /// Without it the secret comes from the file named by $NEPHELE_FARM_SECRET_FILE, else
     /// from $NEPHELE_FARM_SECRET itself; with neither, the farm is open (any process that
     /// reaches the farm port may join). Never on the command line, where `ps` would show it.
@@ -182,5 +183,37 @@ impl TlsArgs {
             }
         }
         args
+    }
+}
+
+/// The viewer key (`master`, `up`, `invite`): invitations are signed with it, and a master
+/// that has one opens sessions only for valid invitations.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct ViewerKeyArgs {
+    /// File holding the viewer key (at least 16 bytes; `nephele secret --out FILE` writes
+    /// one). A master given one opens sessions only for invitation links signed with it
+    /// (`nephele invite`); 401 without an invitation, 403 for a wrong, altered or expired
+    /// one. Default: the file named by $NEPHELE_VIEWER_KEY_FILE; with neither, anyone who
+    /// reaches the master may open sessions.
+    #[arg(long, value_name = "FILE")]
+    pub viewer_key_file: Option<std::path::PathBuf>,
+}
+
+/// The environment variable naming the viewer key's file.
+pub const VIEWER_KEY_FILE_ENV: &str = "NEPHELE_VIEWER_KEY_FILE";
+
+impl ViewerKeyArgs {
+    /// The key's file, from the flag or the environment.
+    pub fn file(&self) -> Option<std::path::PathBuf> {
+        self.viewer_key_file.clone().or_else(|| std::env::var_os(VIEWER_KEY_FILE_ENV).map(Into::into))
+    }
+
+    pub fn resolve(&self) -> Result<Option<nephele_master::access::ViewerKey>> {
+        let Some(path) = self.file() else { return Ok(None) };
+        // The same rules as a farm secret's file (size, trimming, at least 16 bytes).
+        let secret = nephele_proto::auth::FarmSecret::read_file(&path)?;
+        let key = nephele_master::access::ViewerKey::new(secret.expose().as_bytes())
+            .ok_or_else(|| anyhow::anyhow!("the viewer key in {} is too short", path.display()))?;
+        Ok(Some(key))
     }
 }

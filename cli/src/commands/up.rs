@@ -71,6 +71,8 @@ pub struct Args {
     admit_up_to: Option<f64>,
     #[command(flatten)]
     tls: crate::commands::TlsArgs,
+    #[command(flatten)]
+    viewer_key: crate::commands::ViewerKeyArgs,
     /// The farm secret (see `nephele master --help`); without one `up` makes a fresh secret
     /// for its own processes, so nothing else can join its farm.
     #[command(flatten)]
@@ -201,6 +203,10 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     let mut master = nephele("master");
     master.args(["--http", &args.http.to_string(), "--farm-listen", &farm.to_string()]);
     master.args(args.tls.to_args());
+    let viewer_key = args.viewer_key.resolve()?;
+    if let Some(file) = args.viewer_key.file() {
+        master.arg("--viewer-key-file").arg(file);
+    }
     if let Some(fraction) = args.admit_up_to {
         master.args(["--admit-up-to", &fraction.to_string()]);
     }
@@ -275,12 +281,18 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
         println!("scene '{}': {} path traced at {} spp (no baked asset)", args.scene, list(&traced), args.spp);
     }
     println!("composer counters and latency: http://{composer_http}/v1/sessions");
+    // With a viewer key, the link to open is an invitation (for a day).
+    let invite = viewer_key.map(|key| {
+        let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+        format!("&invite={}", key.invite(&args.scene, now + 24 * 3600))
+    });
+    let invite = invite.unwrap_or_default();
     match &tls {
         Some(tls) => {
-            println!("open https://{}/?scene={}", page_host(args.http), args.scene);
+            println!("open https://{}/?scene={}{invite}", page_host(args.http), args.scene);
             println!("TLS certificate SHA-256 {} ({})", tls.fingerprint, tls.cert_path.display());
         }
-        None => println!("open http://{}/?scene={}", args.http, args.scene),
+        None => println!("open http://{}/?scene={}{invite}", args.http, args.scene),
     }
     let end = supervisor.watch(&stop)?;
     for (name, restarts) in supervisor.restart_counts() {

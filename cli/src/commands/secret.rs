@@ -1,4 +1,4 @@
-//! `nephele farm-secret`: writes a fresh farm secret to a file.
+//! `nephele secret`: writes a fresh secret (a farm secret, a viewer key) to a file.
 
 use std::io::Write;
 use std::os::unix::fs::OpenOptionsExt;
@@ -7,11 +7,12 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use nephele_proto::auth::FarmSecret;
 
-/// Writes a fresh farm secret (32 random bytes as 64 hex digits) to `--out`, readable by its
-/// owner only. Give the same file to the master, the composer and every worker
-/// (`--farm-secret-file FILE` or `NEPHELE_FARM_SECRET_FILE=FILE`): each proves it holds the
-/// secret when it joins the farm, and refuses peers that do not. Copy it to other machines
-/// over a channel you trust (scp, a secret store).
+/// Writes a fresh secret (32 random bytes as 64 hex digits) to `--out`, readable by its owner
+/// only. As a farm secret, give the same file to the master, the composer and every worker
+/// (`--farm-secret-file FILE` or `NEPHELE_FARM_SECRET_FILE=FILE`): each proves it holds it
+/// when it joins the farm and refuses peers that do not. As a viewer key, give it to the
+/// master (`--viewer-key-file`) and to `nephele invite`. Copy it to other machines over a
+/// channel you trust (scp, a secret store).
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The file to write.
@@ -26,13 +27,10 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     if args.out.exists() {
         if !args.if_missing {
-            bail!(
-                "{} exists; not overwriting a farm secret (remove it first, or pass --if-missing)",
-                args.out.display()
-            );
+            bail!("{} exists; not overwriting a secret (remove it first, or pass --if-missing)", args.out.display());
         }
         FarmSecret::read_file(&args.out)?;
-        println!("farm secret kept: {}", args.out.display());
+        println!("secret kept: {}", args.out.display());
         return Ok(());
     }
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -49,6 +47,6 @@ pub fn run(args: Args) -> Result<()> {
         .with_context(|| format!("creating {}", args.out.display()))?;
     writeln!(file, "{}", secret.expose()).with_context(|| format!("writing {}", args.out.display()))?;
     file.sync_all().with_context(|| format!("writing {}", args.out.display()))?;
-    println!("farm secret written: {}", args.out.display());
+    println!("secret written: {}", args.out.display());
     Ok(())
 }
