@@ -33,10 +33,15 @@ struct Service {
 
 impl Service {
     fn start(stream_video: bool) -> Service {
+        Service::start_with(stream_video, Default::default())
+    }
+
+    /// A service whose master applies `access` (invitations, the rate limit).
+    fn start_with(stream_video: bool, access: nephele_master::http::AccessPolicy) -> Service {
         let runtime =
             tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime");
         let farm = TestFarm::new(stream_video).expect("test farm");
-        let addr = runtime.block_on(farm.serve()).expect("serving the master");
+        let addr = runtime.block_on(farm.serve_configured(None, access)).expect("serving the master");
         Service { farm, url: format!("http://{addr}/?width={WIDTH}&height={HEIGHT}"), _runtime: runtime }
     }
 }
@@ -324,6 +329,33 @@ fn a_busy_farm_makes_the_client_wait_and_retry() {
     let errors = browser.console_log().expect("console log");
     // The refused POST is logged by Chromium as a failed resource load (503): expected here.
     let unexpected: Vec<_> = client::page_errors(&errors).into_iter().filter(|e| !e.message.contains("503")).collect();
+    assert!(unexpected.is_empty(), "JavaScript errors: {errors:?}");
+}
+
+/// Viewer access (issue 15): on a master that requires invitations the page without one
+/// says so and never reaches the farm; opened from an invitation link it streams.
+#[test]
+fn the_page_needs_an_invitation_where_the_master_asks_for_one_and_streams_with_it() {
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let key = nephele_master::access::ViewerKey::new(b"the viewer key of the browser test").expect("key");
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).expect("clock").as_secs();
+    let invite = key.invite("default", now + 600);
+    let access = nephele_master::http::AccessPolicy { viewer_key: Some(key), rate_limit: None };
+    let service = Service::start_with(false, access);
+    let browser = Browser::start().expect("headless Chromium");
+    browser.goto(&service.url).expect("open the client");
+    browser
+        .wait_until("window.nephele && window.nephele.state.startsWith('error')", Duration::from_secs(10))
+        .expect("an error state");
+    let state = client::state(&browser).expect("state");
+    assert!(state.contains("invitation"), "{state}");
+    assert!(service.farm.offers().is_empty(), "a refused request never reaches the farm");
+    browser.goto(&format!("{}&scene=default&invite={invite}", service.url)).expect("open the invitation link");
+    client::wait_streaming(&browser, Duration::from_secs(10)).expect("streams with the invitation");
+    assert_eq!(service.farm.offers().len(), 1);
+    let errors = browser.console_log().expect("console log");
+    // The refused POST is logged by Chromium as a failed resource load (401): expected here.
+    let unexpected: Vec<_> = client::page_errors(&errors).into_iter().filter(|e| !e.message.contains("401")).collect();
     assert!(unexpected.is_empty(), "JavaScript errors: {errors:?}");
 }
 

@@ -211,6 +211,22 @@ fn kubernetes_manifests_are_complete_and_every_reference_resolves() {
             "{key}={value}: the Service has no port {port}"
         );
     }
+    // Every farm process reads the farm secret from the Secret the operator creates
+    // (deploy/README.md), where NEPHELE_FARM_SECRET_FILE points.
+    assert_eq!(config.get("NEPHELE_FARM_SECRET_FILE").map(String::as_str), Some("/var/lib/nephele/secrets/farm"));
+    for name in ["nephele-master", "nephele-composer", "nephele-worker-cpu", "nephele-worker-gpu"] {
+        let spec = &all[&("Deployment".to_string(), name.to_string())]["spec"]["template"]["spec"];
+        let volume = items(spec, "/volumes")
+            .into_iter()
+            .find(|v| str_at(v, "/secret/secretName") == Some("nephele-farm-secret"))
+            .unwrap_or_else(|| panic!("{name}: no volume of the Secret nephele-farm-secret"));
+        let volume = str_at(volume, "/name").expect("volume name");
+        let mounted = items(spec, "/containers/0/volumeMounts")
+            .iter()
+            .any(|m| str_at(m, "/name") == Some(volume) && str_at(m, "/mountPath") == Some("/var/lib/nephele/secrets"));
+        assert!(mounted, "{name}: the farm secret is not mounted at /var/lib/nephele/secrets");
+        assert_eq!(spec["securityContext"]["fsGroup"], 10001, "{name}: the unprivileged user's group reads it");
+    }
     // The GPU variant asks for a GPU.
     let gpu = &all[&("Deployment".to_string(), "nephele-worker-gpu".to_string())];
     let limits = gpu.pointer("/spec/template/spec/containers/0/resources/limits/nvidia.com~1gpu");
