@@ -300,6 +300,12 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
             r.batches_per_second * n as f64 / 1e6
         );
     }
+    // The connection's opening, without and with the farm credential (alternated).
+    let (open_us, secret_us) = openings(200).context("connection openings")?;
+    println!(
+        "connection opening over loopback (Hellos; + challenge and proof), median of 200 each: open farm {open_us:.0} us, with the farm secret {secret_us:.0} us ({:+.0} us per connection, nothing per frame)",
+        secret_us - open_us
+    );
     if let Some(path) = &args.json {
         let loopback = |r: &Loopback| {
             json!({
@@ -317,11 +323,53 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
             "compact": { "encode_ns_per_pixel": compact_encode_ns, "decode_ns_per_pixel": compact_decode_ns, "bytes_per_pixel": compact_bytes_per_pixel, "frame": frame_figures },
             "loopback_two_processes": loopback(&process),
             "loopback_tokio_tasks": loopback(&tasks),
+            "opening_us": { "open_farm": open_us, "with_farm_secret": secret_us },
         });
         std::fs::write(path, serde_json::to_string_pretty(&out)?)
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
+}
+
+/// Median time of a connection's opening (connect, the Hellos, and with a secret the
+/// challenge and the proofs) between two tokio tasks, `count` times without and `count`
+/// times with a farm secret, alternated; microseconds.
+fn openings(count: usize) -> Result<(f64, f64)> {
+    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    runtime.block_on(async move {
+        let secret = nephele_proto::auth::FarmSecret::generate()?;
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        let addr = listener.local_addr()?;
+        let timeout = Duration::from_secs(10);
+        let server_secret = secret.clone();
+        let server = tokio::spawn(async move {
+            for i in 0..2 * count {
+                let (stream, _) = listener.accept().await?;
+                stream.set_nodelay(true)?;
+                let mut conn = framed(stream, FrameConfig::default());
+                let with = (i % 2 == 1).then_some(&server_secret);
+                handshake(&mut conn, Role::Composer, &[Role::Tool], with, timeout).await?;
+            }
+            anyhow::Ok(())
+        });
+        let (mut open, mut with_secret) = (Vec::new(), Vec::new());
+        for i in 0..2 * count {
+            let start = Instant::now();
+            let stream = tokio::net::TcpStream::connect(addr).await?;
+            stream.set_nodelay(true)?;
+            let mut conn = framed(stream, FrameConfig::default());
+            let with = (i % 2 == 1).then_some(&secret);
+            handshake(&mut conn, Role::Tool, &[Role::Composer], with, timeout).await?;
+            let us = start.elapsed().as_secs_f64() * 1e6;
+            if with.is_some() { with_secret.push(us) } else { open.push(us) }
+        }
+        server.await??;
+        let median = |v: &mut Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        };
+        Ok((median(&mut open), median(&mut with_secret)))
+    })
 }
 
 #[derive(Debug)]

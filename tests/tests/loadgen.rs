@@ -168,3 +168,36 @@ fn loadgen_follows_an_invitation_link_and_is_refused_without_one() {
         nephele_tests::nephele_ok(&["loadgen", "--url", link, "--users", "1", "--seconds", "1", "--size", "160x120"]);
     assert!(out.contains("1 of 1 users streamed"), "{out}");
 }
+
+/// The HTTPS listener (issue 15) keeps serving while one client connects and says nothing
+/// (each handshake runs on its own task with a deadline) and another sends garbage.
+#[test]
+fn the_https_listener_serves_others_while_a_client_stalls_or_sends_garbage() {
+    use std::io::Write;
+    let rt = runtime();
+    let farm = TestFarm::new(false).expect("test farm");
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (tls, _) = nephele_master::tls::ServerTls::self_signed(dir.path(), &["127.0.0.1".to_string()]).expect("cert");
+    nephele_loadgen::http::trust_certificates(&tls.cert_path).expect("trusted in this process");
+    let addr = rt.block_on(farm.serve_tls(tls)).expect("serving the master over https");
+    let _silent = std::net::TcpStream::connect(addr).expect("a silent client");
+    let mut garbage = std::net::TcpStream::connect(addr).expect("a garbage client");
+    let mut rng = 0x2545_f491_4f6c_dd1d_u64;
+    let noise: Vec<u8> = (0..8192)
+        .map(|_| {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            rng as u8
+        })
+        .collect();
+    // A TLS record header claiming a huge handshake, then noise.
+    let _ = garbage.write_all(&[0x16, 0x03, 0x01, 0xff, 0xff]);
+    let _ = garbage.write_all(&noise);
+    for _ in 0..3 {
+        let url = format!("https://127.0.0.1:{}/livez", addr.port());
+        let r = nephele_loadgen::http::request_blocking(&url, "GET", &[], "", std::time::Duration::from_secs(5))
+            .expect("an answer while the others hang");
+        assert_eq!((r.status, r.body.as_str()), (200, "ok"));
+    }
+}
