@@ -84,7 +84,9 @@ impl ServerTls {
             .with_no_client_auth()
             .with_single_cert(chain, key)
             .map_err(|e| TlsError::Config(e.to_string()))?;
-        config.alpn_protocols = vec![b"h2".to_vec(), b"http/1.1".to_vec()];
+        // HTTP/1.1 only: what the server speaks (axum without its http2 feature); offering h2
+        // here made Chromium open HTTP/2 and the connection reset.
+        config.alpn_protocols = vec![b"http/1.1".to_vec()];
         Ok(ServerTls { config: Arc::new(config), fingerprint, cert_path: cert.to_path_buf() })
     }
 

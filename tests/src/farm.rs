@@ -165,6 +165,17 @@ impl TestFarm {
         tls: Option<nephele_master::tls::ServerTls>,
         access: nephele_master::http::AccessPolicy,
     ) -> Result<SocketAddr, FarmError> {
+        self.serve_at(std::net::Ipv4Addr::LOCALHOST.into(), tls, access).await
+    }
+
+    /// [`TestFarm::serve_configured`] on an address of the caller's (a LAN address, to see
+    /// the page as another machine would).
+    pub async fn serve_at(
+        &self,
+        ip: std::net::IpAddr,
+        tls: Option<nephele_master::tls::ServerTls>,
+        access: nephele_master::http::AccessPolicy,
+    ) -> Result<SocketAddr, FarmError> {
         let start = Instant::now();
         let state = AppState::with_access(
             Arc::new(self.clone()),
@@ -172,7 +183,7 @@ impl TestFarm {
             Box::new(move || start.elapsed().as_secs_f64()),
             access,
         );
-        let listener = tokio::net::TcpListener::bind(("127.0.0.1", 0)).await?;
+        let listener = tokio::net::TcpListener::bind((ip, 0)).await?;
         let addr = listener.local_addr()?;
         let app = nephele_master::http::router(state);
         match tls {

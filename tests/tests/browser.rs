@@ -11,7 +11,7 @@
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use nephele_tests::browser::Browser;
+use nephele_tests::browser::{Browser, BrowserOptions};
 use nephele_tests::client;
 use nephele_tests::farm::{FIRST_VIEW, Pose, TestFarm, eye, grey_for_azimuth};
 use nephele_tests::service::UpService;
@@ -330,6 +330,35 @@ fn a_busy_farm_makes_the_client_wait_and_retry() {
     // The refused POST is logged by Chromium as a failed resource load (503): expected here.
     let unexpected: Vec<_> = client::page_errors(&errors).into_iter().filter(|e| !e.message.contains("503")).collect();
     assert!(unexpected.is_empty(), "JavaScript errors: {errors:?}");
+}
+
+/// HTTPS (issue 15): a page from a LAN address (as a headset on the LAN opens it) is not a
+/// secure context over http, so browsers offer it no WebXR; over https (the self-signed
+/// certificate, accepted as a user accepts the warning) it is, and it streams.
+#[test]
+fn over_https_a_page_from_a_lan_address_is_a_secure_context_and_streams() {
+    let Some(lan) = nephele_master::tls::lan_address() else {
+        eprintln!("SKIPPED: this machine has no LAN address");
+        return;
+    };
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let runtime =
+        tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().expect("tokio runtime");
+    let farm = TestFarm::new(false).expect("test farm");
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (tls, _) = nephele_master::tls::ServerTls::self_signed(dir.path(), &[lan.to_string()]).expect("certificate");
+    let plain = runtime.block_on(farm.serve_at(lan, None, Default::default())).expect("http master");
+    let secure = runtime.block_on(farm.serve_at(lan, Some(tls), Default::default())).expect("https master");
+    let options =
+        BrowserOptions { extra_args: vec!["--ignore-certificate-errors".into()], ..BrowserOptions::default() };
+    let browser = Browser::start_with(options).expect("headless Chromium");
+    let secure_context = |browser: &Browser| browser.execute("return window.isSecureContext", vec![]).expect("script");
+    browser.goto(&format!("http://{plain}/?width={WIDTH}&height={HEIGHT}&autoconnect=0")).expect("http page");
+    assert_eq!(secure_context(&browser).as_bool(), Some(false), "http from {lan} is not a secure context");
+    browser.goto(&format!("https://{secure}/?width={WIDTH}&height={HEIGHT}")).expect("https page");
+    assert_eq!(secure_context(&browser).as_bool(), Some(true), "https is a secure context");
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("streams over https");
+    assert_eq!(farm.offers().len(), 1);
 }
 
 /// Viewer access (issue 15): on a master that requires invitations the page without one
