@@ -12,12 +12,13 @@
 //! concept: HTTP signalling (`signalling`), viewer sessions (`sessions`), the media path
 //! (`media`), the farm link and results listener (`farm`, proto only) and the test pattern
 //! ([`testpattern`]), over the state they share (`state`); [`metrics`] is what `GET /metrics`
-//! reports.
+//! reports; [`congestion`] turns the receiver's feedback into the stream's bitrate.
 
 // Tests may unwrap and spell out their reference tuples.
 #![cfg_attr(test, allow(clippy::unwrap_used, clippy::type_complexity, clippy::needless_range_loop))]
 
 mod config;
+pub mod congestion;
 pub mod encode;
 mod farm;
 pub mod fusion;

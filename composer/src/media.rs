@@ -8,11 +8,15 @@ use std::time::{Duration, Instant};
 
 use nephele_shutdown::Shutdown;
 
+use crate::congestion::RateController;
 use crate::encode::{EncoderSettings, EncoderStats, H264Encoder};
 use crate::fusion::FusedFrame;
 use crate::state::{MediaCounters, Shared, lock};
 use crate::webrtc::Viewer;
 use crate::yuv::Yuv420;
+
+/// Lowest bitrate the receiver's feedback may bring a stream to.
+const MIN_BITRATE_BPS: f64 = 150_000.0;
 
 /// The session's media path on its own thread: YUV conversion and encoding are CPU work
 /// that must not stall the async runtime.
@@ -33,6 +37,12 @@ pub(crate) fn spawn_media_thread(
         let mut encoder: Option<H264Encoder> = None;
         let mut yuv: Option<Yuv420> = None;
         let started = Instant::now();
+        // The bitrate follows the receiver's feedback between a floor and the configured (or
+        // picture-size) rate; a new target re-creates the encoder (OpenH264 takes its rate at
+        // creation; the new one starts with an IDR), so only a change of a fifth or more,
+        // at most every two seconds.
+        let mut rate: Option<RateController> = None;
+        let mut last_rebuild = Instant::now();
         while let Ok(frame) = frames.recv() {
             let (w, h) = (frame.layout.width(), frame.layout.height());
             let t0 = Instant::now();
@@ -50,12 +60,41 @@ pub(crate) fn spawn_media_thread(
                 }
             };
             let t1 = Instant::now();
-            if encoder.as_ref().is_none_or(|e| e.settings().width != w || e.settings().height != h) {
-                let mut settings = EncoderSettings::low_latency(w, h);
-                settings.fps = fps;
-                if let Some(b) = bitrate {
-                    settings.bitrate_bps = b;
+            let resized = encoder.as_ref().is_none_or(|e| e.settings().width != w || e.settings().height != h);
+            let mut settings = EncoderSettings::low_latency(w, h);
+            settings.fps = fps;
+            if let Some(b) = bitrate {
+                settings.bitrate_bps = b;
+            }
+            if resized {
+                let ceiling = f64::from(settings.bitrate_bps);
+                rate = Some(RateController::new(ceiling, (ceiling / 8.0).max(MIN_BITRATE_BPS), ceiling));
+            }
+            let feedback = viewer.take_feedback();
+            let mut retarget = None;
+            if let (Some(controller), Some(enc)) = (rate.as_mut(), encoder.as_ref()) {
+                for (report, at) in feedback {
+                    controller.on_feedback(report, at.saturating_duration_since(started).as_secs_f64());
                 }
+                let target = controller.target_bps(started.elapsed().as_secs_f64());
+                let current = f64::from(enc.settings().bitrate_bps);
+                if (target - current).abs() >= 0.2 * current && last_rebuild.elapsed() >= Duration::from_secs(2) {
+                    retarget = Some((current as u32, target as u32));
+                }
+            }
+            if resized || retarget.is_some() {
+                if let Some((current, target)) = retarget {
+                    tracing::info!(
+                        session,
+                        from = current,
+                        to = target,
+                        "the stream's bitrate follows the receiver's feedback"
+                    );
+                    settings.bitrate_bps = target;
+                    shared.metrics.bitrate_changes.inc();
+                    lock(&media).0.bitrate_changes += 1;
+                }
+                last_rebuild = Instant::now();
                 match H264Encoder::new(settings) {
                     Ok(e) => encoder = Some(e),
                     Err(e) => {

@@ -21,6 +21,7 @@ pub struct ComposerMetrics {
     pub(crate) frames_sent: Counter,
     pub(crate) bytes_sent: Counter,
     pub(crate) frames_dropped_busy: Counter,
+    pub(crate) bitrate_changes: Counter,
     pub(crate) encode_errors: Counter,
     pub(crate) send_errors: Counter,
     pub(crate) wire_errors: Counter,
@@ -43,6 +44,11 @@ impl ComposerMetrics {
         let bytes_sent = counter(&mut registry, "bytes_sent", "H.264 bytes sent to viewers");
         let frames_dropped_busy =
             counter(&mut registry, "frames_dropped_busy", "Fused frames dropped: the viewer's media thread was busy");
+        let bitrate_changes = counter(
+            &mut registry,
+            "bitrate_changes",
+            "Times a receiver's feedback (RTCP loss, REMB) moved a stream's bitrate",
+        );
         let encode_errors = counter(&mut registry, "encode_errors", "Frames the encoder failed on");
         let send_errors = counter(&mut registry, "send_errors", "Frames that could not be sent");
         let wire_errors = counter(&mut registry, "wire_errors", "Malformed messages on the results listener");
@@ -82,6 +88,7 @@ impl ComposerMetrics {
             frames_sent,
             bytes_sent,
             frames_dropped_busy,
+            bitrate_changes,
             encode_errors,
             send_errors,
             wire_errors,

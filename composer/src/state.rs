@@ -22,6 +22,8 @@ pub struct MediaCounters {
     pub frames_sent: u64,
     /// Fused frames dropped because the media thread was still busy with the previous one.
     pub frames_dropped_busy: u64,
+    /// Times the receiver's feedback moved the stream's bitrate (the encoder re-created).
+    pub bitrate_changes: u64,
     pub encode_errors: u64,
     pub send_errors: u64,
     pub keyframes_requested: u64,

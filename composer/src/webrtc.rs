@@ -20,8 +20,8 @@
 //! composer learns the browser's address as a peer-reflexive candidate. With
 //! [`MdnsMode::Query`] the composer also resolves `.local` names on the local link.
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex as StdMutex};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
@@ -45,6 +45,10 @@ use webrtc::peer_connection::peer_connection_state::RTCPeerConnectionState;
 use webrtc::peer_connection::sdp::session_description::RTCSessionDescription;
 use webrtc::rtcp::payload_feedbacks::full_intra_request::FullIntraRequest;
 use webrtc::rtcp::payload_feedbacks::picture_loss_indication::PictureLossIndication;
+use webrtc::rtcp::payload_feedbacks::receiver_estimated_maximum_bitrate::ReceiverEstimatedMaximumBitrate;
+use webrtc::rtcp::receiver_report::ReceiverReport;
+
+use crate::congestion::Feedback;
 use webrtc::rtp_transceiver::RTCPFeedback;
 use webrtc::rtp_transceiver::rtp_codec::{RTCRtpCodecCapability, RTCRtpCodecParameters, RTPCodecType};
 use webrtc::track::track_local::TrackLocal;
@@ -286,14 +290,32 @@ impl RtcStack {
         ));
         let sender = pc.add_track(Arc::clone(&track) as Arc<dyn TrackLocal + Send + Sync>).await?;
 
-        // RTCP from the viewer: picture loss / full intra request → keyframe.
+        // RTCP from the viewer: picture loss / full intra request → keyframe; receiver
+        // reports' loss and REMB estimates → the media thread's rate controller.
         let rtcp_events = events.clone();
+        let feedback: Arc<StdMutex<Vec<(Feedback, Instant)>>> = Arc::default();
+        let rtcp_feedback = Arc::clone(&feedback);
         tokio::spawn(async move {
             while let Ok((packets, _)) = sender.read_rtcp().await {
+                let now = Instant::now();
                 for p in packets {
                     let any = p.as_any();
                     if any.is::<PictureLossIndication>() || any.is::<FullIntraRequest>() {
                         let _ = rtcp_events.try_send(ViewerEvent::KeyframeRequest(session));
+                    }
+                    let mut reports = Vec::new();
+                    if let Some(remb) = any.downcast_ref::<ReceiverEstimatedMaximumBitrate>() {
+                        reports.push(Feedback::Estimate(f64::from(remb.bitrate)));
+                    }
+                    if let Some(rr) = any.downcast_ref::<ReceiverReport>() {
+                        reports.extend(rr.reports.iter().map(|r| Feedback::Loss(f64::from(r.fraction_lost) / 256.0)));
+                    }
+                    if !reports.is_empty() {
+                        let mut queue = rtcp_feedback.lock().unwrap_or_else(|p| p.into_inner());
+                        // Read every frame; a stalled media thread must not grow it.
+                        if queue.len() < MAX_QUEUED_FEEDBACK {
+                            queue.extend(reports.into_iter().map(|f| (f, now)));
+                        }
                     }
                 }
             }
@@ -363,7 +385,7 @@ impl RtcStack {
         if !answer_sends_h264(&local.sdp) {
             return Err(RtcError::NoH264);
         }
-        Ok((local.sdp, Viewer { session, pc: Arc::clone(pc), track, channel, connected }))
+        Ok((local.sdp, Viewer { session, pc: Arc::clone(pc), track, channel, connected, feedback }))
     }
 }
 
@@ -415,7 +437,12 @@ pub struct Viewer {
     track: Arc<TrackLocalStaticSample>,
     channel: Arc<Mutex<Option<Arc<RTCDataChannel>>>>,
     connected: Arc<AtomicBool>,
+    /// The receiver's rate feedback since the media thread last took it.
+    feedback: Arc<StdMutex<Vec<(Feedback, Instant)>>>,
 }
+
+/// Most rate reports held for the media thread.
+const MAX_QUEUED_FEEDBACK: usize = 256;
 
 impl std::fmt::Debug for Viewer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -433,6 +460,11 @@ impl Viewer {
 
     pub fn is_connected(&self) -> bool {
         self.connected.load(Ordering::SeqCst)
+    }
+
+    /// The receiver's rate feedback (receiver reports' loss, REMB) since the last call.
+    pub fn take_feedback(&self) -> Vec<(Feedback, Instant)> {
+        std::mem::take(&mut *self.feedback.lock().unwrap_or_else(|p| p.into_inner()))
     }
 
     /// Sends one encoded frame on the video track (packetised as H.264 RTP, FU-A for NAL

@@ -5,6 +5,7 @@
 
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -86,6 +87,8 @@ pub async fn http_request(
 /// A connected headless viewer.
 pub struct Client {
     pc: Arc<RTCPeerConnection>,
+    /// The SSRC of the video the composer sends (0 until the track arrives).
+    media_ssrc: Arc<AtomicU32>,
     dc: Arc<RTCDataChannel>,
     pictures: mpsc::UnboundedReceiver<Picture>,
     texts: mpsc::UnboundedReceiver<String>,
@@ -164,7 +167,10 @@ impl Client {
         let init = RTCRtpTransceiverInit { direction: RTCRtpTransceiverDirection::Recvonly, send_encodings: vec![] };
         pc.add_transceiver_from_kind(RTPCodecType::Video, Some(init)).await?;
         let (pictures_tx, pictures) = mpsc::unbounded_channel();
+        let media_ssrc = Arc::new(AtomicU32::new(0));
+        let track_ssrc = Arc::clone(&media_ssrc);
         pc.on_track(Box::new(move |track, _, _| {
+            track_ssrc.store(track.ssrc(), Ordering::SeqCst);
             tokio::spawn(receive_video(track, pictures_tx.clone()));
             Box::pin(async {})
         }));
@@ -215,7 +221,18 @@ impl Client {
         tokio::time::timeout(Duration::from_secs(15), open_rx.recv())
             .await
             .map_err(|_| ClientError::Timeout("the data channel to open"))?;
-        Ok(Client { pc: Arc::clone(pc), dc, pictures, texts, session, session_name, token, offer_sdp, answer_sdp: sdp })
+        Ok(Client {
+            pc: Arc::clone(pc),
+            media_ssrc,
+            dc,
+            pictures,
+            texts,
+            session,
+            session_name,
+            token,
+            offer_sdp,
+            answer_sdp: sdp,
+        })
     }
 
     /// The next decoded picture that satisfies `accept`, within `timeout`.
@@ -240,6 +257,15 @@ impl Client {
             Ok(Some(t)) => Ok(t),
             _ => Err(ClientError::Timeout("a data-channel message")),
         }
+    }
+
+    /// Sends the composer an RTCP REMB: this receiver's estimate of the bitrate it can take.
+    pub async fn send_remb(&self, bitrate_bps: f32) -> Result<(), ClientError> {
+        use webrtc::rtcp::payload_feedbacks::receiver_estimated_maximum_bitrate::ReceiverEstimatedMaximumBitrate;
+        let ssrc = self.media_ssrc.load(Ordering::SeqCst);
+        let remb = ReceiverEstimatedMaximumBitrate { sender_ssrc: 1, bitrate: bitrate_bps, ssrcs: vec![ssrc] };
+        self.pc.write_rtcp(&[Box::new(remb)]).await?;
+        Ok(())
     }
 
     pub async fn send_pose(&self, pose: &Pose) -> Result<(), ClientError> {

@@ -293,3 +293,30 @@ async fn a_flooding_client_is_rate_limited_and_a_vanished_one_dropped_without_di
     calm.close().await;
     composer.shutdown().await;
 }
+
+/// Congestion control (issue 15, part 4, first cut): a receiver's REMB estimate below the
+/// stream's rate brings the encoder down to it (re-created at the new rate, counted), and the
+/// stream goes on from a keyframe.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_receivers_estimate_brings_the_stream_bitrate_down() {
+    let composer = Composer::start(config(FrameSource::TestPattern)).await.unwrap();
+    let mut client = connect(&composer, "").await;
+    client.next_picture(WAIT, |_| true).await.unwrap();
+    let changes = || composer.sessions().first().map_or(0, |r| r.media.bitrate_changes);
+    assert_eq!(changes(), 0, "a clean loopback link changes nothing");
+    // 160x120 streams at 300 kbit/s (the picture-size default's minimum); the receiver says
+    // it can take 100: the rate goes to the floor, 150 kbit/s, within the 2-s hold.
+    let start = std::time::Instant::now();
+    while changes() == 0 {
+        assert!(start.elapsed() < Duration::from_secs(15), "the estimate never moved the bitrate");
+        client.send_remb(100_000.0).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    assert_eq!(changes(), 1);
+    // The new encoder starts with a keyframe; pictures keep coming.
+    let idr = client.next_picture(WAIT, |p| p.idr).await.unwrap();
+    assert_eq!((idr.width, idr.height), (160, 120));
+    client.next_picture(WAIT, |p| !p.idr).await.unwrap();
+    client.close().await;
+    composer.shutdown().await;
+}
