@@ -105,7 +105,7 @@ fn loadgen_streams_from_an_https_master_that_it_trusts() {
     let addr = rt.block_on(farm.serve_tls(tls)).expect("serving the master over https");
     let url = format!("https://127.0.0.1:{}/", addr.port());
 
-    // The page itself comes over https to a client that trusts the certificate.
+    // The certificate file holds the one certificate clients are told to trust.
     let certs = nephele_loadgen::http::read_certificates(std::path::Path::new(&cert)).expect("pem");
     assert_eq!(certs.len(), 1);
 
@@ -115,19 +115,14 @@ fn loadgen_streams_from_an_https_master_that_it_trusts() {
     assert!(err.to_lowercase().contains("certificate") || err.contains("UnknownIssuer"), "{err}");
 
     // Trusted: streams.
-    let out = nephele_tests::nephele_ok(&[
-        "loadgen",
-        "--url",
-        &url,
-        "--users",
-        "1",
-        "--seconds",
-        "1",
-        "--size",
-        "160x120",
-        "--tls-ca",
-        &cert,
-    ]);
+    one_user_streams(&url, &["--tls-ca", &cert]);
+}
+
+/// `nephele loadgen` with one small user for a second against `url` streams.
+fn one_user_streams(url: &str, extra: &[&str]) {
+    let mut args = vec!["loadgen", "--url", url, "--users", "1", "--seconds", "1", "--size", "160x120"];
+    args.extend_from_slice(extra);
+    let out = nephele_tests::nephele_ok(&args);
     assert!(out.contains("1 of 1 users streamed"), "{out}");
 }
 
@@ -164,9 +159,7 @@ fn loadgen_follows_an_invitation_link_and_is_refused_without_one() {
 
     let err = nephele_tests::nephele_err(&["loadgen", "--url", &base, "--seconds", "1", "--size", "160x120"]);
     assert!(err.contains("401") && err.contains("invitation"), "{err}");
-    let out =
-        nephele_tests::nephele_ok(&["loadgen", "--url", link, "--users", "1", "--seconds", "1", "--size", "160x120"]);
-    assert!(out.contains("1 of 1 users streamed"), "{out}");
+    one_user_streams(link, &[]);
 }
 
 /// The HTTPS listener (issue 15) keeps serving while one client connects and says nothing
