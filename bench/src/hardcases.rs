@@ -35,6 +35,7 @@ use nephele_kernels::inolf::kernel::{HIT_OPACITY, InolfKernel, RAY_NEAR};
 use nephele_kernels::inolf::model::InolfModel;
 use nephele_kernels::inolf::synthetic::{SyntheticObject, spread, synthetic_object};
 use nephele_kernels::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
+use nephele_kernels::nelf::{NelfKernel, NelfModel};
 use nephele_kernels::ngp::{FieldConfig, FieldScratch, NgpKernel, OccupancyGrid, RadianceField};
 use nephele_nn::{HashGridConfig, UNet, UNetConfig, UNetWorkspace};
 use nephele_train::inolf::train::{HeadRay, HeadsWorkspace, ParameterGradients, heads_forward_backward};
@@ -195,6 +196,9 @@ struct Scene {
     model: InolfModel,
     inolf: InolfKernel,
     ngp: NgpKernel,
+    /// A NeLF on the field's matter (random weights: the march, the sampler, the encoding
+    /// and the network are what hard rays can break).
+    nelf: NelfKernel,
 }
 
 impl Scene {
@@ -221,7 +225,10 @@ impl Scene {
         field.occupancy =
             OccupancyGrid::from_flags(r, &flags).ok_or_else(|| anyhow::anyhow!("occupancy of the field"))?;
         let ngp = NgpKernel::new(field);
-        Ok(Scene { scale, bounds, matter, model, inolf, ngp })
+        let (sampling, grid) = nephele_train::nelf::geometry_of(&ngp, 8, 4)?;
+        let network = nephele_nn::ResidualMlp::new(nephele_kernels::nelf::network_config(&sampling, 32, 2), 3)?;
+        let nelf = NelfKernel::new(NelfModel::new(network, sampling, grid, serde_json::Value::Null)?);
+        Ok(Scene { scale, bounds, matter, model, inolf, ngp, nelf })
     }
 
     fn rays(&self, seed: u64, count: u64) -> Vec<HardRay> {
@@ -492,6 +499,7 @@ pub fn run(rays: u64, seed: u64, gpu: Option<Arc<GpuContext>>, progress: &dyn Pr
         report.add("i-NOLF heads: train fwd+bwd", heads_training(&scene, &rays)?);
         report.add("i-NOLF kernel (CPU)", farm_kernel(&scene.inolf, &rays)?);
         report.add("i-NGP baseline kernel (CPU)", farm_kernel(&scene.ngp, &rays)?);
+        report.add("NeLF kernel (CPU)", farm_kernel(&scene.nelf, &rays)?);
         if let Some(ctx) = &gpu {
             let kernel = GpuInolfKernel::new(ctx.clone(), &scene.inolf)?;
             report.add("i-NOLF kernel (GPU)", farm_kernel(&kernel, &rays)?);

@@ -133,6 +133,10 @@ pub struct InolfArgs {
     /// adapter, labelled as such), auto (a hardware GPU if there is one) or cpu (no GPU row).
     #[arg(long, default_value = "cpu", value_name = "cpu|auto|gpu")]
     device: nephele_gpu::DeviceChoice,
+    /// NeLF assets distilled from `--field` (`nephele distill`): one row each, with the
+    /// FLOPs per ray of its network. Repeat the flag or separate with commas.
+    #[arg(long, value_delimiter = ',')]
+    nelf: Vec<PathBuf>,
 }
 
 /// `bench inolf --simd`.
@@ -582,6 +586,26 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
             variants.push(variant(format!("+ diffuse cubes (PSH {psh}^3, {file})"), cubes));
         }
     }
+    // NeLF rows: (row, FLOPs per network query).
+    let mut nelf_rows = Vec::new();
+    for path in &args.nelf {
+        let mut kernel =
+            nephele_kernels::nelf::NelfKernel::load(path).with_context(|| format!("loading {}", path.display()))?;
+        kernel.set_simd(simd);
+        let model = kernel.model();
+        let (net, sampling) = (model.header.network, model.header.sampling);
+        let file = path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+        let name = format!(
+            "NeLF W{} D{} (K={}, L={}, {file})",
+            net.width,
+            net.layers(),
+            sampling.points,
+            sampling.frequencies
+        );
+        nelf_rows.push((variants.len(), model.flops_per_ray()));
+        let model_bytes = model.model_bytes() as u64;
+        variants.push(Variant { name, kernel: Box::new(kernel), model_bytes });
+    }
     let views = &data.views;
     let bar = progress.bar((views.len() * variants.len()) as u64, "rendering", "frames");
     struct Row {
@@ -690,7 +714,14 @@ pub fn inolf(args: InolfArgs, progress: &dyn Progress) -> Result<()> {
             println!("GPU against CPU {name}: {agreement}");
         }
     }
-    for path in &args.asset {
+    for &(row, flops) in &nelf_rows {
+        println!(
+            "{}: {flops} FLOPs per network query (weights and biases; the encoding not counted), {:.0} per ray of these frames",
+            variants[row].name,
+            flops as f64 * rows[row].queries_per_ray
+        );
+    }
+    for path in args.asset.iter().chain(&args.nelf) {
         let file = std::fs::metadata(path)?.len();
         println!("asset {}: {:.2} MiB on disk", path.display(), mib(file as f64));
     }

@@ -102,6 +102,10 @@ enum Command {
     /// Bake an i-NOLF asset (.nolf) from posed RGBA images: radiance field, density cubes,
     /// perfect spatial hash, trained heads, diffuse cubes.
     Bake(commands::bake::Args),
+    /// Distil a NeLF asset (.nelf, R2L) from a radiance field: pseudo-data rendered by the
+    /// field at random poses, a deep residual MLP with a hard-example pool, fine-tuned on
+    /// the dataset's images; resumable. Workers serve .nelf assets like .nolf.
+    Distill(commands::distill::Args),
     /// Run the master: HTTP API and signalling, the live scheduler, the farm listener.
     ///
     /// Workers (`nephele worker --master FARM_ADDR`) and the composer connect to
@@ -166,6 +170,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Simulate(args) => commands::simulate::run(args, &progress),
         Command::Loadgen(args) => commands::loadgen::run(args, &progress),
         Command::Bake(args) => commands::bake::run(args, &progress),
+        Command::Distill(args) => commands::distill::run(args, &progress),
         Command::Train(TrainCommand::Ngp(args)) => commands::train::run(args, &progress),
         Command::Train(TrainCommand::Gi(args)) => commands::train_gi::run(args, &progress),
         Command::Render(args) => commands::render::run(args, &progress),

@@ -13,6 +13,7 @@ use thiserror::Error;
 
 use crate::inolf::kernel::InolfKernel;
 use crate::kernel::{PathTracedKernel, RayKernel};
+use crate::nelf::NelfKernel;
 use crate::ngp::NgpKernel;
 use nephele_nn::SimdMode;
 
@@ -79,6 +80,7 @@ pub type LoadFn = fn(&Path, &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadErro
 pub const FORMATS: &[AssetFormat] = &[
     AssetFormat { extension: "nolf", kernel_kind: "inolf", magic: Some(crate::inolf::asset::MAGIC), load: load_inolf },
     AssetFormat { extension: "ngp", kernel_kind: "ngp", magic: Some(crate::ngp::FILE_MAGIC), load: load_ngp },
+    AssetFormat { extension: "nelf", kernel_kind: "nelf", magic: Some(crate::nelf::NELF_MAGIC), load: load_nelf },
     AssetFormat { extension: "glb", kernel_kind: "pathtrace", magic: None, load: load_gltf },
     AssetFormat { extension: "gltf", kernel_kind: "pathtrace", magic: None, load: load_gltf },
 ];
@@ -99,6 +101,17 @@ fn load_ngp(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, Lo
         Some(device) => device.ngp(&kernel).map_err(LoadError::Invalid),
         None => Ok(Arc::new(kernel)),
     }
+}
+
+/// NeLF assets run on the CPU: there is no GPU twin yet, so with a device chosen they stay
+/// on the CPU (logged).
+fn load_nelf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
+    let mut kernel = NelfKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    kernel.set_simd(options.simd);
+    if let Some(device) = &options.accelerator {
+        tracing::warn!(asset = %path.display(), device = %device.label(), "NeLF has no GPU kernel yet: it runs on the CPU");
+    }
+    Ok(Arc::new(kernel))
 }
 
 fn load_gltf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {

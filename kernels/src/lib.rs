@@ -6,6 +6,8 @@
 //!   skipping and file format;
 //! * [`inolf`]: i-NOLF (NEPHELE section 4): density and diffuse texture cubes, perfect
 //!   spatial hashing, the heads, the `.nolf` asset and its kernel;
+//! * [`nelf`]: NeLF (R2L): a light field distilled from the radiance field, one query of a
+//!   deep residual MLP per ray, and its `.nelf` asset;
 //! * [`gi`]: the stereo global-illumination model (a U-Net over G-buffers) and its `.ngi`
 //!   file;
 //! * [`assets`]: the one registry of asset formats, shared by the worker and `nephele render`.
@@ -18,4 +20,5 @@ pub mod assets;
 pub mod gi;
 pub mod inolf;
 pub mod kernel;
+pub mod nelf;
 pub mod ngp;

@@ -1,5 +1,5 @@
 //! Neural building blocks for the learned kernels: the multiresolution hash-grid encoding,
-//! small fully-connected networks, input encodings, image convolutions and the small U-Net
+//! small fully-connected networks, the deep residual MLP of the NeLF ([`resmlp`]), input encodings, image convolutions and the small U-Net
 //! of the global-illumination model ([`conv`], [`unet`]), and the Adam optimiser.
 //!
 //! `nephele-nn` depends on `nephele-geometry` only (its SplitMix64 seeds the weights); no
@@ -30,6 +30,7 @@ pub mod conv;
 pub mod encoding;
 pub mod hashgrid;
 pub mod mlp;
+pub mod resmlp;
 pub mod simd;
 pub mod unet;
 
@@ -37,6 +38,7 @@ pub use adam::{Adam, AdamConfig};
 pub use encoding::{frequency_encode, frequency_encoded_len, sh_coefficient_count, sh_encode};
 pub use hashgrid::{FEATURES_PER_LEVEL, HashGrid, HashGridConfig};
 pub use mlp::{Activation, Mlp, MlpConfig, MlpWorkspace};
+pub use resmlp::{ResidualMlp, ResidualMlpConfig, ResidualWorkspace};
 pub use simd::SimdMode;
 pub use unet::{UNet, UNetConfig, UNetWorkspace};
 

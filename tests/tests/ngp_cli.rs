@@ -102,7 +102,9 @@ fn train_render_eval_round_trip() {
 
 /// `nephele bake` then `nephele bench inolf` as a user runs them, on a tiny dataset: two
 /// assets from one saved field (different PSH lattices), the ablation rows of NEPHELE
-/// table 5 with their memory and query columns, the distance curve and the large frame.
+/// table 5 with their memory and query columns, the distance curve and the large frame;
+/// and a NeLF distilled from the same field (`nephele distill`, resumed from its checkpoint
+/// and pseudo-data cache) in the same table, rendered by `nephele render` as well.
 #[test]
 fn bake_then_bench_inolf_prints_the_ablation_rows() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -155,11 +157,89 @@ fn bake_then_bench_inolf_prints_the_ablation_rows() {
     let report = nephele_ok(&[&["bake", "--out", &second, "--psh-res", "32", "--field", &field][..], &tiny].concat());
     assert!(report.contains("at 32^3"), "{report}");
 
+    let nelf = path("c.nelf");
+    let base = [
+        "distill",
+        "--field",
+        &field,
+        "--dataset",
+        &data,
+        "--downscale",
+        "1",
+        "--points",
+        "4",
+        "--frequencies",
+        "2",
+        "--width",
+        "16",
+        "--blocks",
+        "1",
+        "--pseudo-views",
+        "4",
+        "--rays-per-view",
+        "64",
+        "--steps",
+        "20",
+        "--fine-tune-steps",
+        "10",
+        "--batch",
+        "64",
+        "--hard-pool",
+        "256",
+        "--checkpoint-every",
+        "10",
+    ];
+    let distill = [&base[..], &["--out", &nelf, "--eval-views", "1"]].concat();
+    let report = nephele_ok(&distill);
+    assert!(report.contains("pseudo-data: 256 rays rendered by the field from 4 poses"), "{report}");
+    assert!(report.contains("W16 B1 (4 layers") && report.contains(": 30 steps"), "{report}");
+    assert!(report.contains("held-out views (1): NeLF W16 B1") && report.contains("wrote"), "{report}");
+    // Again: the finished checkpoint and the pseudo-data cache are reused.
+    let again = nephele_ok(&distill);
+    assert!(again.contains("resuming from") && again.contains("at step 30"), "{again}");
+    assert!(again.contains("pseudo-data: 256 rays from the cache"), "{again}");
+    let err = nephele_err(&[&distill[..], &["--seed", "9"]].concat());
+    assert!(err.contains("other settings") && err.contains("--restart"), "{err}");
+    let err = nephele_err(&[&distill[..], &["--hard-fraction", "2"]].concat());
+    assert!(err.contains("hard-example fraction"), "{err}");
+    // Sizes tried smallest first against a quality target no tiny network reaches: the last
+    // is kept, and the report says so.
+    let sized = path("sized.nelf");
+    let tried = nephele_ok(&[&base[..], &["--out", &sized, "--sizes", "8x1,16x1", "--target-psnr", "99"]].concat());
+    assert!(tried.contains("held-out views (1): NeLF W8 B1") && tried.contains("NeLF W16 B1"), "{tried}");
+    assert!(tried.contains("no size reached --target-psnr 99.00 dB; keeping the last (W16 B1)"), "{tried}");
+    let err = nephele_err(&[&base[..], &["--out", &sized, "--target-psnr", "20", "--eval-views", "0"]].concat());
+    assert!(err.contains("needs held-out views"), "{err}");
+    let renders = path("nelf-renders");
+    let transforms = format!("{data}/transforms_test.json");
+    let out = nephele_ok(&["render", "--asset", &nelf, "--transforms", &transforms, "--out", &renders]);
+    assert!(out.contains("'nelf'"), "{out}");
+    let mut truncated = std::fs::read(&nelf).expect("read");
+    truncated.truncate(truncated.len() - 100);
+    let broken = path("broken.nelf");
+    std::fs::write(&broken, &truncated).expect("write");
+    let err = nephele_err(&["render", "--asset", &broken, "--transforms", &transforms, "--out", &renders]);
+    assert!(err.contains("checksum"), "{err}");
+
     let assets = format!("{first},{second}");
     let bench = ["bench", "inolf", "--field", &field, "--dataset", &data, "--downscale", "1", "--views", "2"];
     let out = nephele_ok(
-        &[&bench[..], &["--asset", &assets, "--distances", "2,1", "--large-frame", "40x30", "--large-distance", "0.8"]]
-            .concat(),
+        &[
+            &bench[..],
+            &[
+                "--asset",
+                &assets,
+                "--nelf",
+                &nelf,
+                "--distances",
+                "2,1",
+                "--large-frame",
+                "40x30",
+                "--large-distance",
+                "0.8",
+            ],
+        ]
+        .concat(),
     );
     let row = |label: &str| -> Vec<f64> {
         let line = out.lines().find(|l| l.starts_with(label)).unwrap_or_else(|| panic!("no row '{label}' in:\n{out}"));
@@ -171,7 +251,11 @@ fn bake_then_bench_inolf_prints_the_ablation_rows() {
     let cubes_mlp = row("+ density cubes (diffuse MLP, PSH 64^3)");
     let cubes = row("+ diffuse cubes (PSH 64^3)");
     let second_row = row("+ diffuse cubes (PSH 32^3, b.nolf)");
-    for r in [&baseline, &base, &cubes_mlp, &cubes, &second_row] {
+    let nelf_row = row("NeLF W16 D4 (K=4, L=2, c.nelf)");
+    // At most one query per ray: the network, for rays that meet the field's occupied cells.
+    assert!(nelf_row[6] <= 1.0, "{out}");
+    assert!(out.contains("NeLF W16 D4 (K=4, L=2, c.nelf): 3173 FLOPs per network query"), "{out}");
+    for r in [&baseline, &base, &cubes_mlp, &cubes, &second_row, &nelf_row] {
         assert_eq!(r.len(), 8, "{r:?} in:\n{out}");
         assert!(r.iter().all(|v| v.is_finite()) && r[0] > 5.0 && r[3] > 0.0, "{r:?} in:\n{out}");
     }

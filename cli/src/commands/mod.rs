@@ -3,6 +3,7 @@
 pub mod bake;
 pub mod composer;
 pub mod dataset;
+pub mod distill;
 pub mod eval;
 pub mod first_start;
 pub mod invite;

@@ -107,7 +107,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         resume,
         args.checkpoint_every,
         &mut show_progress(&bar, "GI teacher"),
-        &mut |c| c.save(&checkpoint_path),
+        &mut |c| c.save(&checkpoint_path).map_err(Into::into),
     )?;
     bar.finish_and_clear();
     model.save(&args.out).with_context(|| format!("writing {}", args.out.display()))?;
@@ -167,7 +167,7 @@ fn student(args: &Args, options: &GiTrainOptions, teacher_path: &std::path::Path
         resume,
         args.checkpoint_every,
         &mut show_progress(&bar, "GI stereo student"),
-        &mut |c| c.save(&checkpoint_path),
+        &mut |c| c.save(&checkpoint_path).map_err(Into::into),
     )?;
     bar.finish_and_clear();
     model.save(&args.out).with_context(|| format!("writing {}", args.out.display()))?;

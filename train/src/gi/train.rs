@@ -5,7 +5,7 @@
 //!
 //! Every eighth single-eye frame is held out for validation ([`split_frames`]).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use nephele_geometry::SplitMix64;
 use nephele_kernels::gi::{GBufferPixel, GI_INPUTS, GI_OUTPUTS, GiFeatures, GiModel, encode_target};
@@ -13,11 +13,9 @@ use nephele_nn::{Adam, AdamConfig, NnError, UNet, UNetConfig, UNetWorkspace};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use super::data::{GiBuffers, GiDataError, GiFrame, load_frame, read_manifest};
+use crate::checkpoint::{Checkpoint, CheckpointError, CheckpointState};
 
-/// Checkpoint file magic.
-const CHECKPOINT_MAGIC: &[u8; 4] = b"NGIC";
-const CHECKPOINT_VERSION: u32 = 1;
+use super::data::{GiBuffers, GiDataError, GiFrame, load_frame, read_manifest};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct GiTrainOptions {
@@ -85,8 +83,8 @@ pub enum GiTrainError {
     Network(#[from] NnError),
     #[error(transparent)]
     Model(#[from] nephele_kernels::gi::GiModelError),
-    #[error("checkpoint {path}: {reason}")]
-    Checkpoint { path: PathBuf, reason: String },
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
 }
 
 /// A frame ready for training: network inputs and `ln(1 + GI)` targets.
@@ -189,66 +187,14 @@ pub struct GiTrainState {
     pub rng: u64,
 }
 
+impl CheckpointState for GiTrainState {
+    const MAGIC: &'static [u8; 4] = b"NGIC";
+    const VERSION: u32 = 1;
+    const WHAT: &'static str = "GI training checkpoint";
+}
+
 /// A run's weights, optimiser moments and state.
-#[derive(Debug, Clone)]
-pub struct GiCheckpoint {
-    pub state: GiTrainState,
-    pub params: Vec<f32>,
-    pub m: Vec<f32>,
-    pub v: Vec<f32>,
-}
-
-impl GiCheckpoint {
-    pub fn save(&self, path: &Path) -> Result<(), GiTrainError> {
-        let err = |reason: String| GiTrainError::Checkpoint { path: path.to_path_buf(), reason };
-        let header = serde_json::to_vec(&self.state).map_err(|e| err(e.to_string()))?;
-        let mut out = Vec::with_capacity(16 + header.len() + 12 * self.params.len());
-        out.extend_from_slice(CHECKPOINT_MAGIC);
-        out.extend_from_slice(&CHECKPOINT_VERSION.to_le_bytes());
-        out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-        out.extend_from_slice(&(self.params.len() as u32).to_le_bytes());
-        out.extend_from_slice(&header);
-        for v in self.params.iter().chain(&self.m).chain(&self.v) {
-            out.extend_from_slice(&v.to_le_bytes());
-        }
-        let crc = crc32(&out);
-        out.extend_from_slice(&crc.to_le_bytes());
-        let tmp = path.with_extension("part");
-        std::fs::write(&tmp, &out).map_err(|e| err(e.to_string()))?;
-        std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
-    }
-
-    pub fn load(path: &Path) -> Result<GiCheckpoint, GiTrainError> {
-        let err = |reason: String| GiTrainError::Checkpoint { path: path.to_path_buf(), reason };
-        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
-        if bytes.len() < 20 || &bytes[..4] != CHECKPOINT_MAGIC {
-            return Err(err("not a GI training checkpoint".into()));
-        }
-        let (body, crc) = bytes.split_at(bytes.len() - 4);
-        if crc32(body).to_le_bytes() != crc {
-            return Err(err("checksum mismatch: damaged or truncated".into()));
-        }
-        let word = |at: usize| u32::from_le_bytes([body[at], body[at + 1], body[at + 2], body[at + 3]]) as usize;
-        if word(4) != CHECKPOINT_VERSION as usize {
-            return Err(err(format!("version {}", word(4))));
-        }
-        let (header_len, n) = (word(8), word(12));
-        let header_end = 16 + header_len;
-        if body.len() != header_end + 12 * n {
-            return Err(err("lengths do not add up".into()));
-        }
-        let state: GiTrainState = serde_json::from_slice(&body[16..header_end]).map_err(|e| err(e.to_string()))?;
-        let floats: Vec<f32> =
-            body[header_end..].chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
-        let (params, rest) = floats.split_at(n);
-        let (m, v) = rest.split_at(n);
-        Ok(GiCheckpoint { state, params: params.to_vec(), m: m.to_vec(), v: v.to_vec() })
-    }
-}
-
-fn crc32(bytes: &[u8]) -> u32 {
-    crc32fast::hash(bytes)
-}
+pub type GiCheckpoint = Checkpoint<GiTrainState>;
 
 /// Progress of a run, every step.
 #[derive(Debug, Clone, Copy, PartialEq)]
