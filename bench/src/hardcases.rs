@@ -226,8 +226,7 @@ impl Scene {
             OccupancyGrid::from_flags(r, &flags).ok_or_else(|| anyhow::anyhow!("occupancy of the field"))?;
         let ngp = NgpKernel::new(field);
         let (sampling, grid) = nephele_train::nelf::geometry_of(&ngp, 8, 4)?;
-        let network = nephele_nn::ResidualMlp::new(nephele_kernels::nelf::network_config(&sampling, 32, 2), 3)?;
-        let nelf = NelfKernel::new(NelfModel::new(network, sampling, grid, serde_json::Value::Null)?);
+        let nelf = NelfKernel::new(NelfModel::initial(sampling, grid, 32, 2, 3)?);
         Ok(Scene { scale, bounds, matter, model, inolf, ngp, nelf })
     }
 

@@ -285,6 +285,25 @@ mod tests {
         assert!(loader.kernel_kinds().contains(&"inolf".to_string()));
     }
 
+    #[test]
+    fn a_nelf_asset_is_served_and_an_i_nolf_of_the_same_name_comes_first() {
+        use nephele_kernels::nelf::{MatterGrid, MatterPlacement, NelfModel, RaySampling};
+        use nephele_kernels::ngp::OccupancyGrid;
+        let dir = tempfile::tempdir().expect("tempdir");
+        let sampling = RaySampling { points: 4, frequencies: 2, min: [-1.0; 3], max: [1.0; 3] };
+        let placement = MatterPlacement { min: [-1.0; 3], size: 2.0, step: 0.01, resolution: 16 };
+        let matter = MatterGrid::new(placement, OccupancyGrid::filled(16, true)).expect("matter");
+        let model = NelfModel::initial(sampling, matter, 8, 1, 1).expect("model");
+        model.save(&dir.path().join("toy.nelf")).expect("save");
+        let loader = loader(dir.path());
+        assert!(loader.kernel_kinds().contains(&"nelf".to_string()));
+        assert_eq!(loader.load("toy").expect("nelf").kind(), "nelf");
+        // Both formats for one id: the i-NOLF file is the one loaded (the registry's order).
+        model.save(&dir.path().join("twin.nelf")).expect("save");
+        std::fs::write(dir.path().join("twin.nolf"), b"not an asset").expect("write");
+        assert!(matches!(loader.load("twin").expect_err("the .nolf is read"), AssetError::Load { .. }));
+    }
+
     #[cfg(unix)]
     #[test]
     fn symlinks_out_of_the_directory_are_refused() {

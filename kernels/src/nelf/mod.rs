@@ -230,6 +230,20 @@ impl NelfModel {
         Ok(NelfModel { header, network, matter })
     }
 
+    /// A freshly initialised NeLF of `width` and `blocks` (what a distillation starts from;
+    /// deterministic for `seed`).
+    pub fn initial(
+        sampling: RaySampling,
+        matter: MatterGrid,
+        width: usize,
+        blocks: usize,
+        seed: u64,
+    ) -> Result<NelfModel, NelfError> {
+        sampling.validate().map_err(NelfError::Format)?;
+        let network = ResidualMlp::new(network_config(&sampling, width, blocks), seed)?;
+        NelfModel::new(network, sampling, matter, serde_json::Value::Null)
+    }
+
     /// Floating-point operations per ray that reaches the network (encoding not counted).
     pub fn flops_per_ray(&self) -> usize {
         self.header.network.flops_per_row()
