@@ -6,6 +6,7 @@
 //!   i-NOLF caches);
 //! * [`inolf`]: training the i-NOLF heads and baking the asset;
 //! * [`nelf`]: distilling the radiance field into a NeLF (R2L), with a hard-example pool;
+//! * [`score`]: a kernel scored on a dataset's views (PSNR and SSIM over white), one way;
 //! * [`checkpoint`]: the one checkpoint format of the trainers that resume;
 //! * [`gi`]: G-buffer datasets for the stereo global-illumination model;
 //! * [`targets`]: training targets from images, with corrupt pixels clamped or dropped and
@@ -20,5 +21,6 @@ pub mod gi;
 pub mod inolf;
 pub mod nelf;
 pub mod ngp;
+pub mod score;
 pub mod synth;
 pub mod targets;

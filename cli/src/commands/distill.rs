@@ -9,14 +9,13 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use nephele_geometry::camera::Camera;
-use nephele_imaging::metrics::psnr_and_ssim;
-use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
 use nephele_kernels::nelf::{MatterGrid, NelfKernel, NelfModel, RaySampling};
 use nephele_kernels::ngp::NgpKernel;
 use nephele_train::dataset;
 use nephele_train::nelf::{
     DistillCheckpoint, DistillOptions, DistillStep, RaySet, distill, geometry_of, pseudo_data, pseudo_key, real_data,
 };
+use nephele_train::score::mean_score;
 
 use crate::progress::Progress;
 
@@ -213,7 +212,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         bail!("--target-psnr needs held-out views to score (--holdout-every and --eval-views above 0)");
     }
     let eval_views = &held[..held.len().min(args.eval_views)];
-    let teacher_score = score(&teacher, eval_views, data.camera_angle_x)?;
+    let teacher_score = mean_score(&teacher, eval_views, data.camera_angle_x)?;
     for (i, &(width, blocks)) in sizes.iter().enumerate() {
         let options = DistillOptions { width, blocks, ..options.clone() };
         options.validate()?;
@@ -232,7 +231,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
             println!("wrote {} after {:.0} s", args.out.display(), start.elapsed().as_secs_f64());
             return Ok(());
         };
-        let (psnr, ssim) = score(&nelf, eval_views, data.camera_angle_x)?.unwrap_or_default();
+        let (psnr, ssim) = mean_score(&nelf, eval_views, data.camera_angle_x)?.unwrap_or_default();
         println!(
             "held-out views ({}): NeLF W{width} B{blocks} {psnr:.2} dB PSNR, SSIM {ssim:.4} ({} FLOPs per ray); its teacher {teacher_psnr:.2} dB, SSIM {teacher_ssim:.4}",
             eval_views.len(),
@@ -321,24 +320,6 @@ fn distill_one(
         "curve": state.curve,
     });
     Ok(NelfModel::new(network, sampling, matter.clone(), training)?)
-}
-
-/// Mean PSNR and SSIM of `kernel` on `views` (`None` without views).
-fn score(kernel: &dyn RayKernel, views: &[dataset::View], camera_angle_x: f32) -> Result<Option<(f64, f64)>> {
-    if views.is_empty() {
-        return Ok(None);
-    }
-    let (mut psnr, mut ssim) = (0.0, 0.0);
-    for v in views {
-        let camera = Camera::from_fov_x(v.image.width(), v.image.height(), camera_angle_x, v.camera_to_world)?;
-        let (frame, _) = kernel.render_pixels(&camera, &all_pixels(&camera))?;
-        let image = frame_to_image(camera.width(), camera.height(), &frame).context("frame")?;
-        let (p, s) = psnr_and_ssim(&image, &v.image, [1.0; 3])?;
-        psnr += p;
-        ssim += s;
-    }
-    let n = views.len() as f64;
-    Ok(Some((psnr / n, ssim / n)))
 }
 
 /// The checkpoint to resume, or `None` (absent, or `--restart`).

@@ -15,10 +15,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use nephele_geometry::camera::Camera;
-use nephele_imaging::metrics::psnr_and_ssim;
 use nephele_kernels::inolf::kernel::InolfKernel;
-use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
 use nephele_train::inolf::pipeline::{BakeRecipe, bake};
 use nephele_train::synth::DatasetSpec;
 
@@ -260,15 +257,8 @@ fn score(asset: &Path, dataset: &Path) -> Result<f64> {
     let kernel = InolfKernel::load(asset)?;
     let data = nephele_train::dataset::load_split(dataset, "test", 1)?;
     anyhow::ensure!(!data.views.is_empty(), "the dataset has no test views");
-    let mut sum = 0.0;
-    for view in &data.views {
-        let (w, h) = (view.image.width(), view.image.height());
-        let camera = Camera::from_fov_x(w, h, data.camera_angle_x, view.camera_to_world)?;
-        let (out, _) = kernel.render_pixels(&camera, &all_pixels(&camera))?;
-        let image = frame_to_image(w, h, &out).context("frame")?;
-        sum += psnr_and_ssim(&image, &view.image, [1.0; 3])?.0;
-    }
-    Ok(sum / data.views.len() as f64)
+    let (psnr, _) = nephele_train::score::mean_score(&kernel, &data.views, data.camera_angle_x)?.unwrap_or_default();
+    Ok(psnr)
 }
 
 #[cfg(test)]

@@ -4,9 +4,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use nephele_geometry::camera::Camera;
-use nephele_imaging::metrics;
-use nephele_kernels::kernel::{RayKernel, all_pixels, frame_to_image};
+use nephele_kernels::kernel::RayKernel;
 use nephele_kernels::ngp::{FieldConfig, NgpKernel, save_field};
 use nephele_nn::HashGridConfig;
 use nephele_train::dataset::{self, Dataset};
@@ -214,20 +212,15 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     let (mut psnr_sum, mut ssim_sum) = (0.0, 0.0);
     let (mut render_rays, mut render_samples, mut render_seconds) = (0u64, 0u64, 0.0);
     for v in &test.views[..count] {
-        let camera = Camera::from_fov_x(v.image.width(), v.image.height(), test.camera_angle_x, v.camera_to_world)
-            .with_context(|| format!("camera of test view {}", v.name))?;
-        let t = Instant::now();
-        let (out, stats) = kernel.render_pixels(&camera, &all_pixels(&camera))?;
-        render_seconds += t.elapsed().as_secs_f64();
-        render_rays += stats.rays;
-        render_samples += stats.queries;
-        let image = frame_to_image(camera.width(), camera.height(), &out).context("assembling the image")?;
-        let (psnr, ssim) = metrics::psnr_and_ssim(&image, &v.image, [1.0; 3])?;
-        psnr_sum += psnr;
-        ssim_sum += ssim;
+        let score = nephele_train::score::score_view(&kernel, v, test.camera_angle_x)?;
+        render_seconds += score.seconds;
+        render_rays += score.stats.rays;
+        render_samples += score.stats.queries;
+        psnr_sum += score.psnr;
+        ssim_sum += score.ssim;
         if let Some(dir) = &args.renders {
             let path = dir.join(format!("{}.png", v.name));
-            image.save_png(&path).with_context(|| format!("writing {}", path.display()))?;
+            score.image.save_png(&path).with_context(|| format!("writing {}", path.display()))?;
         }
         bar.inc(1);
     }
