@@ -318,10 +318,9 @@ pub fn pseudo_data(
                 break;
             }
             let ray = camera.ray(rng.next_f32() * w as f32, rng.next_f32() * h as f32);
-            if !matter.hits(ray.origin, ray.direction) {
-                continue;
-            }
-            if let Some(segment) = sampling.segment(ray.origin, ray.direction) {
+            if let Some(segment) = sampling.segment(ray.origin, ray.direction)
+                && matter.hits_within(ray.origin, ray.direction, segment)
+            {
                 rays.push((ray.origin, ray.direction));
                 segments.push(segment);
             }
@@ -362,7 +361,9 @@ pub fn real_data(
                     continue;
                 }
                 let ray = camera.pixel_center_ray(p as u32 % width, p as u32 / width);
-                if matter.hits(ray.origin, ray.direction) && sampling.segment(ray.origin, ray.direction).is_some() {
+                if let Some(segment) = sampling.segment(ray.origin, ray.direction)
+                    && matter.hits_within(ray.origin, ray.direction, segment)
+                {
                     set.rays.push((ray.origin, ray.direction));
                     set.targets.push([t[0], t[1], t[2], t[3], 0.5]);
                 }

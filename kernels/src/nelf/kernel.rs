@@ -75,10 +75,10 @@ impl NelfKernel {
         let mut queried = Vec::with_capacity(rays.len());
         scratch.inputs.clear();
         for (k, &(origin, dir)) in rays.iter().enumerate() {
-            if !self.model.matter.hits(origin, dir) {
+            let Some((t0, t1)) = sampling.segment(origin, dir) else { continue };
+            if !self.model.matter.hits_within(origin, dir, (t0, t1)) {
                 continue;
             }
-            let Some((t0, t1)) = sampling.segment(origin, dir) else { continue };
             let at = scratch.inputs.len();
             scratch.inputs.resize(at + input_len, 0.0);
             sampling.encode(origin, dir, t0, t1, &mut scratch.points, &mut scratch.inputs[at..]);

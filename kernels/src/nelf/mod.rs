@@ -168,6 +168,19 @@ impl MatterGrid {
         Marcher::new(origin, dir, Vec3::from(p.min), p.size, p.step, 0.0, 0.5, p.resolution)
             .is_some_and(|mut m| m.next(&self.grid).is_some())
     }
+
+    /// [`MatterGrid::hits`] for a ray whose every occupied cell lies within `[t0, t1]` (the
+    /// segment inside a box around the occupied cells, such as [`RaySampling::segment`]):
+    /// the march starts and ends there, a step of margin each side for rounding, instead of
+    /// crossing the grid's whole box. Same samples, same answer, less work.
+    pub fn hits_within(&self, origin: Vec3, dir: Vec3, (t0, t1): (f32, f32)) -> bool {
+        let p = &self.placement;
+        let start = (t0 - p.step).max(0.0);
+        Marcher::new(origin, dir, Vec3::from(p.min), p.size, p.step, start, 0.5, p.resolution).is_some_and(|mut m| {
+            m.end_by(t1 + p.step);
+            m.next(&self.grid).is_some()
+        })
+    }
 }
 
 /// What a `.nelf` header says.

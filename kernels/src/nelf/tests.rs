@@ -219,3 +219,39 @@ mod nasty_rays {
         }
     }
 }
+
+#[test]
+fn the_march_within_the_segment_answers_as_the_whole_march() {
+    // A grid with a few clusters of occupied cells, and the box around them (the sampling
+    // box a distillation takes from its teacher).
+    let resolution: u32 = 32;
+    let mut rng = nephele_geometry::SplitMix64::new(5);
+    let flags: Vec<bool> = (0..resolution * resolution * resolution)
+        .map(|i| {
+            let (x, y, z) = (i % resolution, (i / resolution) % resolution, i / (resolution * resolution));
+            let near = |c: [u32; 3], r: u32| x.abs_diff(c[0]) <= r && y.abs_diff(c[1]) <= r && z.abs_diff(c[2]) <= r;
+            (near([9, 12, 14], 3) || near([20, 18, 11], 2)) && rng.next_f32() < 0.3
+        })
+        .collect();
+    let grid = OccupancyGrid::from_flags(resolution, &flags).expect("grid");
+    let (lo, hi) = grid.occupied_bounds().expect("occupied");
+    let placement = MatterPlacement { min: [-1.0; 3], size: 2.0, step: 2.0 * 3f32.sqrt() / 256.0, resolution };
+    let matter = MatterGrid::new(placement, grid).expect("matter");
+    let to_world = |u: Vec3| Vec3::splat(-1.0) + u * 2.0;
+    let s = RaySampling { points: 4, frequencies: 1, min: to_world(lo).to_array(), max: to_world(hi).to_array() };
+    let (mut hits, mut rays) = (0, 0);
+    for i in 0..20_000 {
+        let unit = |rng: &mut nephele_geometry::SplitMix64| {
+            Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 2.0 - Vec3::ONE
+        };
+        // Rays from outside at the clusters, and rays from inside the box.
+        let origin = if i % 4 == 0 { unit(&mut rng) * 0.5 } else { unit(&mut rng).normalize_or(Vec3::Z) * 3.0 };
+        let dir = (to_world((lo + hi) * 0.5) + unit(&mut rng) * 0.4 - origin).normalize_or(Vec3::X);
+        let full = matter.hits(origin, dir);
+        let within = s.segment(origin, dir).is_some_and(|seg| matter.hits_within(origin, dir, seg));
+        assert_eq!(full, within, "ray {origin} {dir}");
+        hits += usize::from(full);
+        rays += 1;
+    }
+    assert!(hits > rays / 10 && hits < rays, "{hits} of {rays}");
+}

@@ -99,6 +99,11 @@ impl Marcher {
         })
     }
 
+    /// Ends the march at `t_max` (or where it ended before, if sooner).
+    pub fn end_by(&mut self, t_max: f32) {
+        self.t_end = self.t_end.min(t_max);
+    }
+
     /// `t` at which the ray leaves the axis-aligned cell of side `1 / cells` holding `p`.
     #[inline]
     fn exit(&self, p: Vec3, cells: f32) -> f32 {
