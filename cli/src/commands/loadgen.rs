@@ -50,6 +50,10 @@ pub struct Args {
     /// Milliseconds between two users' starts.
     #[arg(long, default_value_t = 100)]
     stagger_ms: u64,
+    /// How many times a user retries a session the farm refuses as busy (503 or 429, after
+    /// the Retry-After it is given) before it gives up.
+    #[arg(long, default_value_t = LoadConfig::default().max_busy_retries)]
+    busy_retries: u32,
     /// Write the per-user reports as JSON.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
@@ -80,6 +84,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         pose_interval: Duration::from_millis(args.pose_ms),
         orbit_speed: args.orbit_speed,
         stagger: Duration::from_millis(args.stagger_ms),
+        max_busy_retries: args.busy_retries,
         ..LoadConfig::default()
     };
     config.validate()?;
