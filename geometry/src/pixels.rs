@@ -41,6 +41,14 @@ impl PixelResults {
     pub fn is_empty(&self) -> bool {
         self.opacity.is_empty()
     }
+
+    /// Appends `other`'s pixels after these (the parts of a batch rendered in parallel, put
+    /// back in order).
+    pub fn append(&mut self, other: PixelResults) {
+        self.color.extend(other.color);
+        self.opacity.extend(other.opacity);
+        self.depth.extend(other.depth);
+    }
 }
 
 /// Checks that every pixel index lies inside `camera`'s image.

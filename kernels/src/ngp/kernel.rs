@@ -115,16 +115,10 @@ impl NgpKernel {
                 (out, stats)
             })
             .collect();
-        let mut out = PixelResults {
-            color: Vec::with_capacity(pixels.len()),
-            opacity: Vec::with_capacity(pixels.len()),
-            depth: Vec::with_capacity(pixels.len()),
-        };
+        let mut out = PixelResults::default();
         let mut stats = MarchStats::default();
         for (r, s) in per_task {
-            out.color.extend(r.color);
-            out.opacity.extend(r.opacity);
-            out.depth.extend(r.depth);
+            out.append(r);
             stats.rays += s.rays;
             stats.rays_hit += s.rays_hit;
             stats.samples += s.samples;
