@@ -150,6 +150,18 @@ pub fn load_by_magic(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKe
     }
 }
 
+/// Recomputes the trailing CRC-32 of a `.nelf` or `.ngi` file (the checksum over every byte
+/// before it), so that tests and fuzzers reach the parsers with mutated bytes instead of
+/// stopping at the checksum. `false` when the input is too short to hold one.
+pub fn reseal_trailing_crc(bytes: &mut [u8]) -> bool {
+    let Some(end) = bytes.len().checked_sub(4) else {
+        return false;
+    };
+    let crc = crc32fast::hash(&bytes[..end]);
+    bytes[end..].copy_from_slice(&crc.to_le_bytes());
+    true
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,4 +1,5 @@
-//! Adam (Kingma and Ba 2015) with bias correction and optional L2 weight decay.
+//! Adam (Kingma and Ba 2015) with bias correction, optional L2 weight decay and optional
+//! decoupled weight decay (AdamW, Loshchilov and Hutter 2019).
 //!
 //! i-NGP trains with `beta1 = 0.9, beta2 = 0.99, epsilon = 1e-15`, weight decay on the MLP
 //! weights only (never on the hash-grid features: most table entries see no gradient in a
@@ -15,14 +16,26 @@ pub struct AdamConfig {
     pub beta1: f32,
     pub beta2: f32,
     pub epsilon: f32,
-    /// L2 penalty added to the gradient (`g += weight_decay * w`); 0 turns it off.
+    /// L2 penalty added to the gradient (`g += weight_decay * w`); 0 turns it off. Adam's
+    /// normalisation rescales it with the gradient, so its pull depends on how often and how
+    /// strongly an entry is trained.
     pub weight_decay: f32,
+    /// Decoupled decay (AdamW): every updated entry also shrinks by `learning_rate *
+    /// decoupled_decay * w`, whatever its gradient's scale; 0 turns it off.
+    pub decoupled_decay: f32,
 }
 
 impl Default for AdamConfig {
     /// i-NGP's settings.
     fn default() -> Self {
-        AdamConfig { learning_rate: 1e-2, beta1: 0.9, beta2: 0.99, epsilon: 1e-15, weight_decay: 0.0 }
+        AdamConfig {
+            learning_rate: 1e-2,
+            beta1: 0.9,
+            beta2: 0.99,
+            epsilon: 1e-15,
+            weight_decay: 0.0,
+            decoupled_decay: 0.0,
+        }
     }
 }
 
@@ -93,6 +106,7 @@ impl Adam {
         let correction2 = 1.0 - c.beta2.powi(t);
         let step_size = c.learning_rate * correction2.sqrt() / correction1;
         let epsilon = c.epsilon * correction2.sqrt();
+        let shrink = 1.0 - c.learning_rate * c.decoupled_decay;
         params
             .par_chunks_mut(CHUNK)
             .zip(grads.par_chunks(CHUNK))
@@ -113,7 +127,7 @@ impl Adam {
                     }
                     m[i] = c.beta1 * m[i] + (1.0 - c.beta1) * grad;
                     v[i] = c.beta2 * v[i] + (1.0 - c.beta2) * grad * grad;
-                    p[i] -= step_size * m[i] / (v[i].sqrt() + epsilon);
+                    p[i] = shrink * p[i] - step_size * m[i] / (v[i].sqrt() + epsilon);
                 }
             });
         Ok(())
@@ -167,6 +181,26 @@ mod tests {
         adam.step(&mut dense, &[1.0, 1.0]).expect("step");
         adam.step(&mut dense, &[1.0, 0.0]).expect("step");
         assert!(dense[1] < 0.85, "{dense:?}");
+    }
+
+    #[test]
+    fn decoupled_decay_shrinks_by_the_learning_rate_whatever_the_gradient() {
+        // A zero gradient (dense step): only the decay moves the entry, by lr * decay per
+        // step; the L2 penalty instead would move it by a full lr-sized Adam step.
+        let config = AdamConfig { learning_rate: 0.1, decoupled_decay: 0.5, ..AdamConfig::default() };
+        let mut w = vec![2.0f32, -4.0];
+        let mut adam = Adam::new(config, 2);
+        for _ in 0..10 {
+            adam.step(&mut w, &[0.0, 0.0]).expect("step");
+        }
+        let expected = 0.95f32.powi(10);
+        assert!((w[0] - 2.0 * expected).abs() < 1e-5 && (w[1] + 4.0 * expected).abs() < 1e-5, "{w:?}");
+        // Sparse steps leave untouched entries alone, decay included.
+        let mut w = vec![2.0f32, 2.0];
+        let mut adam = Adam::new(config, 2);
+        adam.step_sparse(&mut w, &[0.0, 1e-3]).expect("step");
+        assert_eq!(w[0], 2.0);
+        assert!((w[1] - (2.0 * 0.95 - 0.1)).abs() < 1e-5, "{w:?}");
     }
 
     #[test]

@@ -87,6 +87,14 @@ pub struct Args {
     /// between the dataset's views). 0 trains the heads on the dataset alone.
     #[arg(long, default_value_t = BakeRecipe::default().pseudo_views)]
     pseudo_views: u32,
+    /// Decoupled weight decay (AdamW) of the heads' PSH features: each step shrinks every
+    /// feature by learning rate x this, pulling features that few training rays see towards
+    /// zero (a regulariser for views the bake did not train on). 0: off.
+    #[arg(long, default_value_t = BakeRecipe::default().psh_decay)]
+    psh_decay: f32,
+    /// The same for the heads' diffuse hash grid (baked into the diffuse cubes). 0: off.
+    #[arg(long, default_value_t = BakeRecipe::default().grid_decay)]
+    grid_decay: f32,
     #[arg(long, default_value_t = BakeRecipe::default().seed)]
     seed: u64,
 }
@@ -108,6 +116,8 @@ impl Args {
             density_threshold: self.density_threshold,
             keep_diffuse_network: self.keep_diffuse_network,
             pseudo_views: self.pseudo_views,
+            psh_decay: self.psh_decay,
+            grid_decay: self.grid_decay,
             seed: self.seed,
         }
     }

@@ -63,6 +63,10 @@ pub struct BakeRecipe {
     /// Views the radiance field renders at poses the dataset lacks, added to the heads'
     /// training views (R2L's pseudo-data; issue 18): 0 trains on the dataset alone.
     pub pseudo_views: u32,
+    /// Decoupled weight decay of the heads' PSH features and diffuse grid
+    /// ([`TrainOptions::psh_decay`], [`TrainOptions::grid_decay`]); 0: off.
+    pub psh_decay: f32,
+    pub grid_decay: f32,
     pub seed: u64,
 }
 
@@ -83,6 +87,8 @@ impl Default for BakeRecipe {
             density_threshold: 1.0,
             keep_diffuse_network: false,
             pseudo_views: 0,
+            psh_decay: 0.0,
+            grid_decay: 0.0,
             seed: 1,
         }
     }
@@ -128,6 +134,8 @@ pub enum BakeError {
     Model(#[from] ModelError),
     #[error(transparent)]
     Pixels(#[from] CorruptPixels),
+    #[error("{name} = {value}: must be finite, at least 0 and below 10")]
+    Decay { name: &'static str, value: f32 },
 }
 
 /// What a bake made.
@@ -151,6 +159,13 @@ pub fn bake(
 ) -> Result<Baked, BakeError> {
     let first = data.views.first().ok_or(BakeError::NoViews)?;
     let (w, h) = (first.image.width(), first.image.height());
+    // With the default learning rate (1e-2) a decay of 10 shrinks features by 10 % a step:
+    // beyond that the features cannot hold anything.
+    for (name, value) in [("psh_decay", recipe.psh_decay), ("grid_decay", recipe.grid_decay)] {
+        if !(0.0..10.0).contains(&value) {
+            return Err(BakeError::Decay { name, value });
+        }
+    }
 
     // 1. Radiance field.
     let t = Instant::now();
@@ -261,8 +276,14 @@ pub fn bake(
     // 4. Heads.
     let t = Instant::now();
     let mut model = InolfModel::new(HeadsShape::default(), cb, psh, recipe.seed)?;
-    let options =
-        TrainOptions { steps: recipe.head_steps, batch: recipe.batch, seed: recipe.seed, ..TrainOptions::default() };
+    let options = TrainOptions {
+        steps: recipe.head_steps,
+        batch: recipe.batch,
+        psh_decay: recipe.psh_decay,
+        grid_decay: recipe.grid_decay,
+        seed: recipe.seed,
+        ..TrainOptions::default()
+    };
     let steps = u64::from(recipe.head_steps);
     progress.stage("i-NOLF heads", steps, "steps");
     let report = train(&mut model, &cubes, &views, &options, &mut |step, loss| {
@@ -293,7 +314,7 @@ pub fn bake(
     let description = json!({
         "dataset": source, "views": data.views.len(), "size": [w, h],
         "field_steps": if field_trained { recipe.field_steps } else { 0 }, "steps": recipe.head_steps,
-        "loss": report.smoothed_loss, "pseudo_views": recipe.pseudo_views, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "psh_res": recipe.psh_res,
+        "loss": report.smoothed_loss, "pseudo_views": recipe.pseudo_views, "psh_decay": recipe.psh_decay, "grid_decay": recipe.grid_decay, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "psh_res": recipe.psh_res,
     });
     let asset = to_asset(&model, cubes, Some(diffuse), recipe.keep_diffuse_network, description)?;
     Ok(Baked { asset, field })

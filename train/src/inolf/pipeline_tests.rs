@@ -362,7 +362,7 @@ impl super::pipeline::BakeProgress for Recorder {
 /// than an empty frame does, and a second bake from the returned field trains no field.
 #[test]
 fn the_library_bake_turns_posed_images_into_an_asset() {
-    use super::pipeline::{BakeRecipe, bake};
+    use super::pipeline::{BakeError, BakeRecipe, bake};
     use crate::synth::{DatasetSpec, render_dataset};
     use nephele_imaging::metrics::psnr;
     use nephele_kernels::kernel::frame_to_image;
@@ -417,15 +417,19 @@ fn the_library_bake_turns_posed_images_into_an_asset() {
     eprintln!("bake of 16 views: {:.2} dB against {:.2} dB for an empty frame", baked_db / n, empty_db / n);
     assert!(baked_db / n > empty_db / n + 5.0, "{} vs {}", baked_db / n, empty_db / n);
 
-    // Again from the returned field, with pseudo-views of it for the heads.
+    // Again from the returned field, with pseudo-views of it for the heads and decoupled decay
+    // of their features (recorded in the asset); a decay out of range is refused first.
     let mut again = Recorder::default();
-    let recipe = BakeRecipe { pseudo_views: 4, ..recipe };
+    let bad = BakeRecipe { psh_decay: f32::NAN, ..recipe.clone() };
+    assert!(matches!(bake(&data, "x", &bad, None, &mut again), Err(BakeError::Decay { name: "psh_decay", .. })));
+    let recipe = BakeRecipe { pseudo_views: 4, psh_decay: 0.5, grid_decay: 0.5, ..recipe };
     let rebaked = bake(&data, "tiny diffuse", &recipe, Some(baked.field), &mut again).expect("bake from the field");
     assert_eq!(again.stages, ["density cubes", "pseudo-views", "i-NOLF heads"]);
     assert!(!again.field_handed_over);
     assert!(again.summaries.iter().any(|s| s.starts_with("pseudo-views: 4 rendered")), "{:?}", again.summaries);
     let meta: serde_json::Value = serde_json::from_str(&rebaked.asset.meta).expect("meta is JSON");
     assert_eq!((&meta["bake"]["field_steps"], &meta["bake"]["pseudo_views"]), (&0.into(), &4.into()), "{meta}");
+    assert_eq!(meta["bake"]["psh_decay"], 0.5, "{meta}");
 }
 
 /// Corrupt training pixels (issue 18): the heads never train on a dropped pixel (a target of

@@ -82,6 +82,12 @@ pub struct TrainOptions {
     pub tile: u32,
     /// Share of the batch drawn uniformly instead of through the error map.
     pub uniform_fraction: f32,
+    /// Decoupled weight decay (AdamW) of the PSH features: features seen by few training rays
+    /// are pulled towards zero, leaving view dependence to the specular MLP (issue 18's
+    /// regulariser for held-out views). 0: off.
+    pub psh_decay: f32,
+    /// The same for the diffuse hash grid (baked into the diffuse cubes).
+    pub grid_decay: f32,
     pub seed: u64,
 }
 
@@ -94,6 +100,8 @@ impl Default for TrainOptions {
             opacity_weight: 1.0,
             tile: 16,
             uniform_fraction: 0.25,
+            psh_decay: 0.0,
+            grid_decay: 0.0,
             seed: 1,
         }
     }
@@ -292,14 +300,14 @@ pub fn train(
     }
     let mut rng = SplitMix64::new(options.seed);
     let mut map = ErrorMap::new(views, options.tile);
-    let adam = |lr: f32, decay: f32, len: usize| {
-        Adam::new(AdamConfig { learning_rate: lr, weight_decay: decay, ..AdamConfig::default() }, len)
+    let adam = |lr: f32, weight_decay: f32, decoupled_decay: f32, len: usize| {
+        Adam::new(AdamConfig { learning_rate: lr, weight_decay, decoupled_decay, ..AdamConfig::default() }, len)
     };
     let lr = options.learning_rate;
-    let mut opt_grid = adam(lr, 0.0, model.grid.num_params());
-    let mut opt_diffuse = adam(lr, 1e-6, model.diffuse.num_params());
-    let mut opt_psh = adam(lr, 0.0, model.psh.features.len());
-    let mut opt_specular = adam(lr, 1e-6, model.specular.num_params());
+    let mut opt_grid = adam(lr, 0.0, options.grid_decay, model.grid.num_params());
+    let mut opt_diffuse = adam(lr, 1e-6, 0.0, model.diffuse.num_params());
+    let mut opt_psh = adam(lr, 0.0, options.psh_decay, model.psh.features.len());
+    let mut opt_specular = adam(lr, 1e-6, 0.0, model.specular.num_params());
     let mut grads = ParameterGradients::zeros(model);
     let mut workspace = HeadsWorkspace::default();
     let mut report = TrainReport::default();
