@@ -7,6 +7,9 @@
 //!   altered to another scene or a later end, and it stops working at its end. The page takes
 //!   it from its URL (`?invite=...`) and sends it as `Authorization: Bearer ...` with the
 //!   session request; without a viewer key the master asks for none.
+//! * An **operator token** (opt-in) guards the operators' endpoints (`GET /v1/farm`, `GET
+//!   /metrics`, `GET /v1/sessions`): with one, they answer 401 unless the request carries
+//!   `Authorization: Bearer TOKEN`. Probes (`/livez`, `/readyz`) stay open for orchestrators.
 //! * The **rate limit** is a token bucket per client address: `burst` session requests at
 //!   once, then `per_minute`; beyond it `POST /v1/sessions` answers 429 with `Retry-After`.
 //!   Refusals for capacity (503) and for access (401/403) count against it too, so retry
@@ -26,6 +29,31 @@ use thiserror::Error;
 const DOMAIN: &[u8] = b"nephele viewer invitation v1";
 /// The scene of an invitation valid for every scene.
 pub const ANY_SCENE: &str = "*";
+
+/// The operators' bearer token (at least 16 bytes). Only its SHA-256 is kept, and presented
+/// tokens are compared by digest, so the comparison's timing says nothing about the token.
+#[derive(Clone, PartialEq, Eq)]
+pub struct OperatorToken([u8; 32]);
+
+impl std::fmt::Debug for OperatorToken {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("OperatorToken(..)")
+    }
+}
+
+impl OperatorToken {
+    /// `None` when shorter than 16 bytes.
+    pub fn new(token: &str) -> Option<OperatorToken> {
+        use sha2::Digest;
+        (token.len() >= 16).then(|| OperatorToken(Sha256::digest(token.as_bytes()).into()))
+    }
+
+    /// Whether `presented` (the bearer token of a request, if any) is this token.
+    pub fn admits(&self, presented: Option<&str>) -> bool {
+        use sha2::Digest;
+        presented.is_some_and(|p| <[u8; 32]>::from(Sha256::digest(p.as_bytes())) == self.0)
+    }
+}
 
 /// The key invitations are signed with (at least 16 bytes). Its `Debug` does not show it.
 #[derive(Clone, PartialEq, Eq)]

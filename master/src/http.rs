@@ -23,7 +23,7 @@ use axum::{Json, Router};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
-use crate::access::{Denied, RateLimiter, ViewerKey};
+use crate::access::{Denied, OperatorToken, RateLimiter, ViewerKey};
 use crate::client_files;
 use crate::metrics::MasterMetrics;
 use crate::sessions::{AccessError, SessionRequest, SessionTable};
@@ -121,6 +121,31 @@ pub struct AccessPolicy {
     pub viewer_key: Option<ViewerKey>,
     /// Per-address limit on session requests.
     pub rate_limit: Option<RateLimiter>,
+    /// Required on the operators' endpoints (`/v1/farm`, `/metrics`, `GET /v1/sessions`)
+    /// when set; they are open otherwise.
+    pub operator_token: Option<OperatorToken>,
+}
+
+impl AccessPolicy {
+    /// `None` when `headers` may read an operators' endpoint, else the 401 to answer.
+    fn operator_refusal(&self, headers: &HeaderMap) -> Option<Response> {
+        let token = self.operator_token.as_ref()?;
+        let presented = headers
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .map(str::trim);
+        if token.admits(presented) {
+            return None;
+        }
+        tracing::debug!(present = presented.is_some(), "operators' endpoint refused: no or a wrong operator token");
+        let mut response = error(
+            StatusCode::UNAUTHORIZED,
+            "this endpoint is for the service's operators: send Authorization: Bearer with the master's operator token",
+        );
+        response.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        Some(response)
+    }
 }
 
 impl std::fmt::Debug for AppState {
@@ -337,7 +362,10 @@ fn refused(retry_after: Duration) -> Response {
     response
 }
 
-async fn list_sessions(State(state): State<Arc<AppState>>) -> Response {
+async fn list_sessions(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
+    if let Some(refusal) = state.access.operator_refusal(&headers) {
+        return refusal;
+    }
     let sessions: Vec<serde_json::Value> = state
         .sessions()
         .iter()
@@ -364,7 +392,10 @@ async fn close_session(State(state): State<Arc<AppState>>, Path(id): Path<String
     }
 }
 
-async fn farm(State(state): State<Arc<AppState>>) -> Response {
+async fn farm(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
+    if let Some(refusal) = state.access.operator_refusal(&headers) {
+        return refusal;
+    }
     let sessions = state.sessions().len();
     let mut body = state.backend.farm_state().await;
     if let Some(object) = body.as_object_mut() {
@@ -373,13 +404,16 @@ async fn farm(State(state): State<Arc<AppState>>) -> Response {
     Json(body).into_response()
 }
 
-/// Ready to serve viewers: the farm's event loop answers, a composer is registered and at
-/// least one render worker is. 503 with what is missing otherwise (load balancers and
-/// Kubernetes' readiness probe take a viewer elsewhere meanwhile).
-async fn metrics(State(state): State<Arc<AppState>>) -> Response {
+async fn metrics(State(state): State<Arc<AppState>>, headers: HeaderMap) -> Response {
+    if let Some(refusal) = state.access.operator_refusal(&headers) {
+        return refusal;
+    }
     nephele_telemetry::metrics_response(&state.metrics.registry)
 }
 
+/// Ready to serve viewers: the farm's event loop answers, a composer is registered and at
+/// least one render worker is. 503 with what is missing otherwise (load balancers and
+/// Kubernetes' readiness probe take a viewer elsewhere meanwhile).
 async fn readyz(State(state): State<Arc<AppState>>) -> Response {
     let farm = state.backend.farm_state().await;
     let workers = farm.get("workers").and_then(|w| w.as_array()).map_or(0, Vec::len);
@@ -484,7 +518,7 @@ mod tests {
         use crate::access::{ANY_SCENE, ViewerKey};
         let farm = Arc::new(FakeFarm::default());
         let key = ViewerKey::new(b"the viewer key of the http test").expect("key");
-        let policy = AccessPolicy { viewer_key: Some(key.clone()), rate_limit: None };
+        let policy = AccessPolicy { viewer_key: Some(key.clone()), ..AccessPolicy::default() };
         let state = AppState::with_access(farm.clone(), Arc::new(MasterMetrics::new()), Box::new(|| 0.0), policy);
         let app = router(state.clone());
         let with = |token: &str| {
@@ -528,7 +562,7 @@ mod tests {
     async fn session_requests_over_the_rate_limit_get_429() {
         use axum::extract::ConnectInfo;
         let farm = Arc::new(FakeFarm::default());
-        let policy = AccessPolicy { viewer_key: None, rate_limit: crate::access::RateLimiter::new(2, 6) };
+        let policy = AccessPolicy { rate_limit: crate::access::RateLimiter::new(2, 6), ..AccessPolicy::default() };
         let state = AppState::with_access(farm.clone(), Arc::new(MasterMetrics::new()), Box::new(|| 0.0), policy);
         let app = router(state.clone());
         let from = |addr: &str| {
@@ -545,6 +579,43 @@ mod tests {
         assert_eq!(call(&app, from("10.2.2.2:5000")).await.0, StatusCode::CREATED);
         assert_eq!(farm.opened.load(Ordering::SeqCst), 3);
         assert!(state.metrics.render().contains("nephele_master_sessions_rate_limited_total 1"));
+    }
+
+    /// The operator token (issue 15): the operators' endpoints answer 401 without it or with a
+    /// wrong one, 200 with it; viewers' requests and the probes need none.
+    #[tokio::test]
+    async fn operators_endpoints_need_the_operator_token_when_one_is_set() {
+        assert!(OperatorToken::new("too short").is_none());
+        let token = "the operator token of the http test";
+        let policy = AccessPolicy { operator_token: OperatorToken::new(token), ..AccessPolicy::default() };
+        let farm = Arc::new(FakeFarm::default());
+        farm.members.store(2, Ordering::SeqCst);
+        let state = AppState::with_access(farm.clone(), Arc::new(MasterMetrics::new()), Box::new(|| 0.0), policy);
+        let guarded = router(state);
+        let get = |path: &str, bearer: Option<&str>| {
+            let mut request = Request::get(path);
+            if let Some(b) = bearer {
+                request = request.header(header::AUTHORIZATION, format!("Bearer {b}"));
+            }
+            request.body(Body::empty()).expect("request")
+        };
+        for path in ["/v1/farm", "/metrics", "/v1/sessions"] {
+            for bearer in [None, Some("the operator token of the http tesT"), Some("")] {
+                let (status, headers, body) = call(&guarded, get(path, bearer)).await;
+                assert_eq!(status, StatusCode::UNAUTHORIZED, "{path} {bearer:?}: {body}");
+                assert_eq!(headers.get(header::WWW_AUTHENTICATE).and_then(|v| v.to_str().ok()), Some("Bearer"));
+                assert!(body["error"].as_str().is_some_and(|e| e.contains("operator token")), "{body}");
+            }
+            let (status, _, _) = call(&guarded, get(path, Some(token))).await;
+            assert_eq!(status, StatusCode::OK, "{path}");
+        }
+        for path in ["/livez", "/readyz", "/v1/config", "/"] {
+            assert_eq!(call(&guarded, get(path, None)).await.0, StatusCode::OK, "{path}");
+        }
+        assert_eq!(call(&guarded, post(OFFER)).await.0, StatusCode::CREATED);
+        // Without a token the endpoints are open, as before.
+        let (open, _, _) = app();
+        assert_eq!(call(&open, get("/v1/farm", None)).await.0, StatusCode::OK);
     }
 
     #[tokio::test]

@@ -19,7 +19,7 @@ use nephele_proto::auth::FarmSecret;
 use thiserror::Error;
 use tokio::net::TcpListener;
 
-use crate::access::{RateLimiter, ViewerKey};
+use crate::access::{OperatorToken, RateLimiter, ViewerKey};
 use crate::farm::{Farm, FarmConfig};
 use crate::http::{AccessPolicy, AppState, ClientAddr, router};
 use crate::scenes::{Catalog, CatalogError};
@@ -46,6 +46,9 @@ pub struct MasterConfig {
     pub viewer_key: Option<ViewerKey>,
     /// Session requests per client address: `(burst, per minute)`; a 0 turns the limit off.
     pub session_rate: (u32, u32),
+    /// Bearer token the operators' endpoints (`/v1/farm`, `/metrics`, `GET /v1/sessions`)
+    /// require; `None` leaves them open.
+    pub operator_token: Option<OperatorToken>,
 }
 
 impl Default for MasterConfig {
@@ -59,6 +62,7 @@ impl Default for MasterConfig {
             tls: None,
             viewer_key: None,
             session_rate: DEFAULT_SESSION_RATE,
+            operator_token: None,
         }
     }
 }
@@ -128,6 +132,7 @@ impl Master {
         let access = AccessPolicy {
             viewer_key: config.viewer_key,
             rate_limit: RateLimiter::new(config.session_rate.0, config.session_rate.1),
+            operator_token: config.operator_token,
         };
         let state = AppState::with_access(
             Arc::new(farm.clone()),

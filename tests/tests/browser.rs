@@ -369,7 +369,7 @@ fn the_page_needs_an_invitation_where_the_master_asks_for_one_and_streams_with_i
     let key = nephele_master::access::ViewerKey::new(b"the viewer key of the browser test").expect("key");
     let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).expect("clock").as_secs();
     let invite = key.invite("default", now + 600);
-    let access = nephele_master::http::AccessPolicy { viewer_key: Some(key), rate_limit: None };
+    let access = nephele_master::http::AccessPolicy { viewer_key: Some(key), ..Default::default() };
     let service = Service::start_with(false, access);
     let browser = Browser::start().expect("headless Chromium");
     browser.goto(&service.url).expect("open the client");

@@ -139,7 +139,7 @@ fn loadgen_follows_an_invitation_link_and_is_refused_without_one() {
     assert!(out.contains("secret written"), "{out}");
     let text = std::fs::read_to_string(&key_file).expect("key file");
     let key = nephele_master::access::ViewerKey::new(text.trim().as_bytes()).expect("viewer key");
-    let access = nephele_master::http::AccessPolicy { viewer_key: Some(key), rate_limit: None };
+    let access = nephele_master::http::AccessPolicy { viewer_key: Some(key), ..Default::default() };
     let addr = rt.block_on(farm.serve_configured(None, access)).expect("serving the master");
     let base = format!("http://{addr}/");
 

@@ -72,6 +72,8 @@ pub struct Args {
     tls: crate::commands::TlsArgs,
     #[command(flatten)]
     viewer_key: crate::commands::ViewerKeyArgs,
+    #[command(flatten)]
+    operator_token: crate::commands::OperatorTokenArgs,
     /// Session requests one client address may make at once (then
     /// `--sessions-per-minute`); beyond, `POST /v1/sessions` answers 429 with Retry-After.
     /// 0 turns the limit off (behind a reverse proxy every client has the proxy's address).
@@ -134,6 +136,7 @@ pub fn run(args: Args) -> Result<()> {
         tls: args.tls.resolve()?,
         viewer_key: args.viewer_key.resolve()?,
         session_rate: (args.session_burst, args.sessions_per_minute),
+        operator_token: args.operator_token.resolve()?.map(|(_, kept)| kept),
     };
     let tls = config.tls.as_ref().map(|t| (t.fingerprint.clone(), t.cert_path.clone()));
 

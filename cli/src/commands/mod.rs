@@ -203,6 +203,40 @@ pub struct ViewerKeyArgs {
 /// The environment variable naming the viewer key's file.
 pub const VIEWER_KEY_FILE_ENV: &str = "NEPHELE_VIEWER_KEY_FILE";
 
+/// The operators' token (`master`, `up`).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct OperatorTokenArgs {
+    /// File holding the operators' bearer token (at least 16 bytes; `nephele secret --out
+    /// FILE` writes one). With one, `GET /v1/farm`, `GET /metrics` and `GET /v1/sessions`
+    /// answer 401 unless the request carries `Authorization: Bearer TOKEN` (Prometheus:
+    /// `authorization: {credentials_file: FILE}`); `/livez`, `/readyz`, the page and the
+    /// viewers' API need none. Default: the file named by $NEPHELE_OPERATOR_TOKEN_FILE; with
+    /// neither, those endpoints are open to whoever reaches the master.
+    #[arg(long, value_name = "FILE")]
+    pub operator_token_file: Option<std::path::PathBuf>,
+}
+
+/// The environment variable naming the operators' token file.
+pub const OPERATOR_TOKEN_FILE_ENV: &str = "NEPHELE_OPERATOR_TOKEN_FILE";
+
+impl OperatorTokenArgs {
+    /// The token's file, from the flag or the environment.
+    pub fn file(&self) -> Option<std::path::PathBuf> {
+        self.operator_token_file.clone().or_else(|| std::env::var_os(OPERATOR_TOKEN_FILE_ENV).map(Into::into))
+    }
+
+    /// The token as read (for `up`'s own requests) and as the master keeps it.
+    pub fn resolve(&self) -> Result<Option<(String, nephele_master::access::OperatorToken)>> {
+        let Some(path) = self.file() else { return Ok(None) };
+        // The same rules as a farm secret's file (size, trimming, at least 16 bytes).
+        let secret = nephele_proto::auth::FarmSecret::read_file(&path)?;
+        let token = secret.expose().to_string();
+        let kept = nephele_master::access::OperatorToken::new(&token)
+            .ok_or_else(|| anyhow::anyhow!("the operator token in {} is too short", path.display()))?;
+        Ok(Some((token, kept)))
+    }
+}
+
 impl ViewerKeyArgs {
     /// The key's file, from the flag or the environment.
     pub fn file(&self) -> Option<std::path::PathBuf> {

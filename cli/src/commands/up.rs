@@ -73,6 +73,8 @@ pub struct Args {
     tls: crate::commands::TlsArgs,
     #[command(flatten)]
     viewer_key: crate::commands::ViewerKeyArgs,
+    #[command(flatten)]
+    operator_token: crate::commands::OperatorTokenArgs,
     /// The farm secret (see `nephele master --help`); without one `up` makes a fresh secret
     /// for its own processes, so nothing else can join its farm.
     #[command(flatten)]
@@ -85,7 +87,7 @@ fn free_port() -> Result<SocketAddr> {
 }
 
 /// A blocking `GET` of one of the master's JSON endpoints (the workspace's one HTTP client).
-fn http_get(addr: SocketAddr, path: &str, tls: &Probe) -> Result<String> {
+fn http_get(addr: SocketAddr, path: &str, tls: &Probe, bearer: Option<&str>) -> Result<String> {
     use nephele_loadgen::http::{Verify, request_blocking_with};
     let (scheme, verify) = match tls {
         Probe::Plain => ("http", Verify::Trusted),
@@ -95,7 +97,9 @@ fn http_get(addr: SocketAddr, path: &str, tls: &Probe) -> Result<String> {
     // The master's own address, or loopback when it listens on every interface.
     let host = if addr.ip().is_unspecified() { SocketAddr::from(([127, 0, 0, 1], addr.port())) } else { addr };
     let url = format!("{scheme}://{host}{path}");
-    let response = request_blocking_with(&url, "GET", &[], "", Duration::from_secs(5), verify)?;
+    let authorization = bearer.map(|token| format!("Bearer {token}"));
+    let headers: Vec<(&str, &str)> = authorization.iter().map(|a| ("authorization", a.as_str())).collect();
+    let response = request_blocking_with(&url, "GET", &headers, "", Duration::from_secs(5), verify)?;
     if response.status != 200 {
         bail!("GET {path}: status {}", response.status);
     }
@@ -123,8 +127,8 @@ enum Probe {
 }
 
 /// `(composer registered, workers registered)` from the master's `GET /v1/farm`.
-fn farm_members(http: SocketAddr, tls: &Probe) -> Option<(bool, usize)> {
-    let farm: serde_json::Value = serde_json::from_str(&http_get(http, "/v1/farm", tls).ok()?).ok()?;
+fn farm_members(http: SocketAddr, tls: &Probe, operator_token: Option<&str>) -> Option<(bool, usize)> {
+    let farm: serde_json::Value = serde_json::from_str(&http_get(http, "/v1/farm", tls, operator_token).ok()?).ok()?;
     let workers = farm.get("workers").and_then(|w| w.as_array()).map_or(0, Vec::len);
     Some((farm.get("composer").is_some_and(|c| !c.is_null()), workers))
 }
@@ -211,6 +215,11 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     if let Some(fraction) = args.admit_up_to {
         master.args(["--admit-up-to", &fraction.to_string()]);
     }
+    // Read here too: `up` asks its master's `/v1/farm` whether the farm is whole.
+    let operator_token = args.operator_token.resolve()?.map(|(token, _)| token);
+    if let Some(file) = args.operator_token.file() {
+        master.arg("--operator-token-file").arg(file);
+    }
     supervisor.spawn("master", master, Restart::Never)?;
     let mut composer = nephele("composer");
     composer.args([
@@ -255,7 +264,7 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
             supervisor.shutdown(Duration::from_secs(10));
             bail!("{name} exited while starting ({status}); everything stopped");
         }
-        if let Some((true, n)) = farm_members(args.http, &probe)
+        if let Some((true, n)) = farm_members(args.http, &probe, operator_token.as_deref())
             && n >= args.workers
         {
             break;
