@@ -102,11 +102,17 @@ pub struct FarmSecretArgs {
     pub farm_secret_file: Option<std::path::PathBuf>,
 }
 
+/// A file named by a flag, else by an environment variable (the secrets' files: farm secret,
+/// viewer key, operator token).
+fn flag_or_env_file(flag: &Option<std::path::PathBuf>, env: &str) -> Option<std::path::PathBuf> {
+    flag.clone().or_else(|| std::env::var_os(env).map(Into::into))
+}
+
 impl FarmSecretArgs {
     /// The secret, from the flag, then the environment; `None`: an open farm.
     pub fn resolve(&self) -> Result<Option<nephele_proto::auth::FarmSecret>> {
         use nephele_proto::auth::{FarmSecret, SECRET_ENV, SECRET_FILE_ENV};
-        let file = self.farm_secret_file.clone().or_else(|| std::env::var_os(SECRET_FILE_ENV).map(Into::into));
+        let file = flag_or_env_file(&self.farm_secret_file, SECRET_FILE_ENV);
         if let Some(path) = file {
             return Ok(Some(FarmSecret::read_file(&path)?));
         }
@@ -222,7 +228,7 @@ pub const OPERATOR_TOKEN_FILE_ENV: &str = "NEPHELE_OPERATOR_TOKEN_FILE";
 impl OperatorTokenArgs {
     /// The token's file, from the flag or the environment.
     pub fn file(&self) -> Option<std::path::PathBuf> {
-        self.operator_token_file.clone().or_else(|| std::env::var_os(OPERATOR_TOKEN_FILE_ENV).map(Into::into))
+        flag_or_env_file(&self.operator_token_file, OPERATOR_TOKEN_FILE_ENV)
     }
 
     /// The token as read (for `up`'s own requests) and as the master keeps it.
@@ -240,7 +246,7 @@ impl OperatorTokenArgs {
 impl ViewerKeyArgs {
     /// The key's file, from the flag or the environment.
     pub fn file(&self) -> Option<std::path::PathBuf> {
-        self.viewer_key_file.clone().or_else(|| std::env::var_os(VIEWER_KEY_FILE_ENV).map(Into::into))
+        flag_or_env_file(&self.viewer_key_file, VIEWER_KEY_FILE_ENV)
     }
 
     pub fn resolve(&self) -> Result<Option<nephele_master::access::ViewerKey>> {
