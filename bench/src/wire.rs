@@ -252,7 +252,7 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
             projection: glam::Mat4::IDENTITY,
         },
         pixels: result.pixels.clone(),
-        deadline_unix_us: Some(0),
+        deadline_in_us: Some(50_000),
         composer: "127.0.0.1:9000".into(),
     });
     let mut batch_frame = Vec::new();

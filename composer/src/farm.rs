@@ -19,7 +19,7 @@
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use futures_util::SinkExt;
 use nephele_proto::stream::{framed, handshake, recv};
@@ -124,7 +124,8 @@ fn accept_plan(shared: &Arc<Shared>, plan: FramePlan) {
     let shared = Arc::clone(shared);
     tokio::spawn(async move {
         let start = Instant::now();
-        let grace_end = start + PLAN_GRACE.min(until_unix_us(plan.deadline_unix_us).unwrap_or(PLAN_GRACE));
+        let left = plan.deadline_in_us.map_or(PLAN_GRACE, Duration::from_micros);
+        let grace_end = start + PLAN_GRACE.min(left);
         while Instant::now() < grace_end && !all_present(&shared, &plan) {
             tokio::time::sleep(Duration::from_millis(2)).await;
         }
@@ -132,12 +133,6 @@ fn accept_plan(shared: &Arc<Shared>, plan: FramePlan) {
             tracing::debug!(session = plan.session_id, frame = plan.frame_id, "frame plan refused: {e}");
         }
     });
-}
-
-/// Time left until a deadline on the master's clock (microseconds since the Unix epoch).
-fn until_unix_us(deadline: Option<u64>) -> Option<Duration> {
-    let now = SystemTime::now().duration_since(UNIX_EPOCH).ok()?.as_micros() as u64;
-    deadline.map(|d| Duration::from_micros(d.saturating_sub(now)))
 }
 
 fn all_present(shared: &Shared, plan: &FramePlan) -> bool {

@@ -18,12 +18,13 @@
 //! | `ReleaseResult` | a [`ReleaseTask`] to the composer |
 //!
 //! Time is the monotonic clock since the farm started, as the scheduler's [`Time`]; deadlines
-//! on the wire are converted to the Unix epoch (the protocol's convention).
+//! on the wire are time left when sent (the protocol's convention: no two machines' wall
+//! clocks need agree, and a step of this one's changes nothing).
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use glam::{Mat4, Vec3};
 use nephele_geometry::camera::Camera;
@@ -194,7 +195,6 @@ impl Farm {
         let actor = Actor {
             scheduler,
             start: Instant::now(),
-            unix_origin_us: unix_now_us(),
             catalog: catalog.clone(),
             workers: BTreeMap::new(),
             composer: None,
@@ -311,10 +311,6 @@ impl FarmBackend for Farm {
     }
 }
 
-fn unix_now_us() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64)
-}
-
 // ---------------------------------------------------------------------------------------
 // The actor
 
@@ -391,7 +387,6 @@ impl Samples {
 struct Actor {
     scheduler: Scheduler,
     start: Instant,
-    unix_origin_us: u64,
     catalog: Arc<Catalog>,
     workers: BTreeMap<u32, WorkerLink>,
     composer: Option<ComposerLink>,
@@ -420,10 +415,6 @@ const PUBLISH_EVERY: Duration = Duration::from_millis(250);
 impl Actor {
     fn now(&self) -> Time {
         Time::from_micros(self.start.elapsed().as_micros() as u64)
-    }
-
-    fn unix_us(&self, t: Time) -> u64 {
-        self.unix_origin_us.saturating_add(t.as_micros())
     }
 
     async fn run(mut self, mut events: mpsc::UnboundedReceiver<Event>) {
@@ -929,7 +920,7 @@ impl Actor {
             pixels: batch.pixels.indices(),
             // The scheduler re-issues the batch elsewhere at its timeout: a copy that has not
             // started by then is not worth starting.
-            deadline_unix_us: Some(self.unix_us(batch.timeout)),
+            deadline_in_us: Some(batch.timeout.since(self.now()).as_micros() as u64),
             composer: composer.results_address.clone(),
         };
         self.metrics.links.batches_sent.inc();
@@ -956,7 +947,7 @@ impl Actor {
                 .collect(),
             // Every batch is in (BatchDone follows delivery); one more frame interval covers
             // results still in flight on other connections.
-            deadline_unix_us: Some(self.unix_origin_us + now.as_micros() + period_us),
+            deadline_in_us: Some(period_us),
         };
         if composer.link.send(LinkCommand::Send(Message::FramePlan(plan))).is_ok() {
             s.plans_sent += 1;

@@ -40,7 +40,8 @@ pub const MAGIC: [u8; 4] = *b"NPHL";
 /// 2: `BatchIds::task_id` and the composer ⇄ master messages.
 /// 3: compact batch results ([`compact`]).
 /// 5: the farm credential ([`auth`]: `Challenge` and `Proof` after the `Hello`s).
-pub const PROTOCOL_VERSION: u16 = 5;
+/// 6: deadlines travel as time left (`deadline_in_us`), not as Unix instants.
+pub const PROTOCOL_VERSION: u16 = 6;
 
 /// The [`ErrorMessage`] that tells a peer why its connection is being closed.
 pub fn error_message(error: &ProtoError) -> Message {

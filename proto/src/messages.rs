@@ -171,10 +171,13 @@ pub struct RayBatch {
     /// the wire.
     #[serde(with = "packed")]
     pub pixels: Vec<u32>,
-    /// Microseconds since the Unix epoch (master's clock) by which the result must reach
-    /// the composer; `None` for no deadline. A worker drops a batch whose deadline passed
+    /// Microseconds from when the master sent the batch by which the result must reach the
+    /// composer; `None` for no deadline. Time left, not a wall-clock instant: the worker
+    /// counts it from receipt on its own monotonic clock, so the machines' clocks need not
+    /// agree (a step of the wall clock, or skew between hosts, once made every batch
+    /// "expired"); the transit is not counted. A worker drops a batch whose deadline passed
     /// before it started and reports [`ErrorCode::DeadlineExpired`].
-    pub deadline_unix_us: Option<u64>,
+    pub deadline_in_us: Option<u64>,
     /// `host:port` of the composer that gathers this frame.
     pub composer: String,
 }
@@ -362,7 +365,7 @@ pub struct PlanPart {
 
 /// Master → composer: a frame of a session is complete (every batch of every task it needs
 /// has been rendered and delivered). The composer fuses the parts of each view by depth,
-/// front to back; a part whose results are missing at `deadline_unix_us` is filled from the
+/// front to back; a part whose results are missing at `deadline_in_us` is filled from the
 /// previous frame. A view with no part shows nothing (no object in view).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FramePlan {
@@ -377,8 +380,10 @@ pub struct FramePlan {
     /// Views in the frame (1 to [`crate::validate::MAX_VIEWS`]).
     pub views: u32,
     pub parts: Vec<PlanPart>,
-    /// Microseconds since the Unix epoch (master's clock); `None` for no deadline.
-    pub deadline_unix_us: Option<u64>,
+    /// Microseconds from when the master sent the plan (time left, counted by the composer
+    /// from receipt on its own monotonic clock, as [`RayBatch::deadline_in_us`]); `None` for
+    /// no deadline.
+    pub deadline_in_us: Option<u64>,
 }
 
 /// Master → composer: no frame needs this task's results any more.

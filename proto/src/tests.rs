@@ -82,12 +82,12 @@ fn error_code() -> impl Strategy<Value = ErrorCode> {
 
 fn ray_batch() -> impl Strategy<Value = RayBatch> {
     (ids(), token(40), camera_and_pixels(), any::<Option<u64>>(), address()).prop_map(
-        |(ids, asset_id, (camera, pixels), deadline_unix_us, composer)| RayBatch {
+        |(ids, asset_id, (camera, pixels), deadline_in_us, composer)| RayBatch {
             ids,
             asset_id,
             camera,
             pixels,
-            deadline_unix_us,
+            deadline_in_us,
             composer,
         },
     )
@@ -150,7 +150,7 @@ fn composer_message() -> impl Strategy<Value = Message> {
         ),
         (any::<u64>(), any::<u64>(), any::<u32>(), 0.0f64..1e9, 1u32..300, 1u32..300, 1u32..=64, any::<Option<u64>>())
             .prop_flat_map(
-                |(session_id, frame_id, pose_sequence, client_time_ms, width, height, views, deadline_unix_us)| {
+                |(session_id, frame_id, pose_sequence, client_time_ms, width, height, views, deadline_in_us)| {
                     let part = (0..views, any::<u64>(), any::<u64>()).prop_map(|(view, task_id, object_id)| PlanPart {
                         view,
                         task_id,
@@ -166,7 +166,7 @@ fn composer_message() -> impl Strategy<Value = Message> {
                             height,
                             views,
                             parts,
-                            deadline_unix_us,
+                            deadline_in_us,
                         })
                     })
                 }
@@ -269,7 +269,7 @@ fn good_batch() -> RayBatch {
         asset_id: "diffuse".into(),
         camera: good_camera(),
         pixels: (0..64 * 48).step_by(7).collect(),
-        deadline_unix_us: Some(1_700_000_000_000_000),
+        deadline_in_us: Some(40_000),
         composer: "127.0.0.1:7000".into(),
     }
 }
@@ -807,7 +807,7 @@ fn good_plan() -> FramePlan {
         height: 48,
         views: 2,
         parts: vec![PlanPart { view: 0, task_id: 3, object_id: 1 }, PlanPart { view: 1, task_id: 4, object_id: 1 }],
-        deadline_unix_us: Some(1_700_000_000_000_000),
+        deadline_in_us: Some(40_000),
     }
 }
 
@@ -825,7 +825,7 @@ fn composer_messages_round_trip_and_bad_fields_are_rejected() {
         Message::StreamOpened(StreamOpened { session_id: 4, answer: Err("no H.264 in the offer".into()) }),
         Message::ClientPose(pose.clone()),
         Message::FramePlan(good_plan()),
-        Message::FramePlan(FramePlan { parts: vec![], deadline_unix_us: None, ..good_plan() }),
+        Message::FramePlan(FramePlan { parts: vec![], deadline_in_us: None, ..good_plan() }),
         Message::ReleaseTask(ReleaseTask { task_id: u64::MAX }),
         Message::CloseStream(CloseStream { session_id: 4, reason: "the client closed it".into() }),
     ];

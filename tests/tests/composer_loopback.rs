@@ -180,7 +180,7 @@ async fn worker_results_over_tcp_become_the_streamed_picture() {
         height: 32,
         views: 1,
         parts,
-        deadline_unix_us: None,
+        deadline_in_us: None,
     };
     let mut means = Vec::new();
     for frame in 0..6u64 {

@@ -312,7 +312,7 @@ fn batches(frame: &Frame, count: usize, composer: SocketAddr) -> Vec<RayBatch> {
             asset_id: "diffuse".into(),
             camera: frame.wire,
             pixels: chunk.to_vec(),
-            deadline_unix_us: None,
+            deadline_in_us: None,
             composer: composer.to_string(),
         })
         .collect()
@@ -529,7 +529,7 @@ fn bad_batches_are_answered_and_the_worker_carries_on() {
         asset_id: "diffuse".into(),
         camera,
         pixels: (0..64 * 48).collect(),
-        deadline_unix_us: None,
+        deadline_in_us: None,
         composer: composer.addr.to_string(),
     };
     let with = |id: u64, change: &dyn Fn(&mut RayBatch)| {
@@ -550,7 +550,7 @@ fn bad_batches_are_answered_and_the_worker_carries_on() {
         (with(7, &|b| b.pixels = vec![0, 64 * 48]), ErrorCode::InvalidField),
         (with(8, &|b| b.pixels = vec![]), ErrorCode::InvalidField),
         (with(9, &|b| b.camera = scaled), ErrorCode::InvalidField),
-        (with(10, &|b| b.deadline_unix_us = Some(1)), ErrorCode::DeadlineExpired),
+        (with(10, &|b| b.deadline_in_us = Some(0)), ErrorCode::DeadlineExpired),
         (with(11, &|b| b.composer = "nowhere".into()), ErrorCode::InvalidField),
     ];
     for (batch, _) in &cases {
@@ -575,8 +575,15 @@ fn bad_batches_are_answered_and_the_worker_carries_on() {
     master.send(w, &Message::RayBatch(with(20, &|_| {})));
     master.send(w, &Message::RayBatch(with(21, &|_| {})));
     master.send(w, &Message::Cancel(Cancel { target: CancelTarget::Batch(21) }));
-    // And then a good batch still renders and reaches the composer.
-    master.send(w, &Message::RayBatch(with(22, &|b| b.pixels = vec![0, 5, 64 * 24 + 32])));
+    // And then a good batch still renders and reaches the composer; its deadline is time
+    // left (ten minutes), whatever the wall clocks say.
+    master.send(
+        w,
+        &Message::RayBatch(with(22, &|b| {
+            b.pixels = vec![0, 5, 64 * 24 + 32];
+            b.deadline_in_us = Some(600_000_000);
+        })),
+    );
     let mut outcome = HashMap::new();
     while outcome.len() < 3 {
         match master.next() {
@@ -666,7 +673,7 @@ fn garbage_oversized_frames_and_wrong_versions_close_the_connection_without_a_cr
         asset_id: "diffuse".into(),
         camera: frame_camera(32, 24),
         pixels: (0..32 * 24).collect(),
-        deadline_unix_us: None,
+        deadline_in_us: None,
         composer: composer.addr.to_string(),
     };
     master.send(w, &Message::RayBatch(batch.clone()));

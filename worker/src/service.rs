@@ -11,7 +11,7 @@ use std::future::Future;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use futures_util::{SinkExt, StreamExt};
 use glam::Vec3;
@@ -266,12 +266,20 @@ struct Done {
     outcome: Result<BatchDone, (ErrorCode, String)>,
 }
 
+/// A batch waiting for a render slot, with its deadline on this process's monotonic clock
+/// (the wire carries time left, not a wall-clock instant, so that the master's and this
+/// machine's clocks need not agree).
+struct Queued {
+    batch: RayBatch,
+    deadline: Option<Instant>,
+}
+
 /// One master connection's state.
 struct Session<'a> {
     config: &'a WorkerConfig,
     shared: &'a Arc<Shared>,
     registered: Registered,
-    queue: VecDeque<RayBatch>,
+    queue: VecDeque<Queued>,
     in_flight: HashMap<u64, InFlight>,
     next_slot: u64,
     outbox: Vec<Message>,
@@ -309,8 +317,8 @@ impl<'a> Session<'a> {
         let mut drain_deadline = tokio::time::Instant::now();
         loop {
             while !self.draining && self.in_flight.len() < self.config.max_concurrent_batches {
-                let Some(batch) = self.queue.pop_front() else { break };
-                self.start(batch, &done_tx);
+                let Some(queued) = self.queue.pop_front() else { break };
+                self.start(queued, &done_tx);
             }
             if self.draining && self.in_flight.is_empty() {
                 return self.say_goodbye(conn, "shutting down").await;
@@ -330,8 +338,8 @@ impl<'a> Session<'a> {
                     self.draining = true;
                     self.shared.metrics.set_phase(Phase::Draining);
                     drain_deadline = tokio::time::Instant::now() + self.config.drain_timeout;
-                    for batch in std::mem::take(&mut self.queue) {
-                        self.hand_back(batch.ids);
+                    for queued in std::mem::take(&mut self.queue) {
+                        self.hand_back(queued.batch.ids);
                     }
                 }
                 () = tokio::time::sleep_until(drain_deadline), if self.draining => {
@@ -370,7 +378,7 @@ impl<'a> Session<'a> {
                     self.outbox.push(Message::LoadReport(LoadReport {
                         in_flight_batches: self.in_flight.len() as u32,
                         queued_batches: self.queue.len() as u32,
-                        queued_rays: self.queue.iter().map(|b| b.pixels.len() as u64).sum(),
+                        queued_rays: self.queue.iter().map(|q| q.batch.pixels.len() as u64).sum(),
                         recent_rays_per_second: recent,
                         batches_done: metrics.batches_done.get(),
                         rays_done,
@@ -400,7 +408,8 @@ impl<'a> Session<'a> {
             }
             Message::RayBatch(batch) => {
                 tracing::debug!(batch = batch.ids.batch_id, pixels = batch.pixels.len(), asset = %batch.asset_id, "batch queued");
-                self.queue.push_back(batch);
+                let deadline = batch.deadline_in_us.map(|us| Instant::now() + Duration::from_micros(us));
+                self.queue.push_back(Queued { batch, deadline });
             }
             Message::Cancel(Cancel { target }) => {
                 let matches = |ids: &BatchIds| match target {
@@ -410,10 +419,10 @@ impl<'a> Session<'a> {
                     }
                     CancelTarget::Session(session_id) => ids.session_id == session_id,
                 };
-                let (dropped, kept): (VecDeque<RayBatch>, VecDeque<RayBatch>) =
-                    std::mem::take(&mut self.queue).into_iter().partition(|b| matches(&b.ids));
+                let (dropped, kept): (VecDeque<Queued>, VecDeque<Queued>) =
+                    std::mem::take(&mut self.queue).into_iter().partition(|q| matches(&q.batch.ids));
                 self.queue = kept;
-                for batch in dropped {
+                for Queued { batch, .. } in dropped {
                     self.fail(batch.ids, ErrorCode::Cancelled, "cancelled before it started".into());
                 }
                 for flight in self.in_flight.values().filter(|f| matches(&f.ids)) {
@@ -432,11 +441,11 @@ impl<'a> Session<'a> {
         }
     }
 
-    fn start(&mut self, batch: RayBatch, done_tx: &mpsc::UnboundedSender<Done>) {
-        if let Some(deadline) = batch.deadline_unix_us {
-            let now = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64);
-            if now > deadline {
-                let late_ms = (now - deadline) / 1000;
+    fn start(&mut self, Queued { batch, deadline }: Queued, done_tx: &mpsc::UnboundedSender<Done>) {
+        if let Some(deadline) = deadline {
+            let now = Instant::now();
+            if now >= deadline {
+                let late_ms = now.duration_since(deadline).as_millis();
                 self.fail(
                     batch.ids,
                     ErrorCode::DeadlineExpired,
