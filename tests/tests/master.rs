@@ -540,7 +540,7 @@ fn a_live_farm_renders_frames_end_to_end_and_survives_a_killed_worker() {
     assert_eq!((plan.session_id, plan.pose_sequence, plan.client_time_ms), (sid, 1, 20.0));
     assert_eq!((plan.width, plan.height, plan.views), (width, height, 1));
     assert!(plan.parts.iter().all(|p| p.view == 0) && plan.parts.len() == 1, "{plan:?}");
-    assert!(plan.deadline_unix_us.is_some());
+    assert!(plan.deadline_in_us.is_some());
     let checked = composer.verify(&plan, reference.for_pose(1, &pose));
     let covered = reference.for_pose(1, &pose).opacity.iter().filter(|&&a| a > 0.0).count();
     assert!(checked >= covered && covered > 100, "checked {checked} pixels, the object covers {covered}");
@@ -966,4 +966,39 @@ fn the_farm_admits_only_peers_that_prove_its_secret() {
         Some(2.0),
         "{composer_metrics}"
     );
+}
+
+/// The operators' token (issue 15) across processes: a master started with
+/// `--operator-token-file` answers `nephele probe` of `/metrics` with 401 unless the probe
+/// holds the token (flag or `$NEPHELE_OPERATOR_TOKEN_FILE`); `/livez` needs none.
+#[test]
+fn probe_reaches_the_operators_endpoints_only_with_the_token() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let token = dir.path().join("operator-token");
+    std::fs::write(&token, "the operators' token of this test\n").expect("write");
+    let wrong = dir.path().join("wrong-token");
+    std::fs::write(&wrong, "a token that is not the master's\n").expect("write");
+    let master = MasterProcess::start(&["--operator-token-file", token.to_str().expect("utf-8 path")]);
+    let probe = |path: &str, args: &[&std::ffi::OsStr], env: Option<&Path>| {
+        let mut command = Command::new(nephele_bin());
+        command.args(["--quiet", "probe"]).arg(format!("http://{}{path}", master.http)).args(args);
+        command.env_remove("NEPHELE_OPERATOR_TOKEN_FILE");
+        if let Some(file) = env {
+            command.env("NEPHELE_OPERATOR_TOKEN_FILE", file);
+        }
+        command.output().expect("running nephele probe")
+    };
+    let flag = std::ffi::OsStr::new("--operator-token-file");
+    let denied = probe("/metrics", &[], None);
+    assert!(!denied.status.success(), "no token: {denied:?}");
+    assert!(String::from_utf8_lossy(&denied.stdout).starts_with("401"), "{denied:?}");
+    let wrong_token = probe("/metrics", &[flag, wrong.as_os_str()], None);
+    assert!(!wrong_token.status.success(), "a wrong token: {wrong_token:?}");
+    let allowed = probe("/metrics", &[flag, token.as_os_str()], None);
+    assert!(allowed.status.success(), "with the token: {allowed:?}");
+    assert!(String::from_utf8_lossy(&allowed.stdout).starts_with("200"), "{allowed:?}");
+    let from_env = probe("/v1/farm", &[], Some(&token));
+    assert!(from_env.status.success(), "with the token from the environment: {from_env:?}");
+    let live = probe("/livez", &[], None);
+    assert!(live.status.success(), "/livez needs no token: {live:?}");
 }

@@ -16,6 +16,12 @@ pub struct Args {
     /// Seconds to wait for the answer.
     #[arg(long, default_value_t = 3)]
     timeout_secs: u64,
+    /// File holding the operators' bearer token, sent as `Authorization: Bearer TOKEN`: what
+    /// `/metrics` and `/v1/farm` of a master started with `--operator-token-file` ask for
+    /// (`/livez` and `/readyz` need none). Default: the file named by
+    /// $NEPHELE_OPERATOR_TOKEN_FILE, so a probe inside the master's container finds it.
+    #[arg(long, value_name = "FILE")]
+    operator_token_file: Option<std::path::PathBuf>,
 }
 
 const DEFAULT_URL: &str = "http://127.0.0.1:8080/readyz";
@@ -26,7 +32,13 @@ pub fn run(args: Args) -> Result<()> {
         .or_else(|| std::env::var("NEPHELE_PROBE_URL").ok().filter(|u| !u.is_empty()))
         .unwrap_or_else(|| DEFAULT_URL.to_string());
     let timeout = Duration::from_secs(args.timeout_secs.max(1));
-    let response = nephele_loadgen::http::request_blocking(&url, "GET", &[], "", timeout)?;
+    let authorization = match super::flag_or_env_file(&args.operator_token_file, super::OPERATOR_TOKEN_FILE_ENV) {
+        // The same rules as the master's reading of it (size, trimming, at least 16 bytes).
+        Some(path) => Some(format!("Bearer {}", nephele_proto::auth::FarmSecret::read_file(&path)?.expose())),
+        None => None,
+    };
+    let headers: Vec<(&str, &str)> = authorization.iter().map(|a| ("Authorization", a.as_str())).collect();
+    let response = nephele_loadgen::http::request_blocking(&url, "GET", &headers, "", timeout)?;
     let first_line = response.body.lines().next().unwrap_or("");
     println!("{} {url}: {first_line}", response.status);
     if !(200..300).contains(&response.status) {
