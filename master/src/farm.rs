@@ -459,7 +459,7 @@ impl Actor {
         self.round_us.push(round_s * 1e6);
         self.metrics.round_ms.observe(round_s * 1e3);
         for action in actions {
-            self.carry_out(action, now);
+            self.carry_out(action);
         }
         let admission = match self.scheduler.admission(now) {
             SchedAdmission::Admit => Admission::Admit,
@@ -857,7 +857,7 @@ impl Actor {
         }
     }
 
-    fn carry_out(&mut self, action: Action, now: Time) {
+    fn carry_out(&mut self, action: Action) {
         match action {
             Action::Dispatch { worker, batch } => self.dispatch(worker, &batch),
             Action::Cancel { worker, batch } => {
@@ -869,7 +869,7 @@ impl Actor {
                 }
             }
             Action::FrameComplete { session, frame, released, parts, .. } => {
-                self.plan(session, frame, released, &parts, now)
+                self.plan(session, frame, released, &parts)
             }
             Action::FrameDropped { session, frame, reason } => {
                 if let Some(s) = self.sessions.get_mut(&session) {
@@ -927,7 +927,7 @@ impl Actor {
         let _ = w.link.send(LinkCommand::Send(Message::RayBatch(message)));
     }
 
-    fn plan(&mut self, session: SessionId, frame: FrameId, released: Time, parts: &[FramePart], now: Time) {
+    fn plan(&mut self, session: SessionId, frame: FrameId, released: Time, parts: &[FramePart]) {
         let Some(s) = self.sessions.get_mut(&session) else { return };
         let Some(composer) = &self.composer else { return };
         // The pose the frame was released with: the newest received at or before its release.
