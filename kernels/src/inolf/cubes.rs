@@ -374,6 +374,19 @@ pub struct MarchHit {
 /// Transmittance below which marching stops.
 pub const MIN_TRANSMITTANCE: f32 = 1e-3;
 
+/// A sample's opacity from its optical depth `x = sigma * step` (>= 0): `1 - exp(-x)`.
+/// Below 1/8 (the semi-transparent samples that a glass object's march is made of: 8-bit
+/// codes up to about 30) the Taylor series to `x^5`, inline (error under `x^6 / 720`, 5e-9);
+/// above, libm's `expf`. The call was 15 % of the glass shell's kernel time under `perf`.
+#[inline(always)]
+fn opacity_of_depth(x: f32) -> f32 {
+    if x < 0.125 {
+        x * (1.0 - x * (0.5 - x * (1.0 / 6.0 - x * (1.0 / 24.0 - x * (1.0 / 120.0)))))
+    } else {
+        1.0 - (-x).exp()
+    }
+}
+
 fn quantise(sigma: f32, step: f32) -> u8 {
     let alpha = 1.0 - (-sigma.max(0.0) * step).exp();
     if alpha.is_nan() { 0 } else { (alpha * 255.0).round().clamp(0.0, 255.0) as u8 }
@@ -734,7 +747,7 @@ impl DensityCubes {
                     if sigma <= 0.0 {
                         continue;
                     }
-                    let alpha = 1.0 - (-sigma * step).exp();
+                    let alpha = opacity_of_depth(sigma * step);
                     let w = transmittance * alpha;
                     if w > hit.max_weight {
                         hit.max_weight = w;
@@ -859,6 +872,21 @@ mod tests {
 
     /// Entry distance of a ray into the analytic sphere (0 if starting inside), the length
     /// of its path inside, and the ray's closest approach to the centre.
+    /// The inline series and libm meet at the threshold; both stay within 1e-7 of the exact
+    /// `1 - exp(-x)`, from denormals through the 8-bit codes' range to infinity.
+    #[test]
+    fn opacity_of_depth_is_one_minus_exp_minus_x() {
+        let mut xs: Vec<f32> = vec![0.0, 1e-40, 1e-20, 1e-7, 0.124_999_99, 0.125, 0.125_000_01, 50.0, f32::INFINITY];
+        xs.extend((0..4000).map(|i| i as f32 * 1e-4));
+        xs.extend((0..256).map(|q| -(1.0 - f64::from(q.min(254)) / 255.0).ln() as f32));
+        for x in xs {
+            let exact = 1.0 - (-f64::from(x)).exp();
+            let got = opacity_of_depth(x);
+            assert!((f64::from(got) - exact).abs() < 1e-7, "x {x}: {got} against {exact}");
+            assert!((0.0..=1.0).contains(&got), "x {x}: {got}");
+        }
+    }
+
     /// Issue 18: a denormal-length direction used to march until a counter overflowed; a
     /// denormal component is exactly a zero one.
     #[test]

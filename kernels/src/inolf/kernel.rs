@@ -24,6 +24,7 @@ use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT
 use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 use crate::ngp::{FieldScratch, RadianceField};
 use nephele_geometry::camera::Camera;
+use nephele_nn::simd::{Simd, WithSimd};
 use nephele_nn::{HashGrid, Mlp, MlpWorkspace, SimdMode, sh_coefficient_count, sh_encode};
 
 /// Rays whose coarse opacity is below this are treated as misses (kernel and training).
@@ -317,6 +318,30 @@ impl InolfKernel {
     }
 }
 
+/// One chunk of [`InolfKernel::render_pixels`] as a `pulp` operation. Its `with_simd` is
+/// inlined into the dispatcher's `#[target_feature]` function, and `render_chunk` (with the
+/// march, the PSH lookups and the diffuse cubes) into it, so all of them are compiled for
+/// AVX2+FMA where the CPU has them. Through a closure they were not: LLVM compiled the
+/// closure apart, for the baseline, and the "AVX2+FMA" path's march ran SSE2 code (not one
+/// VEX instruction in it under `perf annotate`); only the MLP had its own dispatch.
+struct Chunk<'a> {
+    kernel: &'a InolfKernel,
+    camera: &'a Camera,
+    pixels: &'a [u32],
+    color: &'a mut [[f32; 3]],
+    opacity: &'a mut [f32],
+    depth: &'a mut [f32],
+}
+
+impl WithSimd for Chunk<'_> {
+    type Output = Result<(u64, u64), ModelError>;
+
+    #[inline(always)]
+    fn with_simd<S: Simd>(self, _simd: S) -> Self::Output {
+        self.kernel.render_chunk(self.camera, self.pixels, self.color, self.opacity, self.depth)
+    }
+}
+
 impl RayKernel for InolfKernel {
     fn kind(&self) -> &'static str {
         "inolf"
@@ -335,7 +360,9 @@ impl RayKernel for InolfKernel {
             .zip(out.color.par_chunks_mut(CHUNK))
             .zip(out.opacity.par_chunks_mut(CHUNK))
             .zip(out.depth.par_chunks_mut(CHUNK))
-            .map(|(((p, c), o), d)| simd.run(|| self.render_chunk(camera, p, c, o, d)))
+            .map(|(((pixels, color), opacity), depth)| {
+                simd.arch().dispatch(Chunk { kernel: self, camera, pixels, color, opacity, depth })
+            })
             .collect();
         let (mut rays_hit, mut network_samples) = (0, 0);
         for h in hit_counts {
