@@ -63,6 +63,8 @@ struct Cluster {
     env: BTreeMap<&'static str, String>,
     images: Vec<String>,
     http: std::net::SocketAddr,
+    /// `Authorization` value with the operators' token the cluster wrote (read once it runs).
+    operator: String,
 }
 
 impl Cluster {
@@ -103,8 +105,37 @@ impl Cluster {
         String::from_utf8_lossy(&out.stdout).into_owned()
     }
 
+    /// A GET of the master's API as an operator (with the token).
+    fn operator_get(&self, path: &str) -> nephele_loadgen::http::Response {
+        let url = format!("http://{}{path}", self.http);
+        nephele_loadgen::http::request_blocking(
+            &url,
+            "GET",
+            &[("Authorization", &self.operator)],
+            "",
+            Duration::from_secs(5),
+        )
+        .unwrap_or_else(|e| panic!("GET {path}: {e}\n{}", self.logs()))
+    }
+
     fn farm(&self) -> serde_json::Value {
-        get_json(self.http, "/v1/farm").unwrap_or_else(|e| panic!("GET /v1/farm: {e}\n{}", self.logs()))
+        let response = self.operator_get("/v1/farm");
+        serde_json::from_str(&response.body).unwrap_or_else(|e| panic!("GET /v1/farm: {e}: {}", response.body))
+    }
+
+    /// The operators' token the one-shot job wrote into the master's secrets volume: the file
+    /// belongs to the image's user, so it comes out through `docker cp`'s tar stream (one
+    /// 512-byte header, then the bytes).
+    fn read_operator_token(&mut self, master: &str) {
+        let tar = run(&mut docker(&["cp", &format!("{master}:/var/lib/nephele/secrets/operator"), "-"]));
+        assert!(tar.status.success(), "docker cp of the operators' token: {}", String::from_utf8_lossy(&tar.stderr));
+        let header = tar.stdout.get(..512).expect("a tar header");
+        let size_field = String::from_utf8_lossy(&header[124..136]);
+        let size =
+            usize::from_str_radix(size_field.trim_matches(|c: char| c == '\0' || c == ' '), 8).expect("tar size");
+        let token = String::from_utf8_lossy(&tar.stdout[512..512 + size]).trim().to_string();
+        assert!(token.len() >= 16, "the operators' token is {} bytes", token.len());
+        self.operator = format!("Bearer {token}");
     }
 
     /// Names of the workers in the master's farm.
@@ -115,10 +146,7 @@ impl Cluster {
     }
 
     fn metric(&self, series: &str) -> f64 {
-        let url = format!("http://{}/metrics", self.http);
-        let text = nephele_loadgen::http::request_blocking(&url, "GET", &[], "", Duration::from_secs(5))
-            .unwrap_or_else(|e| panic!("GET /metrics: {e}"))
-            .body;
+        let text = self.operator_get("/metrics").body;
         text.lines()
             .find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.parse().ok())
             .unwrap_or_else(|| panic!("{series} not in the metrics:\n{text}"))
@@ -210,20 +238,28 @@ fn the_compose_cluster_streams_through_a_killed_worker_a_cut_off_worker_and_a_sc
         ("NEPHELE_BAKE", "quick".to_string()),
         ("NEPHELE_UDP_PORTS", format!("{udp}-{}", udp + 19)),
     ]);
-    let cluster = Cluster {
+    let mut cluster = Cluster {
         tool,
         project: format!("nephele-test-{tag}").replace(':', "-"),
         env,
         images: vec![image, base],
         http,
+        operator: String::new(),
     };
     run_ok(&mut cluster.compose(&["up", "-d"]));
+    // The operators' endpoints are closed to requests without the cluster's token.
+    let master = cluster.container("master", 1);
+    cluster.read_operator_token(&master);
+    let url = format!("http://{http}/metrics");
+    cluster.wait_for("the master answers /metrics without the token with 401", Duration::from_secs(120), || {
+        nephele_loadgen::http::request_blocking(&url, "GET", &[], "", Duration::from_secs(5))
+            .is_ok_and(|r| r.status == 401)
+    });
     cluster.wait_for("the master is ready (a composer and a worker joined)", Duration::from_secs(900), || {
         get_json(http, "/readyz").is_ok_and(|r| r["ready"] == true)
     });
     cluster.wait_for("three workers joined", Duration::from_secs(120), || cluster.worker_names().len() == 3);
     // The images' health checks pass: each role's /readyz through `nephele probe`.
-    let master = cluster.container("master", 1);
     cluster.wait_for("the master container is healthy", Duration::from_secs(60), || {
         cluster.inspect(&master, "{{.State.Health.Status}}") == "healthy"
     });

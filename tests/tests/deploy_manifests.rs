@@ -323,4 +323,15 @@ fn the_compose_file_runs_real_commands_on_a_private_network() {
         );
         assert_eq!(services[role]["depends_on"]["secret"]["condition"], "service_completed_successfully", "{role}");
     }
+    // The master's operators' endpoints need the token that another one-shot job writes in
+    // that volume before the master starts.
+    let token = services["master"]["environment"]["NEPHELE_OPERATOR_TOKEN_FILE"].as_str().expect("the master's token");
+    let (writer, _) = services
+        .iter()
+        .find(|(_, s)| {
+            let command: Vec<&str> = items(s, "/command").iter().filter_map(|a| a.as_str()).collect();
+            command.starts_with(&["secret", "--out", token])
+        })
+        .unwrap_or_else(|| panic!("no one-shot service writes {token}"));
+    assert_eq!(services["master"]["depends_on"][writer]["condition"], "service_completed_successfully");
 }
