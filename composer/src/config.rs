@@ -41,6 +41,9 @@ pub struct ComposerConfig {
     /// The farm credential ([`nephele_proto::auth`]): proved to the master and demanded of
     /// every peer of the results listener; `None` is an open farm.
     pub farm_secret: Option<nephele_proto::auth::FarmSecret>,
+    /// Required on the operators' endpoints (`GET /metrics`, `GET /v1/sessions`) when set;
+    /// they are open otherwise. Signalling and the probes never ask for it.
+    pub operator_token: Option<nephele_telemetry::OperatorToken>,
 }
 
 impl Default for ComposerConfig {
@@ -59,6 +62,7 @@ impl Default for ComposerConfig {
             master: None,
             name: "composer".into(),
             farm_secret: None,
+            operator_token: None,
         }
     }
 }

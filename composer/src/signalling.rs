@@ -2,7 +2,8 @@
 //! `"session"`, `"width"`, `"height"`, `"views"`) and answers `201 {"session", "token",
 //! "type": "answer", "sdp"}`; a malformed offer is `400 {"error"}`. `DELETE
 //! /v1/sessions/{id}` with `Authorization: Bearer TOKEN` ends a session; `GET /v1/sessions`
-//! reports every session's counters; `GET /livez` (the process answers) and `GET /readyz`
+//! reports every session's counters (it and `GET /metrics` ask for the operators' token when
+//! the composer has one); `GET /livez` (the process answers) and `GET /readyz`
 //! (200 when it can take viewers: standalone, or registered with its master; 503 while the
 //! master link is down). With a master, viewers arrive through the master's `OpenStream`
 //! instead ([`crate::farm`]).
@@ -32,7 +33,10 @@ pub(crate) fn router(shared: Arc<Shared>) -> Router {
     shared.metrics.http.layer(routes).with_state(shared)
 }
 
-async fn metrics(State(shared): State<Arc<Shared>>) -> Response {
+async fn metrics(State(shared): State<Arc<Shared>>, headers: HeaderMap) -> Response {
+    if let Some(refusal) = nephele_telemetry::operator_refusal(shared.config.operator_token.as_ref(), &headers) {
+        return refusal;
+    }
     nephele_telemetry::metrics_response(&shared.metrics.registry)
 }
 
@@ -100,7 +104,10 @@ async fn create_session(State(shared): State<Arc<Shared>>, body: axum::body::Byt
     }
 }
 
-async fn list_sessions(State(shared): State<Arc<Shared>>) -> Response {
+async fn list_sessions(State(shared): State<Arc<Shared>>, headers: HeaderMap) -> Response {
+    if let Some(refusal) = nephele_telemetry::operator_refusal(shared.config.operator_token.as_ref(), &headers) {
+        return refusal;
+    }
     let body = serde_json::json!({
         "sessions": reports(&shared),
         "wire_errors": shared.metrics.wire_errors.get(),
@@ -114,11 +121,7 @@ async fn list_sessions(State(shared): State<Arc<Shared>>) -> Response {
 }
 
 async fn delete_session(State(shared): State<Arc<Shared>>, Path(id): Path<SessionId>, headers: HeaderMap) -> Response {
-    let token = headers
-        .get("authorization")
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .map(str::trim);
+    let token = nephele_telemetry::bearer(&headers).map(str::trim);
     let known = lock(&shared.sessions).get(&id).map(|e| e.token.clone());
     match known {
         None => error(StatusCode::NOT_FOUND, format!("no session {id}")),

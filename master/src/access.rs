@@ -30,30 +30,8 @@ const DOMAIN: &[u8] = b"nephele viewer invitation v1";
 /// The scene of an invitation valid for every scene.
 pub const ANY_SCENE: &str = "*";
 
-/// The operators' bearer token (at least 16 bytes). Only its SHA-256 is kept, and presented
-/// tokens are compared by digest, so the comparison's timing says nothing about the token.
-#[derive(Clone, PartialEq, Eq)]
-pub struct OperatorToken([u8; 32]);
-
-impl std::fmt::Debug for OperatorToken {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("OperatorToken(..)")
-    }
-}
-
-impl OperatorToken {
-    /// `None` when shorter than 16 bytes.
-    pub fn new(token: &str) -> Option<OperatorToken> {
-        use sha2::Digest;
-        (token.len() >= 16).then(|| OperatorToken(Sha256::digest(token.as_bytes()).into()))
-    }
-
-    /// Whether `presented` (the bearer token of a request, if any) is this token.
-    pub fn admits(&self, presented: Option<&str>) -> bool {
-        use sha2::Digest;
-        presented.is_some_and(|p| <[u8; 32]>::from(Sha256::digest(p.as_bytes())) == self.0)
-    }
-}
+/// The operators' token is the same on every process (`nephele_telemetry`).
+pub use nephele_telemetry::OperatorToken;
 
 /// The key invitations are signed with (at least 16 bytes). Its `Debug` does not show it.
 #[derive(Clone, PartialEq, Eq)]

@@ -129,18 +129,7 @@ pub struct AccessPolicy {
 impl AccessPolicy {
     /// `None` when `headers` may read an operators' endpoint, else the 401 to answer.
     fn operator_refusal(&self, headers: &HeaderMap) -> Option<Response> {
-        let token = self.operator_token.as_ref()?;
-        let presented = bearer(headers).map(str::trim);
-        if token.admits(presented) {
-            return None;
-        }
-        tracing::debug!(present = presented.is_some(), "operators' endpoint refused: no or a wrong operator token");
-        let mut response = error(
-            StatusCode::UNAUTHORIZED,
-            "this endpoint is for the service's operators: send Authorization: Bearer with the master's operator token",
-        );
-        response.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
-        Some(response)
+        nephele_telemetry::operator_refusal(self.operator_token.as_ref(), headers)
     }
 }
 
@@ -297,7 +286,7 @@ async fn open_session(
     };
     let view = view.clone();
     if let Some(key) = &state.access.viewer_key {
-        let presented = bearer(&headers).map(str::trim);
+        let presented = nephele_telemetry::bearer(&headers).map(str::trim);
         let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
         let checked = match presented {
             None => Err(Denied::Missing),
@@ -346,11 +335,6 @@ async fn open_session(
     }
 }
 
-/// The token of an `Authorization: Bearer TOKEN` header, as sent.
-fn bearer(headers: &HeaderMap) -> Option<&str> {
-    headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "))
-}
-
 /// 503 with `Retry-After` in whole seconds (at least 1).
 fn refused(retry_after: Duration) -> Response {
     let seconds = retry_after.as_secs_f64().ceil().max(1.0) as u64;
@@ -372,7 +356,7 @@ async fn list_sessions(State(state): State<Arc<AppState>>, headers: HeaderMap) -
 }
 
 async fn close_session(State(state): State<Arc<AppState>>, Path(id): Path<String>, headers: HeaderMap) -> Response {
-    let token = bearer(&headers).unwrap_or("");
+    let token = nephele_telemetry::bearer(&headers).unwrap_or("");
     let closed = state.sessions().close(&id, token);
     match closed {
         Ok(session) => {

@@ -80,6 +80,57 @@ pub fn readiness_response(missing: &[String], detail: serde_json::Value) -> Resp
     (status, axum::Json(body)).into_response()
 }
 
+/// The operators' bearer token (at least 16 bytes), opt-in on every process: with one, the
+/// operators' endpoints (`/metrics`; the master's `/v1/farm` and `GET /v1/sessions`, a
+/// composer's `GET /v1/sessions`) answer 401 unless the request carries `Authorization:
+/// Bearer TOKEN`; the probes (`/livez`, `/readyz`) stay open for orchestrators. Only its
+/// SHA-256 is kept, and presented tokens are compared by digest, so the comparison's timing
+/// says nothing about the token.
+#[derive(Clone, PartialEq, Eq)]
+pub struct OperatorToken([u8; 32]);
+
+impl std::fmt::Debug for OperatorToken {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("OperatorToken(..)")
+    }
+}
+
+impl OperatorToken {
+    /// `None` when shorter than 16 bytes.
+    pub fn new(token: &str) -> Option<OperatorToken> {
+        use sha2::Digest;
+        (token.len() >= 16).then(|| OperatorToken(sha2::Sha256::digest(token.as_bytes()).into()))
+    }
+
+    /// Whether `presented` (the bearer token of a request, if any) is this token.
+    pub fn admits(&self, presented: Option<&str>) -> bool {
+        use sha2::Digest;
+        presented.is_some_and(|p| <[u8; 32]>::from(sha2::Sha256::digest(p.as_bytes())) == self.0)
+    }
+}
+
+/// The token of an `Authorization: Bearer TOKEN` header, if any.
+pub fn bearer(headers: &axum::http::HeaderMap) -> Option<&str> {
+    headers.get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "))
+}
+
+/// `None` when `headers` may read an operators' endpoint guarded by `token` (always, without
+/// one), else the 401 (`WWW-Authenticate: Bearer`, a JSON error naming the token) to answer.
+pub fn operator_refusal(token: Option<&OperatorToken>, headers: &axum::http::HeaderMap) -> Option<Response> {
+    let token = token?;
+    let presented = bearer(headers).map(str::trim);
+    if token.admits(presented) {
+        return None;
+    }
+    tracing::debug!(present = presented.is_some(), "operators' endpoint refused: no or a wrong operator token");
+    let body = serde_json::json!({
+        "error": "this endpoint is for the service's operators: send Authorization: Bearer with the operator token"
+    });
+    let mut response = (StatusCode::UNAUTHORIZED, axum::Json(body)).into_response();
+    response.headers_mut().insert(header::WWW_AUTHENTICATE, axum::http::HeaderValue::from_static("Bearer"));
+    Some(response)
+}
+
 /// What a process without an HTTP API of its own (a worker) serves on its operations port.
 pub trait Probe: Send + Sync + 'static {
     /// What the process still waits for before it can do its job; empty when ready.
@@ -93,22 +144,27 @@ pub trait Probe: Send + Sync + 'static {
 struct OpsState {
     registry: Arc<Registry>,
     probe: Arc<dyn Probe>,
+    token: Option<OperatorToken>,
 }
 
-/// `/livez`, `/readyz` and `/metrics` for a process whose readiness `probe` tells.
-pub fn ops_router(registry: Arc<Registry>, probe: Arc<dyn Probe>) -> Router {
+/// `/livez`, `/readyz` and `/metrics` for a process whose readiness `probe` tells; with a
+/// `token`, `/metrics` asks for it ([`operator_refusal`]).
+pub fn ops_router(registry: Arc<Registry>, probe: Arc<dyn Probe>, token: Option<OperatorToken>) -> Router {
     Router::new()
         .route("/livez", get(|| async { "ok" }))
         .route("/readyz", get(ops_readyz))
         .route("/metrics", get(ops_metrics))
-        .with_state(Arc::new(OpsState { registry, probe }))
+        .with_state(Arc::new(OpsState { registry, probe, token }))
 }
 
 async fn ops_readyz(State(state): State<Arc<OpsState>>) -> Response {
     readiness_response(&state.probe.missing(), state.probe.detail())
 }
 
-async fn ops_metrics(State(state): State<Arc<OpsState>>) -> Response {
+async fn ops_metrics(State(state): State<Arc<OpsState>>, headers: axum::http::HeaderMap) -> Response {
+    if let Some(refusal) = operator_refusal(state.token.as_ref(), &headers) {
+        return refusal;
+    }
     metrics_response(&state.registry)
 }
 
@@ -218,7 +274,8 @@ mod tests {
         batches.inc_by(3);
         histogram.observe(1.0);
         let probe = Arc::new(Flag(AtomicBool::new(false)));
-        let router = ops_router(Arc::new(registry), probe.clone());
+        let registry = Arc::new(registry);
+        let router = ops_router(registry.clone(), probe.clone(), None);
 
         let (status, body) = get_text(&router, "/readyz").await;
         assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
@@ -233,6 +290,30 @@ mod tests {
         assert!(body.contains("nephele_worker_batches_total 3"), "{body}");
         assert!(body.contains("nephele_worker_render_ms_bucket{le=\"1.0\"} 1"), "{body}");
         assert!(body.trim_end().ends_with("# EOF"), "{body}");
+
+        // With an operators' token, /metrics asks for it; the probes stay open.
+        let token = "the operators' token, long enough";
+        assert!(OperatorToken::new("too short").is_none());
+        let guarded = ops_router(registry, probe, OperatorToken::new(token));
+        let get_with = |authorization: Option<String>| {
+            let guarded = guarded.clone();
+            async move {
+                let mut request = Request::get("/metrics");
+                if let Some(value) = authorization {
+                    request = request.header(header::AUTHORIZATION, value);
+                }
+                guarded.oneshot(request.body(Body::empty()).expect("request")).await.expect("response")
+            }
+        };
+        let refused = get_with(None).await;
+        assert_eq!(refused.status(), StatusCode::UNAUTHORIZED);
+        assert_eq!(refused.headers()[header::WWW_AUTHENTICATE], "Bearer");
+        for wrong in ["Bearer not the operators' token", "Bearer ", "Basic abc", token] {
+            assert_eq!(get_with(Some(wrong.into())).await.status(), StatusCode::UNAUTHORIZED, "{wrong}");
+        }
+        assert_eq!(get_with(Some(format!("Bearer {token}"))).await.status(), StatusCode::OK);
+        assert_eq!(get_text(&guarded, "/readyz").await.0, StatusCode::OK);
+        assert_eq!(get_text(&guarded, "/livez").await.0, StatusCode::OK);
     }
 
     #[tokio::test]

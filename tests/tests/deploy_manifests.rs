@@ -323,9 +323,13 @@ fn the_compose_file_runs_real_commands_on_a_private_network() {
         );
         assert_eq!(services[role]["depends_on"]["secret"]["condition"], "service_completed_successfully", "{role}");
     }
-    // The master's operators' endpoints need the token that another one-shot job writes in
-    // that volume before the master starts.
+    // The operators' endpoints need the token that another one-shot job writes in that
+    // volume before the master (and so everything that waits for the master) starts.
     let token = services["master"]["environment"]["NEPHELE_OPERATOR_TOKEN_FILE"].as_str().expect("the master's token");
+    for role in ["composer", "worker"] {
+        assert_eq!(services[role]["environment"]["NEPHELE_OPERATOR_TOKEN_FILE"], token, "{role}: operators' token");
+        assert_eq!(services[role]["depends_on"]["master"]["condition"], "service_started", "{role}");
+    }
     let (writer, _) = services
         .iter()
         .find(|(_, s)| {

@@ -968,9 +968,10 @@ fn the_farm_admits_only_peers_that_prove_its_secret() {
     );
 }
 
-/// The operators' token (issue 15) across processes: a master started with
-/// `--operator-token-file` answers `nephele probe` of `/metrics` with 401 unless the probe
-/// holds the token (flag or `$NEPHELE_OPERATOR_TOKEN_FILE`); `/livez` needs none.
+/// The operators' token (issue 15) across processes: a master, a composer and a worker
+/// started with it (flag or `$NEPHELE_OPERATOR_TOKEN_FILE`) answer `nephele probe` of their
+/// operators' endpoints with 401 unless the probe holds the token (flag or variable); the
+/// probes' own endpoints need none.
 #[test]
 fn probe_reaches_the_operators_endpoints_only_with_the_token() {
     let dir = tempfile::tempdir().expect("temp dir");
@@ -979,15 +980,16 @@ fn probe_reaches_the_operators_endpoints_only_with_the_token() {
     let wrong = dir.path().join("wrong-token");
     std::fs::write(&wrong, "a token that is not the master's\n").expect("write");
     let master = MasterProcess::start(&["--operator-token-file", token.to_str().expect("utf-8 path")]);
-    let probe = |path: &str, args: &[&std::ffi::OsStr], env: Option<&Path>| {
+    let probe_at = |addr: SocketAddr, path: &str, args: &[&std::ffi::OsStr], env: Option<&Path>| {
         let mut command = Command::new(nephele_bin());
-        command.args(["--quiet", "probe"]).arg(format!("http://{}{path}", master.http)).args(args);
+        command.args(["--quiet", "probe"]).arg(format!("http://{addr}{path}")).args(args);
         command.env_remove("NEPHELE_OPERATOR_TOKEN_FILE");
         if let Some(file) = env {
             command.env("NEPHELE_OPERATOR_TOKEN_FILE", file);
         }
         command.output().expect("running nephele probe")
     };
+    let probe = |path: &str, args: &[&std::ffi::OsStr], env: Option<&Path>| probe_at(master.http, path, args, env);
     let flag = std::ffi::OsStr::new("--operator-token-file");
     let denied = probe("/metrics", &[], None);
     assert!(!denied.status.success(), "no token: {denied:?}");
@@ -1001,4 +1003,55 @@ fn probe_reaches_the_operators_endpoints_only_with_the_token() {
     assert!(from_env.status.success(), "with the token from the environment: {from_env:?}");
     let live = probe("/livez", &[], None);
     assert!(live.status.success(), "/livez needs no token: {live:?}");
+
+    // A composer given the token by flag, a worker by the variable: their /metrics (and the
+    // composer's session list) ask for it too; /livez does not.
+    let results = TcpListener::bind("127.0.0.1:0").expect("a free port").local_addr().expect("addr");
+    let mut composer = Command::new(nephele_bin())
+        .args(["--quiet", "composer", "--master", &master.farm.to_string(), "--http", "127.0.0.1:0"])
+        .args(["--results", &results.to_string()])
+        .arg("--operator-token-file")
+        .arg(&token)
+        .env_remove("NEPHELE_OPERATOR_TOKEN_FILE")
+        .stdout(Stdio::piped())
+        .stderr(if logs() { Stdio::inherit() } else { Stdio::null() })
+        .spawn()
+        .expect("starting nephele composer");
+    let mut banner = String::new();
+    BufReader::new(composer.stdout.take().expect("stdout")).read_line(&mut banner).expect("the composer's banner");
+    let _composer = Process { child: composer, name: "composer".into() };
+    let composer_http: SocketAddr = banner
+        .split("http://")
+        .nth(1)
+        .and_then(|r| r.split('/').next())
+        .and_then(|a| a.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {banner:?}"));
+    let ops = TcpListener::bind("127.0.0.1:0").expect("a free port").local_addr().expect("addr");
+    let assets = dir.path().join("assets");
+    std::fs::create_dir(&assets).expect("assets");
+    let worker = Command::new(nephele_bin())
+        .args(["--quiet", "--threads", "1", "worker", "--master", &master.farm.to_string(), "--name", "scraped"])
+        .arg("--assets")
+        .arg(&assets)
+        .args(["--ops", &ops.to_string(), "--spp", "1", "--bounces", "1"])
+        .env("NEPHELE_OPERATOR_TOKEN_FILE", &token)
+        .stdout(Stdio::null())
+        .stderr(if logs() { Stdio::inherit() } else { Stdio::null() })
+        .spawn()
+        .expect("starting nephele worker");
+    let _worker = Process { child: worker, name: "worker".into() };
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !probe_at(ops, "/livez", &[], None).status.success() {
+        assert!(Instant::now() < deadline, "the worker's operations port did not answer");
+        thread::sleep(Duration::from_millis(100));
+    }
+    for (addr, path) in [(composer_http, "/metrics"), (composer_http, "/v1/sessions"), (ops, "/metrics")] {
+        let denied = probe_at(addr, path, &[], None);
+        assert!(String::from_utf8_lossy(&denied.stdout).starts_with("401"), "{addr}{path} without a token: {denied:?}");
+        let wrong_token = probe_at(addr, path, &[flag, wrong.as_os_str()], None);
+        assert!(!wrong_token.status.success(), "{addr}{path} with a wrong token: {wrong_token:?}");
+        let allowed = probe_at(addr, path, &[], Some(&token));
+        assert!(allowed.status.success(), "{addr}{path} with the token: {allowed:?}");
+    }
+    assert!(probe_at(composer_http, "/livez", &[], None).status.success());
 }

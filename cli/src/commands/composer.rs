@@ -77,6 +77,8 @@ pub struct Args {
     name: String,
     #[command(flatten)]
     farm_secret: crate::commands::FarmSecretArgs,
+    #[command(flatten)]
+    operator_token: crate::commands::OperatorTokenArgs,
 }
 
 fn parse_host_port(text: &str) -> Result<String, String> {
@@ -121,6 +123,7 @@ pub fn run(args: Args) -> Result<()> {
         master: args.master,
         name: args.name,
         farm_secret: args.farm_secret.resolve()?,
+        operator_token: args.operator_token.resolve()?.map(|(_, kept)| kept),
     };
     let runtime =
         tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the async runtime")?;

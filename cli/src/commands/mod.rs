@@ -209,15 +209,16 @@ pub struct ViewerKeyArgs {
 /// The environment variable naming the viewer key's file.
 pub const VIEWER_KEY_FILE_ENV: &str = "NEPHELE_VIEWER_KEY_FILE";
 
-/// The operators' token (`master`, `up`).
+/// The operators' token (`master`, `up`, `composer`, `worker`).
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct OperatorTokenArgs {
     /// File holding the operators' bearer token (at least 16 bytes; `nephele secret --out
-    /// FILE` writes one). With one, `GET /v1/farm`, `GET /metrics` and `GET /v1/sessions`
-    /// answer 401 unless the request carries `Authorization: Bearer TOKEN` (Prometheus:
-    /// `authorization: {credentials_file: FILE}`); `/livez`, `/readyz`, the page and the
-    /// viewers' API need none. Default: the file named by $NEPHELE_OPERATOR_TOKEN_FILE; with
-    /// neither, those endpoints are open to whoever reaches the master.
+    /// FILE` writes one). With one, the operators' endpoints (`GET /metrics` everywhere; the
+    /// master's `GET /v1/farm`, the master's and the composer's `GET /v1/sessions`) answer 401
+    /// unless the request carries `Authorization: Bearer TOKEN` (Prometheus: `authorization:
+    /// {credentials_file: FILE}`); `/livez`, `/readyz`, the page, signalling and the viewers'
+    /// API need none. Default: the file named by $NEPHELE_OPERATOR_TOKEN_FILE; with neither,
+    /// those endpoints are open to whoever reaches them.
     #[arg(long, value_name = "FILE")]
     pub operator_token_file: Option<std::path::PathBuf>,
 }
@@ -232,12 +233,12 @@ impl OperatorTokenArgs {
     }
 
     /// The token as read (for `up`'s own requests) and as the master keeps it.
-    pub fn resolve(&self) -> Result<Option<(String, nephele_master::access::OperatorToken)>> {
+    pub fn resolve(&self) -> Result<Option<(String, nephele_telemetry::OperatorToken)>> {
         let Some(path) = self.file() else { return Ok(None) };
         // The same rules as a farm secret's file (size, trimming, at least 16 bytes).
         let secret = nephele_proto::auth::FarmSecret::read_file(&path)?;
         let token = secret.expose().to_string();
-        let kept = nephele_master::access::OperatorToken::new(&token)
+        let kept = nephele_telemetry::OperatorToken::new(&token)
             .ok_or_else(|| anyhow::anyhow!("the operator token in {} is too short", path.display()))?;
         Ok(Some((token, kept)))
     }

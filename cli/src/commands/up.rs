@@ -230,6 +230,9 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
         "--results",
         &composer_results.to_string(),
     ]);
+    if let Some(file) = args.operator_token.file() {
+        composer.arg("--operator-token-file").arg(file);
+    }
     supervisor.spawn("composer", composer, Restart::OnExit)?;
     for i in 0..args.workers {
         let mut worker = nephele("worker");

@@ -66,7 +66,8 @@ pub struct Args {
     #[arg(long, default_value_t = 30)]
     drain_secs: u64,
     /// Serve `/livez`, `/readyz` (ready once registered with the master) and `/metrics`
-    /// (Prometheus) on this address, for container health checks and scrapers.
+    /// (Prometheus; it asks for the operators' token when the worker has one) on this
+    /// address, for container health checks and scrapers.
     #[arg(long, value_name = "ADDR")]
     ops: Option<std::net::SocketAddr>,
     /// Asset rendered at start-up to measure this worker's throughput.
@@ -74,6 +75,8 @@ pub struct Args {
     calibration_asset: String,
     #[command(flatten)]
     farm_secret: crate::commands::FarmSecretArgs,
+    #[command(flatten)]
+    operator_token: crate::commands::OperatorTokenArgs,
 }
 
 /// `worker-<host>-<pid>`: unique across containers too (every container's worker is pid 1;
@@ -117,6 +120,8 @@ pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
     config.calibration_asset = args.calibration_asset;
     config.device = device;
     config.farm_secret = args.farm_secret.resolve()?;
+    // Read before the runtime starts, so that a bad file stops the worker at once.
+    let operator_token = args.operator_token.resolve()?.map(|(_, kept)| kept);
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -129,7 +134,7 @@ pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
     let result = runtime.block_on(async move {
         let ops = match args.ops {
             Some(addr) => {
-                let router = nephele_telemetry::ops_router(metrics.registry().clone(), metrics.clone());
+                let router = nephele_telemetry::ops_router(metrics.registry().clone(), metrics.clone(), operator_token);
                 let stop = shutdown.clone();
                 let (bound, task) = nephele_telemetry::serve(addr, router, async move { stop.wait().await })
                     .await
