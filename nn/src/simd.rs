@@ -32,8 +32,12 @@ impl SimdMode {
         }
     }
 
-    /// Runs `f` compiled for this mode's instruction set: code inlined into `f`
-    /// (`#[inline(always)]` callees included) may use those instructions.
+    /// Runs `f` under this mode's dispatch. Beware: a closure is a function of its own, and
+    /// LLVM may compile it apart, for the baseline, instead of inlining it into pulp's
+    /// `#[target_feature]` function (a large one it does: the i-NOLF render chunk's closure
+    /// had not one VEX instruction). For a hot kernel implement [`WithSimd`] with an
+    /// `#[inline(always)]` `with_simd` and call `self.arch().dispatch(op)`, as
+    /// `nephele_kernels::inolf::kernel::Chunk` does.
     #[inline(always)]
     pub fn run<R>(self, f: impl FnOnce() -> R) -> R {
         self.arch().dispatch(f)
