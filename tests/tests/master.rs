@@ -869,6 +869,36 @@ fn bench_live_loop() {
     );
 }
 
+/// A composer process joined to `master`, with `env` (and no operators' token from the
+/// test's own environment) and the `extra` arguments; its signalling address (from its
+/// banner) and its results address.
+fn start_composer(
+    master: &MasterProcess,
+    env: &[(&str, &str)],
+    extra: &[&std::ffi::OsStr],
+) -> (Process, SocketAddr, SocketAddr) {
+    let results = TcpListener::bind("127.0.0.1:0").expect("a free port").local_addr().expect("addr");
+    let mut composer = Command::new(nephele_bin())
+        .env_remove("NEPHELE_OPERATOR_TOKEN_FILE")
+        .envs(env.iter().copied())
+        .args(["--quiet", "composer", "--master", &master.farm.to_string(), "--http", "127.0.0.1:0"])
+        .args(["--results", &results.to_string()])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(if logs() { Stdio::inherit() } else { Stdio::null() })
+        .spawn()
+        .expect("starting nephele composer");
+    let mut banner = String::new();
+    BufReader::new(composer.stdout.take().expect("stdout")).read_line(&mut banner).expect("the composer's banner");
+    let http: SocketAddr = banner
+        .split("http://")
+        .nth(1)
+        .and_then(|r| r.split('/').next())
+        .and_then(|a| a.parse().ok())
+        .unwrap_or_else(|| panic!("no address in {banner:?}"));
+    (Process { child: composer, name: "composer".into() }, http, results)
+}
+
 /// The farm credential (issue 15): a master and a composer holding a secret admit the
 /// processes that prove it, refuse (and count) every peer that does not, and a result sent
 /// to the composer by a peer without the secret never gets in.
@@ -914,24 +944,7 @@ fn the_farm_admits_only_peers_that_prove_its_secret() {
     assert!(!out.status.success() && stderr.contains("farm secret"), "{stderr}");
 
     // The real composer and worker, holding the secret, join.
-    let results = TcpListener::bind("127.0.0.1:0").expect("a free port").local_addr().expect("addr");
-    let mut composer = Command::new(nephele_bin())
-        .args(["--quiet", "composer", "--master", &master.farm.to_string(), "--http", "127.0.0.1:0"])
-        .args(["--results", &results.to_string()])
-        .envs(env)
-        .stdout(Stdio::piped())
-        .stderr(if logs() { Stdio::inherit() } else { Stdio::null() })
-        .spawn()
-        .expect("starting nephele composer");
-    let mut banner = String::new();
-    BufReader::new(composer.stdout.take().expect("stdout")).read_line(&mut banner).expect("the composer's banner");
-    let composer_http: SocketAddr = banner
-        .split("http://")
-        .nth(1)
-        .and_then(|r| r.split('/').next())
-        .and_then(|a| a.parse().ok())
-        .unwrap_or_else(|| panic!("no address in {banner:?}"));
-    let _composer = Process { child: composer, name: "composer".into() };
+    let (_composer, composer_http, results) = start_composer(&master, &env, &[]);
     let _worker = start_worker_with(master.farm, &assets, "trusted", &dir.path().join("trusted.log"), &env);
     wait_for_farm(&master, "the composer and the worker", |s| {
         !s["composer"].is_null() && s["workers"].as_array().is_some_and(|w| w.len() == 1)
@@ -1006,26 +1019,7 @@ fn probe_reaches_the_operators_endpoints_only_with_the_token() {
 
     // A composer given the token by flag, a worker by the variable: their /metrics (and the
     // composer's session list) ask for it too; /livez does not.
-    let results = TcpListener::bind("127.0.0.1:0").expect("a free port").local_addr().expect("addr");
-    let mut composer = Command::new(nephele_bin())
-        .args(["--quiet", "composer", "--master", &master.farm.to_string(), "--http", "127.0.0.1:0"])
-        .args(["--results", &results.to_string()])
-        .arg("--operator-token-file")
-        .arg(&token)
-        .env_remove("NEPHELE_OPERATOR_TOKEN_FILE")
-        .stdout(Stdio::piped())
-        .stderr(if logs() { Stdio::inherit() } else { Stdio::null() })
-        .spawn()
-        .expect("starting nephele composer");
-    let mut banner = String::new();
-    BufReader::new(composer.stdout.take().expect("stdout")).read_line(&mut banner).expect("the composer's banner");
-    let _composer = Process { child: composer, name: "composer".into() };
-    let composer_http: SocketAddr = banner
-        .split("http://")
-        .nth(1)
-        .and_then(|r| r.split('/').next())
-        .and_then(|a| a.parse().ok())
-        .unwrap_or_else(|| panic!("no address in {banner:?}"));
+    let (_composer, composer_http, _) = start_composer(&master, &[], &[flag, token.as_os_str()]);
     let ops = TcpListener::bind("127.0.0.1:0").expect("a free port").local_addr().expect("addr");
     let assets = dir.path().join("assets");
     std::fs::create_dir(&assets).expect("assets");
