@@ -2,6 +2,8 @@
 //
 // Flat screen: an orbit/fly camera driven by mouse, touch and keys; one view.
 // WebXR immersive-vr: each eye's view and projection; the side-by-side video is split per eye.
+// AR (the "display" choice, or WebXR immersive-ar): the composer paints the key colour where
+// no object is; in immersive-ar the page keys it out, so the headset's view of the room shows.
 // Either way the pose goes to the composer over the `control` data channel every 20 ms.
 'use strict';
 
@@ -12,6 +14,9 @@
   const POSE_VERSION = 1;
   const MODE_FLAT = 0;
   const MODE_XR = 1;
+  const MODE_AR = 3;
+  // The AR mode's key colour (sRGB, 0..1), as nephele_proto::pose::AR_KEY_SRGB.
+  const AR_KEY = [0, 1, 0];
 
   // ---------------------------------------------------------------- small matrix helpers
   // Column-major 4x4 matrices in Float32Array(16), as WebGL and WebXR use.
@@ -117,6 +122,7 @@
     rttMs: null,
     poseToFrameMs: null, // from the composer's 'frame' messages: pose sent -> its frame out
     xrSession: null,
+    xrAr: false, // the XR session is immersive-ar
     xrEyeSize: null, // {width, height} the headset recommends per eye
     xrViews: null, // latest [{view, projection}] from the XR frame loop
     reconnectDelayMs: 1000,
@@ -297,6 +303,12 @@
     return [{ view: client.camera.view(), projection: client.camera.projection(aspect) }];
   }
 
+  // The pose's display mode: immersive VR, AR (immersive-ar, or the page's AR choice) or flat.
+  function displayMode() {
+    if (client.xrSession) return client.xrAr ? MODE_AR : MODE_XR;
+    return $('display').value === 'ar' ? MODE_AR : MODE_FLAT;
+  }
+
   function encodePose(views, mode) {
     const buffer = new ArrayBuffer(20 + 128 * views.length);
     const data = new DataView(buffer);
@@ -321,7 +333,7 @@
     if (!channel || channel.readyState !== 'open') return;
     const views = currentViews();
     if (views.length !== client.views) return; // the session was opened for another view count
-    channel.send(encodePose(views, client.xrSession ? MODE_XR : MODE_FLAT));
+    channel.send(encodePose(views, displayMode()));
     client.sequence = (client.sequence + 1) >>> 0;
     client.posesSent += 1;
   }
@@ -429,34 +441,41 @@
   // video, drawn as a textured quad with WebGL.
   async function setupXr() {
     if (!navigator.xr) return;
-    let supported = false;
-    try { supported = await navigator.xr.isSessionSupported('immersive-vr'); } catch (_) { supported = false; }
-    if (!supported) return;
-    const button = $('enter-vr');
-    button.hidden = false;
-    button.onclick = () => (client.xrSession ? client.xrSession.end() : enterXr());
+    const offered = async (mode) => {
+      try { return await navigator.xr.isSessionSupported(mode); } catch (_) { return false; }
+    };
+    for (const [mode, id] of [['immersive-vr', 'enter-vr'], ['immersive-ar', 'enter-ar']]) {
+      if (!(await offered(mode))) continue;
+      const button = $(id);
+      button.hidden = false;
+      button.onclick = () => (client.xrSession ? client.xrSession.end() : enterXr(mode));
+    }
   }
 
-  async function enterXr() {
-    const session = await navigator.xr.requestSession('immersive-vr', { optionalFeatures: ['local-floor'] });
+  async function enterXr(mode) {
+    const ar = mode === 'immersive-ar';
+    const session = await navigator.xr.requestSession(mode, { optionalFeatures: ['local-floor'] });
     const canvas = $('xr-canvas');
-    const gl = canvas.getContext('webgl', { xrCompatible: true });
+    const gl = canvas.getContext('webgl', { xrCompatible: true, alpha: true, premultipliedAlpha: true });
     await gl.makeXRCompatible();
     const layer = new XRWebGLLayer(session, gl);
     session.updateRenderState({ baseLayer: layer });
     // Both eyes side by side in the layer's framebuffer, sized as the headset recommends.
     client.xrEyeSize = { width: layer.framebufferWidth / 2, height: layer.framebufferHeight };
     const space = await session.requestReferenceSpace('local-floor').catch(() => session.requestReferenceSpace('local'));
-    const drawer = makeVideoDrawer(gl);
+    const drawer = makeVideoDrawer(gl, ar);
     client.xrSession = session;
-    $('enter-vr').textContent = 'Exit VR';
+    client.xrAr = ar;
+    const button = $(ar ? 'enter-ar' : 'enter-vr');
+    button.textContent = ar ? 'Exit AR' : 'Exit VR';
     // A new session with two views (the stream size changes).
     disconnect();
     connect();
     session.addEventListener('end', () => {
       client.xrSession = null;
       client.xrViews = null;
-      $('enter-vr').textContent = 'Enter VR';
+      client.xrAr = false;
+      button.textContent = ar ? 'Enter AR' : 'Enter VR';
       disconnect();
       connect();
     });
@@ -466,6 +485,9 @@
       if (!pose) return;
       const layer = session.renderState.baseLayer;
       gl.bindFramebuffer(gl.FRAMEBUFFER, layer.framebuffer);
+      // Transparent where nothing is drawn: in immersive-ar the room shows through.
+      gl.clearColor(0, 0, 0, 0);
+      gl.clear(gl.COLOR_BUFFER_BIT);
       drawer.upload($('video'));
       client.xrViews = pose.views.slice(0, 2).map((view) => ({
         view: mat4.multiply(view.transform.inverse.matrix, XR_FROM_NEPHELE),
@@ -480,14 +502,26 @@
     session.requestAnimationFrame(onFrame);
   }
 
-  function makeVideoDrawer(gl) {
+  // Draws one view's part of the video. With `keyed` (AR), the key colour becomes transparent:
+  // coverage from the distance to the key (premultiplied output; the video's compression
+  // smears the key a little, hence the soft ramp), and the key's green spilled into partly
+  // covered pixels taken back out.
+  function makeVideoDrawer(gl, keyed) {
     const vs = 'attribute vec2 p; uniform vec2 u; varying vec2 t; void main(){ t = vec2(u.x + (p.x*0.5+0.5)*u.y, 0.5-p.y*0.5); gl_Position = vec4(p,0.,1.); }';
-    const fs = 'precision mediump float; varying vec2 t; uniform sampler2D s; void main(){ gl_FragColor = texture2D(s, t); }';
+    const key = `vec3(${AR_KEY.map((v) => v.toFixed(1)).join(',')})`;
+    const fs = keyed
+      ? `precision mediump float; varying vec2 t; uniform sampler2D s; void main(){ vec3 c = texture2D(s, t).rgb;
+         float a = smoothstep(0.15, 0.45, distance(c, ${key}));
+         gl_FragColor = vec4(max(c - (1.0 - a) * ${key}, 0.0), a); }`
+      : 'precision mediump float; varying vec2 t; uniform sampler2D s; void main(){ gl_FragColor = texture2D(s, t); }';
     const compile = (type, source) => { const sh = gl.createShader(type); gl.shaderSource(sh, source); gl.compileShader(sh); return sh; };
     const program = gl.createProgram();
-    gl.attachShader(program, compile(gl.VERTEX_SHADER, vs));
-    gl.attachShader(program, compile(gl.FRAGMENT_SHADER, fs));
+    const shaders = [compile(gl.VERTEX_SHADER, vs), compile(gl.FRAGMENT_SHADER, fs)];
+    shaders.forEach((sh) => gl.attachShader(program, sh));
     gl.linkProgram(program);
+    if (!gl.getProgramParameter(program, gl.LINK_STATUS) && !gl.isContextLost()) {
+      console.error(`video drawer: ${shaders.map((sh) => gl.getShaderInfoLog(sh)).join(' ')} ${gl.getProgramInfoLog(program)}`);
+    }
     const buffer = gl.createBuffer();
     gl.bindBuffer(gl.ARRAY_BUFFER, buffer);
     gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 1, -1, -1, 1, 1, 1]), gl.STATIC_DRAW);
@@ -532,6 +566,10 @@
     $('fullscreen').onclick = () => $('stage').requestFullscreen?.().catch(() => {});
     const size = params.get('size');
     if (size && [...$('size').options].some((o) => o.value === size)) $('size').value = size;
+    // `?display=ar`: the key-colour background from the first frame (the choice applies to
+    // the next pose; no new session is needed).
+    const display = params.get('display');
+    if (display && [...$('display').options].some((o) => o.value === display)) $('display').value = display;
     // With the window's size chosen, a new stream once the window has settled at another size.
     let resizeTimer = null;
     window.addEventListener('resize', () => {

@@ -211,7 +211,13 @@ fn fuse_plan(shared: &Shared, plan: &FramePlan, plan_received: Instant) -> Resul
         };
         latency.frame_planned(session, frame, timing);
     }
-    let plan = fusion::FramePlan { session, frame, layout, background: [0.0; 3], deadline, batches: planned };
+    // Black behind the objects, or the key colour for a viewer in AR mode (its latest pose's).
+    let ar = lock(&shared.sessions)
+        .get(&session)
+        .and_then(|e| e.last_pose.as_ref())
+        .is_some_and(|pose| pose.mode == nephele_proto::pose::MODE_AR);
+    let background = if ar { nephele_proto::pose::AR_KEY_LINEAR } else { [0.0; 3] };
+    let plan = fusion::FramePlan { session, frame, layout, background, deadline, batches: planned };
     {
         let mut compositor = lock(&shared.compositor);
         compositor.plan_frame(plan).map_err(|e| e.to_string())?;

@@ -12,7 +12,7 @@
 //! | 0 | u8 | magic `0x50` (`'P'`) |
 //! | 1 | u8 | version, 1 |
 //! | 2 | u8 | view count `N`, 1..=[`MAX_POSE_VIEWS`] (1 flat screen, 2 WebXR stereo, N a quilt) |
-//! | 3 | u8 | display mode: 0 flat, 1 immersive VR, 2 quilt |
+//! | 3 | u8 | display mode: 0 flat, 1 immersive VR, 2 quilt, 3 AR (key-colour background) |
 //! | 4 | u32 | sequence number, increasing |
 //! | 8 | f64 | client timestamp, ms (`performance.now()`), echoed for latency measurements |
 //! | 16 | u16, u16 | frame width, height of one view in pixels |
@@ -44,8 +44,18 @@ pub const MODE_FLAT: u8 = 0;
 pub const MODE_XR: u8 = 1;
 /// Display mode: a light-field quilt.
 pub const MODE_QUILT: u8 = 2;
-/// Display modes: 0 flat, 1 immersive VR, 2 quilt.
-pub const MAX_POSE_MODE: u8 = MODE_QUILT;
+/// Display mode: augmented reality. Where no object covers a pixel the frame shows
+/// [`AR_KEY_SRGB`] instead of black (partly covered pixels are blended over it), so that a
+/// headset's passthrough, or the page's own keying in `immersive-ar`, replaces it by the
+/// real world. One view (a flat page or a passthrough app keying the colour) or one per eye.
+pub const MODE_AR: u8 = 3;
+/// Display modes: 0 flat, 1 immersive VR, 2 quilt, 3 AR.
+pub const MAX_POSE_MODE: u8 = MODE_AR;
+/// The AR mode's key colour, sRGB 8-bit: pure green, the usual chroma key (no object of the
+/// built-in scenes comes near it). `client/nephele.js` keys the same colour.
+pub const AR_KEY_SRGB: [u8; 3] = [0, 255, 0];
+/// [`AR_KEY_SRGB`] in linear RGB (the compositor's background).
+pub const AR_KEY_LINEAR: [f32; 3] = [0.0, 1.0, 0.0];
 /// Most views in one pose.
 pub const MAX_POSE_VIEWS: u16 = nephele_geometry::camera::MAX_VIEWS as u16;
 /// Largest frame side a pose may ask for.
@@ -75,7 +85,7 @@ pub enum PoseError {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Pose {
     pub seq: u32,
-    /// 0 flat screen, 1 immersive VR, 2 quilt (the client's display mode).
+    /// 0 flat screen, 1 immersive VR, 2 quilt, 3 AR (the client's display mode).
     pub mode: u8,
     pub client_time_ms: f64,
     /// One per eye (or view of a quilt).
@@ -241,9 +251,11 @@ mod tests {
         let mut p = pose(1);
         p.views[0].projection = Mat4::from_diagonal(glam::Vec4::new(1.0, 1.0, -0.2, 1.0)); // orthographic: w = 1
         assert!(matches!(Pose::decode(&p.encode()), Err(PoseError::BadView { .. })));
-        // An unknown display mode.
+        // The AR mode decodes; an unknown display mode does not.
         let mut b = good.clone();
-        b[3] = 3;
-        assert_eq!(Pose::decode(&b), Err(PoseError::BadMode(3)));
+        b[3] = MODE_AR;
+        assert_eq!(Pose::decode(&b).map(|p| p.mode), Ok(MODE_AR));
+        b[3] = 4;
+        assert_eq!(Pose::decode(&b), Err(PoseError::BadMode(4)));
     }
 }

@@ -63,6 +63,11 @@ pub fn frames_decoded(browser: &Browser) -> Result<u64> {
 /// The picture the `<video>` element shows now, read back through a canvas: mean of R, G and
 /// B over `[x0, x1) x [y0, y1)` given as fractions of the frame, or `None` before the first frame.
 pub fn mean_grey(browser: &Browser, region: [f64; 4]) -> Result<Option<f64>> {
+    Ok(mean_rgb(browser, region)?.map(|[r, g, b]| (r + g + b) / 3.0))
+}
+
+/// Like [`mean_grey`], per channel: the means of R, G and B (0-255).
+pub fn mean_rgb(browser: &Browser, region: [f64; 4]) -> Result<Option<[f64; 3]>> {
     let value = browser.execute(
         "const v = document.getElementById('video');
          if (!v || v.readyState < 2 || !v.videoWidth) return null;
@@ -74,12 +79,14 @@ pub fn mean_grey(browser: &Browser, region: [f64; 4]) -> Result<Option<f64>> {
          const x0 = Math.floor(fx0 * c.width), y0 = Math.floor(fy0 * c.height);
          const w = Math.max(1, Math.floor(fx1 * c.width) - x0), h = Math.max(1, Math.floor(fy1 * c.height) - y0);
          const d = g.getImageData(x0, y0, w, h).data;
-         let s = 0;
-         for (let i = 0; i < d.length; i += 4) s += d[i] + d[i + 1] + d[i + 2];
-         return s / (d.length / 4 * 3);",
+         const s = [0, 0, 0];
+         for (let i = 0; i < d.length; i += 4) { s[0] += d[i]; s[1] += d[i + 1]; s[2] += d[i + 2]; }
+         return s.map((v) => v / (d.length / 4));",
         vec![serde_json::json!(region)],
     )?;
-    Ok(value.as_f64())
+    let Some(means) = value.as_array() else { return Ok(None) };
+    let channel = |i: usize| means.get(i).and_then(Value::as_f64).unwrap_or(f64::NAN);
+    Ok(Some([channel(0), channel(1), channel(2)]))
 }
 
 /// Console errors, except the browser's own request for a favicon (the client has none).

@@ -1,4 +1,5 @@
-// A scripted WebXR device for the browser tests: `navigator.xr` offers 'immersive-vr'; a
+// A scripted WebXR device for the browser tests: `navigator.xr` offers 'immersive-vr' and
+// 'immersive-ar' (the mode asked is kept in `window.__xrMode`); a
 // session hands out frames with two views (eyes 64 mm apart at 1.6 m height, 3 m from the
 // origin, looking down -z) and a 640x240 layer framebuffer (320x240 per eye). Every WebGL
 // viewport the page sets is recorded in `window.__xrViewports`; the live session is
@@ -60,8 +61,11 @@
   Object.defineProperty(navigator, 'xr', {
     configurable: true,
     value: {
-      isSessionSupported: (mode) => Promise.resolve(mode === 'immersive-vr'),
-      requestSession: () => Promise.resolve((window.__xrSession = new MockSession())),
+      isSessionSupported: (mode) => Promise.resolve(mode === 'immersive-vr' || mode === 'immersive-ar'),
+      requestSession: (mode) => {
+        window.__xrMode = mode;
+        return Promise.resolve((window.__xrSession = new MockSession()));
+      },
     },
   });
 })();

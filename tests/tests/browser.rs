@@ -307,6 +307,58 @@ fn the_immersive_vr_path_streams_both_eyes_at_the_headsets_size_and_returns_to_f
 }
 
 #[test]
+fn the_immersive_ar_path_streams_both_eyes_as_ar_poses_and_returns_to_flat() {
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let service = Service::start(true);
+    let farm = &service.farm;
+    let base = service.url.split('?').next().expect("url").to_string();
+    let browser = Browser::start().expect("headless Chromium");
+    browser.add_script_on_new_document(client::MOCK_XR).expect("inject the XR device");
+    browser.goto(&format!("{base}?size=640x480")).expect("open the client");
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("flat streaming");
+    browser.wait_until("!document.getElementById('enter-ar').hidden", Duration::from_secs(5)).expect("Enter AR shown");
+    browser.execute("document.getElementById('enter-ar').click(); return null;", Vec::new()).expect("click");
+
+    let offers = wait_for("the AR session", Duration::from_secs(15), || {
+        let offers = farm.offers();
+        (offers.len() >= 2).then_some(offers)
+    });
+    let ar = &offers[1];
+    assert_eq!((ar.request.views, ar.request.width, ar.request.height), (2, 320, 240));
+    let asked = browser.execute("return window.__xrMode;", Vec::new()).expect("mode asked");
+    assert_eq!(asked, serde_json::json!("immersive-ar"));
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("AR streaming");
+    // Both eyes' poses reach the farm as one two-view pose in AR mode (the composer paints
+    // the key colour behind the objects for it).
+    let pose = wait_for("a two-view AR pose", Duration::from_secs(5), || {
+        farm.latest_pose(&ar.session_id).filter(|p| p.views.len() == 2)
+    });
+    assert_eq!((pose.mode, pose.view_size()), (nephele_proto::pose::MODE_AR, (320, 240)));
+    // Each eye's half of the layer is drawn, through the keying shader (it compiled: a
+    // failed program would log a WebGL error).
+    browser
+        .wait_until(
+            "window.__xrViewports.some(v => v.join() === '0,0,320,240') && window.__xrViewports.some(v => v.join() === '320,0,320,240')",
+            Duration::from_secs(5),
+        )
+        .expect("both eyes' viewports drawn");
+    let label = browser.execute("return document.getElementById('enter-ar').textContent;", Vec::new()).ok();
+    assert_eq!(label, Some(serde_json::json!("Exit AR")));
+
+    browser.execute("window.__xrSession.end(); return null;", Vec::new()).expect("end");
+    let offers = wait_for("the flat session again", Duration::from_secs(15), || {
+        let offers = farm.offers();
+        (offers.len() >= 3).then_some(offers)
+    });
+    assert_eq!(offers[2].request.views, 1);
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("flat streaming again");
+    let flat = wait_for("a flat pose", Duration::from_secs(5), || farm.latest_pose(&offers[2].session_id));
+    assert_eq!(flat.mode, nephele_proto::pose::MODE_FLAT);
+    let errors = browser.console_log().expect("console log");
+    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
+}
+
+#[test]
 fn a_busy_farm_makes_the_client_wait_and_retry() {
     let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
     let service = Service::start(false);
@@ -436,6 +488,19 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
         (near - far).abs() > 5.0,
         "moving the camera from 3 m to 80 m left the picture at grey {near:.1} -> {far:.1}"
     );
+
+    // AR display: where nothing is rendered (a corner, the scene 80 m away) black becomes the
+    // key colour, sRGB (0, 255, 0), on the next poses of the same session.
+    let corner = [0.0, 0.0, 0.25, 0.25];
+    let black = client::mean_rgb(&browser, corner).expect("reading the picture back").expect("a picture");
+    assert!(black.iter().all(|&c| c < 30.0), "the flat page's empty corner is not black: {black:?}");
+    browser.execute("document.getElementById('display').value = 'ar'; return null;", Vec::new()).expect("AR");
+    let keyed = wait_for("the key colour where nothing is rendered", Duration::from_secs(20), || {
+        let rgb = client::mean_rgb(&browser, corner).ok().flatten()?;
+        (rgb[1] > 200.0 && rgb[0] < 50.0 && rgb[2] < 50.0).then_some(rgb)
+    });
+    eprintln!("[{:.1} s] AR: the empty corner reads {keyed:.0?}", started.elapsed().as_secs_f64());
+    browser.execute("document.getElementById('display').value = 'flat'; return null;", Vec::new()).expect("flat");
 
     // A second tab is a second user with its own stream.
     let first_tab = browser.window().expect("tab");

@@ -211,22 +211,53 @@ fn kubernetes_manifests_are_complete_and_every_reference_resolves() {
             "{key}={value}: the Service has no port {port}"
         );
     }
-    // Every farm process reads the farm secret from the Secret the operator creates
-    // (deploy/README.md), where NEPHELE_FARM_SECRET_FILE points.
+    // Every farm process reads the farm secret and the operators' token from the Secret the
+    // operator creates (deploy/README.md: its keys `farm` and `operator`), mounted where
+    // NEPHELE_FARM_SECRET_FILE and NEPHELE_OPERATOR_TOKEN_FILE point.
     assert_eq!(config.get("NEPHELE_FARM_SECRET_FILE").map(String::as_str), Some("/var/lib/nephele/secrets/farm"));
+    assert_eq!(
+        config.get("NEPHELE_OPERATOR_TOKEN_FILE").map(String::as_str),
+        Some("/var/lib/nephele/secrets/operator")
+    );
+    let readme = std::fs::read_to_string(deploy_dir().join("README.md")).expect("deploy/README.md");
+    let creates_secret = readme
+        .lines()
+        .find(|l| l.contains("kubectl -n nephele create secret generic nephele-secrets"))
+        .expect("deploy/README.md says how to create the Secret nephele-secrets");
+    for key in ["--from-file=farm=", "--from-file=operator="] {
+        assert!(creates_secret.contains(key), "the Secret's creation in deploy/README.md lacks {key}");
+    }
     for name in ["nephele-master", "nephele-composer", "nephele-worker-cpu", "nephele-worker-gpu"] {
         let spec = &all[&("Deployment".to_string(), name.to_string())]["spec"]["template"]["spec"];
         let volume = items(spec, "/volumes")
             .into_iter()
-            .find(|v| str_at(v, "/secret/secretName") == Some("nephele-farm-secret"))
-            .unwrap_or_else(|| panic!("{name}: no volume of the Secret nephele-farm-secret"));
+            .find(|v| str_at(v, "/secret/secretName") == Some("nephele-secrets"))
+            .unwrap_or_else(|| panic!("{name}: no volume of the Secret nephele-secrets"));
         let volume = str_at(volume, "/name").expect("volume name");
         let mounted = items(spec, "/containers/0/volumeMounts")
             .iter()
             .any(|m| str_at(m, "/name") == Some(volume) && str_at(m, "/mountPath") == Some("/var/lib/nephele/secrets"));
-        assert!(mounted, "{name}: the farm secret is not mounted at /var/lib/nephele/secrets");
+        assert!(mounted, "{name}: the Secret is not mounted at /var/lib/nephele/secrets");
         assert_eq!(spec["securityContext"]["fsGroup"], 10001, "{name}: the unprivileged user's group reads it");
     }
+    // Every /metrics asks for that token, so the Prometheus scrape jobs given for the
+    // autoscaler's metrics send it: the master's Service and the annotated pods.
+    let scrape = &all[&("ConfigMap".to_string(), "nephele-prometheus-scrape".to_string())];
+    let jobs = YamlLoader::load_from_str(str_at(scrape, "/data/scrape.yaml").expect("scrape.yaml")).expect("YAML");
+    let jobs = to_json(&jobs[0]);
+    let jobs = jobs.as_array().expect("a list of scrape jobs");
+    let roles: BTreeSet<&str> = jobs.iter().filter_map(|j| str_at(j, "/kubernetes_sd_configs/0/role")).collect();
+    assert_eq!(roles, BTreeSet::from(["endpoints", "pod"]), "scrape the master's Service and the annotated pods");
+    for job in jobs {
+        assert_eq!(str_at(job, "/authorization/type"), Some("Bearer"), "{job}");
+        let file = str_at(job, "/authorization/credentials_file").unwrap_or_default();
+        assert!(file.ends_with("/nephele-secrets/operator"), "{job}: the scrape sends the operators' token");
+    }
+    let annotated = all
+        .values()
+        .filter_map(pod_template)
+        .filter(|t| t.pointer("/metadata/annotations/prometheus.io~1scrape").and_then(Value::as_str) == Some("true"));
+    assert!(annotated.count() >= 3, "the composer and both worker variants are scraped through their annotations");
     // The GPU variant asks for a GPU.
     let gpu = &all[&("Deployment".to_string(), "nephele-worker-gpu".to_string())];
     let limits = gpu.pointer("/spec/template/spec/containers/0/resources/limits/nvidia.com~1gpu");

@@ -32,11 +32,9 @@ pub fn run(args: Args) -> Result<()> {
         .or_else(|| std::env::var("NEPHELE_PROBE_URL").ok().filter(|u| !u.is_empty()))
         .unwrap_or_else(|| DEFAULT_URL.to_string());
     let timeout = Duration::from_secs(args.timeout_secs.max(1));
-    let authorization = match super::flag_or_env_file(&args.operator_token_file, super::OPERATOR_TOKEN_FILE_ENV) {
-        // The same rules as the master's reading of it (size, trimming, at least 16 bytes).
-        Some(path) => Some(format!("Bearer {}", nephele_proto::auth::FarmSecret::read_file(&path)?.expose())),
-        None => None,
-    };
+    // Read by the same rules as the master's (size, trimming, at least 16 bytes).
+    let token = super::OperatorTokenArgs { operator_token_file: args.operator_token_file }.resolve()?;
+    let authorization = token.map(|(token, _)| format!("Bearer {token}"));
     let headers: Vec<(&str, &str)> = authorization.iter().map(|a| ("Authorization", a.as_str())).collect();
     let response = nephele_loadgen::http::request_blocking(&url, "GET", &headers, "", timeout)?;
     let first_line = response.body.lines().next().unwrap_or("");
