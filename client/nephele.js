@@ -14,7 +14,13 @@
   const POSE_VERSION = 1;
   const MODE_FLAT = 0;
   const MODE_XR = 1;
+  const MODE_QUILT = 2;
   const MODE_AR = 3;
+  // The light-field display's quilt (Looking Glass's 45-view layout): 5 columns, 9 rows, views
+  // of aspect 0.75 spread over a 35-degree view cone; view 0 (leftmost camera) bottom left.
+  // The composer packs views row by row from the top in 5 columns
+  // (nephele_proto::pose::grid_columns), so the pose lists them top row first.
+  const QUILT = { views: 45, columns: 5, rows: 9, viewWidth: 180, viewHeight: 240, viewConeDeg: 35 };
   // The AR mode's key colour (sRGB, 0..1), as nephele_proto::pose::AR_KEY_SRGB.
   const AR_KEY = [0, 1, 0];
 
@@ -179,7 +185,10 @@
   async function connect() {
     client.wantConnected = true;
     [client.width, client.height] = streamSize();
-    client.views = client.xrSession ? 2 : 1;
+    const quilt = !client.xrSession && $('display').value === 'quilt';
+    client.views = client.xrSession ? 2 : quilt ? QUILT.views : 1;
+    if (quilt) [client.width, client.height] = [QUILT.viewWidth, QUILT.viewHeight];
+    $('quilt-info').hidden = !quilt;
     setState('connecting');
     $('connect').disabled = true;
     $('disconnect').disabled = false;
@@ -299,14 +308,43 @@
   // ---------------------------------------------------------------- poses and control
   function currentViews() {
     if (client.xrSession && client.xrViews) return client.xrViews;
+    if (client.views === QUILT.views) return quiltViews();
     const aspect = client.width / client.height;
     return [{ view: client.camera.view(), projection: client.camera.projection(aspect) }];
   }
 
-  // The pose's display mode: immersive VR, AR (immersive-ar, or the page's AR choice) or flat.
+  // The pose's display mode: immersive VR, AR (immersive-ar, or the page's AR choice), the
+  // light-field quilt, or flat.
   function displayMode() {
     if (client.xrSession) return client.xrAr ? MODE_AR : MODE_XR;
-    return $('display').value === 'ar' ? MODE_AR : MODE_FLAT;
+    return { ar: MODE_AR, quilt: MODE_QUILT }[$('display').value] ?? MODE_FLAT;
+  }
+
+  // The quilt's views in the order the composer packs them (top row first, left to right):
+  // cameras parallel to the orbit camera, spread along its right axis so that the orbit
+  // target's plane (the focal plane) projects to the same pixels in every view, as
+  // nephele_geometry::camera::quilt_rig does: view k sits at (k / (N - 1) - 1/2) * 2 tan(cone / 2)
+  // focal distances, its principal point shifted by the same fraction of the focal length.
+  function quiltViews() {
+    const camera = client.camera;
+    const eye = camera.eye();
+    const forward = normalize(sub(camera.target, eye));
+    const right = normalize(cross(forward, [0, 0, 1]));
+    const halfExtent = Math.tan((QUILT.viewConeDeg * Math.PI) / 360);
+    const aspect = QUILT.viewWidth / QUILT.viewHeight;
+    const views = [];
+    for (let row = 0; row < QUILT.rows; row++) {
+      for (let column = 0; column < QUILT.columns; column++) {
+        const k = (QUILT.rows - 1 - row) * QUILT.columns + column;
+        const relative = (k / (QUILT.views - 1) - 0.5) * 2 * halfExtent;
+        const shift = scale(right, relative * camera.radius);
+        const view = mat4.lookAt(add(eye, shift), add(camera.target, shift), [0, 0, 1]);
+        const projection = camera.projection(aspect);
+        projection[8] = -projection[0] * relative;
+        views.push({ view, projection });
+      }
+    }
+    return views;
   }
 
   function encodePose(views, mode) {
@@ -570,6 +608,17 @@
     // the next pose; no new session is needed).
     const display = params.get('display');
     if (display && [...$('display').options].some((o) => o.value === display)) $('display').value = display;
+    // The quilt is a session of another view count: a new stream; flat and AR share one.
+    $('display').onchange = () => {
+      const views = $('display').value === 'quilt' ? QUILT.views : 1;
+      if (client.wantConnected && !client.xrSession && views !== client.views) {
+        disconnect();
+        connect();
+      }
+    };
+    $('quilt-info').textContent = `quilt: ${QUILT.views} views, ${QUILT.columns} columns x ${QUILT.rows} rows, ` +
+      `view ${QUILT.viewWidth}x${QUILT.viewHeight} (aspect ${(QUILT.viewWidth / QUILT.viewHeight).toFixed(2)}), ` +
+      `${QUILT.viewConeDeg} degree view cone, view 0 bottom left`;
     // With the window's size chosen, a new stream once the window has settled at another size.
     let resizeTimer = null;
     window.addEventListener('resize', () => {

@@ -19,13 +19,14 @@ use crate::state::{MediaCounters, SessionEntry, Shared, lock};
 use crate::webrtc::{RtcError, ViewerEvent};
 
 /// The packed layout for `views` views of `width x height`: one row for up to two views, a
-/// near-square grid beyond; views shrunk (aspect kept) until the picture fits the encoder,
+/// Looking Glass quilt for 45 or 48, a near-square grid otherwise
+/// ([`nephele_proto::pose::grid_columns`]); views shrunk (aspect kept) until the picture fits the encoder,
 /// and rounded down to even sizes.
 pub fn layout_for(width: u32, height: u32, views: u16) -> Result<FrameLayout, String> {
     if width == 0 || height == 0 || views == 0 {
         return Err(format!("{views} views of {width}x{height}"));
     }
-    let columns = if views <= 2 { views } else { (f64::from(views).sqrt().ceil()) as u16 };
+    let columns = nephele_proto::pose::grid_columns(views);
     let rows = views.div_ceil(columns);
     let (pw, ph) = (f64::from(width) * f64::from(columns), f64::from(height) * f64::from(rows));
     let (long, short) = if pw >= ph { (MAX_LONG_SIDE, MAX_SHORT_SIDE) } else { (MAX_SHORT_SIDE, MAX_LONG_SIDE) };
@@ -195,9 +196,12 @@ mod tests {
         // Odd sizes round down to even.
         let l = layout_for(641, 479, 1).unwrap();
         assert_eq!((l.width(), l.height()), (640, 478));
-        // A 45-view quilt: a 7x7 grid within 3840x2160.
+        // A 45-view quilt: Looking Glass's 5 columns and 9 rows, within 3840x2160.
         let l = layout_for(420, 560, 45).unwrap();
-        assert_eq!((l.columns(), l.rows()), (7, 7));
+        assert_eq!((l.columns(), l.rows()), (5, 9));
+        assert!(l.width() <= 2160 && l.height() <= 3840, "{}x{}", l.width(), l.height());
+        let l = layout_for(180, 240, 45).unwrap();
+        assert_eq!((l.width(), l.height()), (900, 2160));
         assert!(crate::encode::check_resolution(l.width(), l.height()).is_ok() && l.view_width().is_multiple_of(2));
         assert!(layout_for(0, 10, 1).is_err());
     }

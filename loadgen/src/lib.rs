@@ -83,9 +83,9 @@ pub struct LoadConfig {
     /// Size of each view a user asks for.
     pub width: u16,
     pub height: u16,
-    /// Interpupillary distance, metres: `Some` makes every user a stereo (WebXR-like) one,
-    /// two views of `width x height` per pose, streamed side by side; `None` is one flat view.
-    pub stereo_ipd: Option<f32>,
+    /// What every user looks through: a flat view, a stereo pair (WebXR-like, streamed side
+    /// by side) or a light-field quilt, every view `width x height`.
+    pub display: pose::UserDisplay,
     pub target_fps: f32,
     /// Pose period (the client's is 20 ms).
     pub pose_interval: Duration,
@@ -109,7 +109,7 @@ impl Default for LoadConfig {
             scene: "default".into(),
             width: 640,
             height: 480,
-            stereo_ipd: None,
+            display: pose::UserDisplay::Flat,
             target_fps: 30.0,
             pose_interval: Duration::from_millis(20),
             ping_interval: Duration::from_secs(1),
@@ -131,7 +131,7 @@ impl LoadConfig {
         if self.width < 16 || self.height < 16 || !self.width.is_multiple_of(2) || !self.height.is_multiple_of(2) {
             return bad(format!("view size {}x{} must be even and at least 16x16", self.width, self.height));
         }
-        if let Some(ipd) = self.stereo_ipd
+        if let pose::UserDisplay::Stereo { ipd } = self.display
             && !(ipd.is_finite() && (0.0..=1.0).contains(&ipd))
         {
             return bad(format!("interpupillary distance {ipd} m must be in [0, 1]"));
@@ -363,7 +363,7 @@ async fn stream_user(
         .map_err(|_| LoadError::Timeout("ICE gathering"))?;
     let offer_sdp = pc.local_description().await.ok_or(LoadError::Timeout("the local description"))?.sdp;
     let body = json!({
-        "sdp": offer_sdp, "scene": config.scene, "views": if config.stereo_ipd.is_some() { 2 } else { 1 },
+        "sdp": offer_sdp, "scene": config.scene, "views": config.display.views(),
         "width": config.width, "height": config.height, "target_fps": config.target_fps,
     })
     .to_string();
@@ -406,7 +406,6 @@ async fn stream_user(
         poses.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         let mut pings = tokio::time::interval(config.ping_interval);
         pings.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-        let aspect = f32::from(config.width) / f32::from(config.height);
         let (mut sequence, mut ping_id, mut counted_frames) = (0u32, 0u64, 0u64);
         let end = tokio::time::Instant::now() + config.duration;
         loop {
@@ -415,9 +414,9 @@ async fn stream_user(
                 _ = live.stop.wait() => break,
                 _ = poses.tick() => {
                     let t = open.elapsed().as_secs_f32();
-                    let mode = if config.stereo_ipd.is_some() { pose::MODE_XR } else { pose::MODE_FLAT };
-                    let views = orbit.views_at(t, aspect, config.stereo_ipd);
-                    let message = pose::encode(sequence, ms_since(clock), config.width, config.height, mode, &views);
+                    let views = orbit.views_at(t, config.width, config.height, config.display);
+                    let message =
+                        pose::encode(sequence, ms_since(clock), config.width, config.height, config.display.mode(), &views);
                     // A full send buffer drops this pose, like the browser's unreliable channel.
                     if dc.send(&Bytes::from(message)).await.is_ok() {
                         sequence = sequence.wrapping_add(1);
@@ -578,11 +577,13 @@ mod tests {
     #[test]
     fn settings_are_checked() {
         assert!(LoadConfig::default().validate().is_ok());
-        assert!(LoadConfig { stereo_ipd: Some(0.064), ..Default::default() }.validate().is_ok());
+        let stereo = |ipd| LoadConfig { display: pose::UserDisplay::Stereo { ipd }, ..Default::default() };
+        assert!(stereo(0.064).validate().is_ok());
+        assert!(LoadConfig { display: pose::UserDisplay::Quilt, ..Default::default() }.validate().is_ok());
         for bad in [
-            LoadConfig { stereo_ipd: Some(f32::NAN), ..Default::default() },
-            LoadConfig { stereo_ipd: Some(-0.01), ..Default::default() },
-            LoadConfig { stereo_ipd: Some(2.0), ..Default::default() },
+            stereo(f32::NAN),
+            stereo(-0.01),
+            stereo(2.0),
             LoadConfig { users: 0, ..Default::default() },
             LoadConfig { width: 15, ..Default::default() },
             LoadConfig { url: "ftp://x".into(), ..Default::default() },

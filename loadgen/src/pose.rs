@@ -4,7 +4,42 @@
 use glam::{Mat4, Vec3};
 use nephele_geometry::ViewProjection;
 use nephele_proto::pose::Pose;
-pub use nephele_proto::pose::{MODE_FLAT, MODE_XR, POSE_HEADER_BYTES as HEADER_BYTES, POSE_VIEW_BYTES as VIEW_BYTES};
+pub use nephele_proto::pose::{
+    MODE_FLAT, MODE_QUILT, MODE_XR, POSE_HEADER_BYTES as HEADER_BYTES, POSE_VIEW_BYTES as VIEW_BYTES,
+};
+
+/// What a simulated user looks through.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub enum UserDisplay {
+    /// A flat screen: one view.
+    #[default]
+    Flat,
+    /// A WebXR headset: two eyes this many metres apart.
+    Stereo { ipd: f32 },
+    /// A light-field display: Looking Glass's quilt of
+    /// [`nephele_proto::pose::QUILT_VIEWS`] views.
+    Quilt,
+}
+
+impl UserDisplay {
+    /// Views per pose.
+    pub fn views(self) -> u16 {
+        match self {
+            UserDisplay::Flat => 1,
+            UserDisplay::Stereo { .. } => 2,
+            UserDisplay::Quilt => nephele_proto::pose::QUILT_VIEWS,
+        }
+    }
+
+    /// The pose's display mode.
+    pub fn mode(self) -> u8 {
+        match self {
+            UserDisplay::Flat => MODE_FLAT,
+            UserDisplay::Stereo { .. } => MODE_XR,
+            UserDisplay::Quilt => MODE_QUILT,
+        }
+    }
+}
 
 /// One pose message through the one Rust encoder (`nephele_proto::pose`): `views` are
 /// (world-to-camera, projection) pairs, each of `width x height`.
@@ -20,6 +55,10 @@ pub fn encode(
     let views = views.iter().map(|&(view, projection)| ViewProjection { width, height, view, projection }).collect();
     Pose { seq: sequence, mode, client_time_ms, views }.encode()
 }
+
+/// Near and far planes of the scripted cameras (the browser client's).
+const NEAR: f32 = 0.05;
+const FAR: f32 = 1000.0;
 
 /// A camera orbiting the scene target at a constant angular speed, as a user dragging would:
 /// the first view the master suggests, turned by `speed` radians per second around +Z.
@@ -39,7 +78,7 @@ impl ScriptedOrbit {
         let turned = glam::Quat::from_rotation_z(self.speed * t) * offset;
         (
             world_to_camera(self.target + turned, self.target),
-            perspective(self.fov_y_deg.to_radians(), aspect, 0.05, 1000.0),
+            perspective(self.fov_y_deg.to_radians(), aspect, NEAR, FAR),
         )
     }
 
@@ -53,11 +92,35 @@ impl ScriptedOrbit {
         [eye(-0.5 * ipd), eye(0.5 * ipd)]
     }
 
-    /// The views of one pose message: one flat view, or a stereo pair when `ipd` is given.
-    pub fn views_at(&self, t: f32, aspect: f32, ipd: Option<f32>) -> Vec<(Mat4, Mat4)> {
-        match ipd {
-            Some(ipd) => self.stereo_views_at(t, aspect, ipd).to_vec(),
-            None => vec![self.view_at(t, aspect)],
+    /// A quilt's views around the orbit's camera `t` seconds in, in the slots' packing order
+    /// (`nephele_proto::pose::quilt_slot_views`): the light-field rig of
+    /// `nephele_geometry::camera::quilt_rig`, focused on the orbit's target, as the browser
+    /// client's quilt display sends it.
+    pub fn quilt_views_at(&self, t: f32, width: u16, height: u16) -> Vec<(Mat4, Mat4)> {
+        use nephele_geometry::camera::{Camera, quilt_rig};
+        use nephele_proto::pose::{QUILT_VIEW_CONE_DEG, QUILT_VIEWS, quilt_slot_views};
+        let (width, height) = (u32::from(width), u32::from(height));
+        let (view, projection) = self.view_at(t, width as f32 / height as f32);
+        let focal = self.eye.distance(self.target);
+        let rig = Camera::from_view_projection(width, height, view, projection)
+            .and_then(|centre| quilt_rig(&centre, usize::from(QUILT_VIEWS), QUILT_VIEW_CONE_DEG.to_radians(), focal));
+        match rig {
+            Ok(rig) => quilt_slot_views(QUILT_VIEWS)
+                .into_iter()
+                .map(|k| (rig[k].world_to_camera(), rig[k].projection_matrix(NEAR, FAR)))
+                .collect(),
+            // Only for a degenerate orbit (eye on the target): the centre view everywhere.
+            Err(_) => vec![(view, projection); usize::from(QUILT_VIEWS)],
+        }
+    }
+
+    /// The views of one pose message for `display`, each `width x height`.
+    pub fn views_at(&self, t: f32, width: u16, height: u16, display: UserDisplay) -> Vec<(Mat4, Mat4)> {
+        let aspect = f32::from(width) / f32::from(height);
+        match display {
+            UserDisplay::Flat => vec![self.view_at(t, aspect)],
+            UserDisplay::Stereo { ipd } => self.stereo_views_at(t, aspect, ipd).to_vec(),
+            UserDisplay::Quilt => self.quilt_views_at(t, width, height),
         }
     }
 }
@@ -101,6 +164,30 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_quilt_user_sends_the_light_field_rig_in_slot_order_focused_on_the_target() {
+        use nephele_geometry::camera::Camera;
+        let orbit = ScriptedOrbit { eye: Vec3::new(0.0, -4.0, 2.0), target: Vec3::ZERO, fov_y_deg: 40.0, speed: 0.5 };
+        let views = orbit.views_at(1.0, 180, 240, UserDisplay::Quilt);
+        assert_eq!(views.len(), 45);
+        let cameras: Vec<Camera> =
+            views.iter().map(|&(v, p)| Camera::from_view_projection(180, 240, v, p).expect("camera")).collect();
+        // The middle slot is the orbit's own camera; the target lands on the same pixel in
+        // every view; the bottom-left slot (40) is the leftmost camera, the top-left (0) view 40.
+        let (centre, _) = orbit.view_at(1.0, 0.75);
+        assert!(cameras[22].world_to_camera().abs_diff_eq(centre, 1e-5));
+        let at = cameras[22].project(orbit.target).expect("in view");
+        for c in &cameras {
+            assert!(c.project(orbit.target).expect("in view").distance(at) < 1e-2);
+        }
+        let x = |slot: usize| cameras[22].right().dot(cameras[slot].position() - cameras[22].position());
+        let step = x(41) - x(40);
+        assert!(step > 0.0 && (x(0) - x(40) - 40.0 * step).abs() < 1e-3, "{} {}", x(0), step);
+        // 44 steps span 2 tan(35 / 2 degrees) focal distances.
+        let span = 2.0 * (17.5f32).to_radians().tan() * orbit.eye.distance(orbit.target);
+        assert!((44.0 * step - span).abs() < 1e-3, "{} vs {span}", 44.0 * step);
+    }
+
+    #[test]
     fn encodes_the_documented_layout() {
         let orbit = ScriptedOrbit { eye: Vec3::new(0.0, -4.0, 2.0), target: Vec3::ZERO, fov_y_deg: 40.0, speed: 0.5 };
         let v = orbit.view_at(0.0, 4.0 / 3.0);
@@ -142,7 +229,7 @@ mod tests {
         // Both eyes look the same way (parallel axes, as WebXR's views are).
         let gaze = |m: Mat4| m.inverse().transform_vector3(-Vec3::Z);
         assert!((gaze(left.0) - gaze(right.0)).length() < 1e-6);
-        let pose = encode(1, 0.0, 64, 64, MODE_XR, &orbit.views_at(0.0, 1.0, Some(0.064)));
+        let pose = encode(1, 0.0, 64, 64, MODE_XR, &orbit.views_at(0.0, 64, 64, UserDisplay::Stereo { ipd: 0.064 }));
         assert_eq!((pose.len(), pose[2], pose[3]), (HEADER_BYTES + 2 * VIEW_BYTES, 2, MODE_XR));
     }
 }

@@ -56,6 +56,39 @@ pub const MAX_POSE_MODE: u8 = MODE_AR;
 pub const AR_KEY_SRGB: [u8; 3] = [0, 255, 0];
 /// [`AR_KEY_SRGB`] in linear RGB (the compositor's background).
 pub const AR_KEY_LINEAR: [f32; 3] = [0.0, 1.0, 0.0];
+
+/// Columns of the grid that packs `views` views into one picture (rows follow), filled row by
+/// row from the top: up to two views side by side; Looking Glass's quilts as that display
+/// expects them (45 views in 5 columns and 9 rows, 48 in 8 and 6); otherwise the squarest
+/// grid. The client orders a quilt's views so that the picture is the display's quilt (its
+/// view 0, the leftmost camera, in the bottom-left corner); `client/nephele.js` holds the
+/// same table.
+pub fn grid_columns(views: u16) -> u16 {
+    match views {
+        0..=2 => views.max(1),
+        45 => 5,
+        48 => 8,
+        _ => f64::from(views).sqrt().ceil() as u16,
+    }
+}
+
+/// Views of a light-field quilt: Looking Glass's 45.
+pub const QUILT_VIEWS: u16 = 45;
+/// The quilt's view cone, degrees: the angle its cameras span, seen from the focal point.
+pub const QUILT_VIEW_CONE_DEG: f32 = 35.0;
+
+/// For a quilt of `views` views, the camera (0 = the leftmost of the rig) each slot of the
+/// packed grid shows, slots in packing order (rows from the top, left to right): Looking
+/// Glass reads view 0 from the bottom-left corner, so the bottom row holds views
+/// `0..columns`. A grid with a partly filled row keeps slot = view.
+pub fn quilt_slot_views(views: u16) -> Vec<usize> {
+    let (n, columns) = (usize::from(views), usize::from(grid_columns(views)));
+    if !n.is_multiple_of(columns) {
+        return (0..n).collect();
+    }
+    let rows = n / columns;
+    (0..n).map(|slot| (rows - 1 - slot / columns) * columns + slot % columns).collect()
+}
 /// Most views in one pose.
 pub const MAX_POSE_VIEWS: u16 = nephele_geometry::camera::MAX_VIEWS as u16;
 /// Largest frame side a pose may ask for.
@@ -252,6 +285,13 @@ mod tests {
         p.views[0].projection = Mat4::from_diagonal(glam::Vec4::new(1.0, 1.0, -0.2, 1.0)); // orthographic: w = 1
         assert!(matches!(Pose::decode(&p.encode()), Err(PoseError::BadView { .. })));
         // The AR mode decodes; an unknown display mode does not.
+        assert_eq!([1, 2, 3, 4, 9, 45, 48, 64].map(grid_columns), [1, 2, 2, 2, 3, 5, 8, 8]);
+        let slots = quilt_slot_views(45);
+        assert_eq!((slots[0], slots[4], slots[40], slots[44], slots[22]), (40, 44, 0, 4, 22));
+        let mut seen = slots.clone();
+        seen.sort_unstable();
+        assert_eq!(seen, (0..45).collect::<Vec<_>>());
+        assert_eq!(quilt_slot_views(10), (0..10).collect::<Vec<_>>());
         let mut b = good.clone();
         b[3] = MODE_AR;
         assert_eq!(Pose::decode(&b).map(|p| p.mode), Ok(MODE_AR));

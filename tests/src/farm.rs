@@ -372,7 +372,9 @@ impl VideoLoop {
             };
             if let Some(pose) = pose {
                 let (vw, vh) = pose.view_size();
-                let (w, h) = (vw as usize * pose.views.len(), vh as usize);
+                // Packed as the composer packs them (two eyes side by side, a quilt's grid).
+                let columns = usize::from(nephele_proto::pose::grid_columns(pose.views.len() as u16));
+                let (w, h) = (vw as usize * columns, vh as usize * pose.views.len().div_ceil(columns));
                 if encoder.as_ref().is_none_or(|(_, ew, eh)| (*ew, *eh) != (w, h)) {
                     encoder = match new_encoder() {
                         Ok(e) => Some((e, w, h)),

@@ -359,6 +359,73 @@ fn the_immersive_ar_path_streams_both_eyes_as_ar_poses_and_returns_to_flat() {
 }
 
 #[test]
+fn the_quilt_display_sends_a_looking_glass_rig_of_45_views_in_quilt_order() {
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let service = Service::start(true);
+    let farm = &service.farm;
+    let base = service.url.split('?').next().expect("url").to_string();
+    let browser = Browser::start().expect("headless Chromium");
+    browser.goto(&format!("{base}?display=quilt")).expect("open the client");
+    client::wait_streaming(&browser, Duration::from_secs(20)).expect("quilt streaming");
+    let offers = farm.offers();
+    let quilt = offers.last().expect("a session");
+    assert_eq!((quilt.request.views, quilt.request.width, quilt.request.height), (45, 180, 240));
+    let pose = wait_for("a 45-view pose", Duration::from_secs(10), || {
+        farm.latest_pose(&quilt.session_id).filter(|p| p.views.len() == 45)
+    });
+    assert_eq!((pose.mode, pose.view_size()), (nephele_proto::pose::MODE_QUILT, (180, 240)));
+    let info = browser.execute("return document.getElementById('quilt-info').textContent;", Vec::new()).expect("info");
+    assert!(info.as_str().is_some_and(|s| s.contains("5 columns x 9 rows")), "{info}");
+
+    // The views, packed 5 to a row from the top, are Looking Glass's quilt: view k (k = 0 the
+    // leftmost camera) in the bottom-left-first order, and the rig is the one
+    // nephele_geometry::camera::quilt_rig makes around the centre view (k = 22) with a
+    // 35-degree cone focused on the orbit target.
+    let cameras: Vec<_> = pose.views.iter().map(|v| v.camera().expect("a valid camera")).collect();
+    let (columns, rows) = (5, 9);
+    let slot_of = |k: usize| (rows - 1 - k / columns) * columns + k % columns;
+    let centre = cameras[slot_of(22)];
+    let target = glam::Vec3::from(FIRST_VIEW.target);
+    let focal = centre.position().distance(target);
+    let rig = nephele_geometry::camera::quilt_rig(&centre, 45, 35f32.to_radians(), focal).expect("rig");
+    for (k, expected) in rig.iter().enumerate() {
+        let got = &cameras[slot_of(k)];
+        let apart = got.position().distance(expected.position());
+        assert!(apart < 1e-3 * focal, "view {k}: camera {apart} from the rig's");
+        let ((fx, _, cx, cy), (efx, _, ecx, ecy)) = (got.intrinsics(), expected.intrinsics());
+        assert!(
+            (fx - efx).abs() < 0.05 && (cx - ecx).abs() < 0.05 && (cy - ecy).abs() < 0.05,
+            "view {k}: {:?} vs {:?}",
+            got.intrinsics(),
+            expected.intrinsics()
+        );
+        assert!(got.forward().dot(centre.forward()) > 0.99999, "view {k}: not parallel to the centre view");
+    }
+    // The target projects to the same pixel in every view (the focal plane).
+    let at_centre = centre.project(target).expect("in view");
+    for (slot, camera) in cameras.iter().enumerate() {
+        let p = camera.project(target).expect("in view");
+        assert!(p.distance(at_centre) < 0.1, "slot {slot}: the target at {p}, {at_centre} in the centre view");
+    }
+
+    // Back to flat: a one-view session.
+    browser
+        .execute(
+            "const s = document.getElementById('display'); s.value = 'flat'; s.onchange(); return null;",
+            Vec::new(),
+        )
+        .expect("flat");
+    let offers = wait_for("a flat session", Duration::from_secs(15), || {
+        let offers = farm.offers();
+        offers.last().filter(|o| o.request.views == 1).map(|_| offers.clone())
+    });
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("flat streaming");
+    assert_eq!(offers.last().map(|o| (o.request.width, o.request.height)), Some((640, 480)));
+    let errors = browser.console_log().expect("console log");
+    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
+}
+
+#[test]
 fn a_busy_farm_makes_the_client_wait_and_retry() {
     let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
     let service = Service::start(false);

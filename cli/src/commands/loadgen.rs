@@ -36,6 +36,11 @@ pub struct Args {
     /// metres apart, 0.064 when given without a value), streamed side by side.
     #[arg(long, value_name = "IPD_M", num_args = 0..=1, default_missing_value = "0.064")]
     stereo: Option<f32>,
+    /// Light-field users, as the page's quilt display: 45 views per pose (Looking Glass's
+    /// quilt, 5 columns x 9 rows, a 35-degree view cone focused on the orbit's target), each
+    /// of --size (the page's: 180x240), packed into one picture.
+    #[arg(long, conflicts_with = "stereo")]
+    quilt: bool,
     #[arg(long, default_value = "default")]
     scene: String,
     /// Frame rate each user asks for.
@@ -79,7 +84,11 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         scene: args.scene,
         width: u16::try_from(width).context("--size width")?,
         height: u16::try_from(height).context("--size height")?,
-        stereo_ipd: args.stereo,
+        display: match (args.stereo, args.quilt) {
+            (Some(ipd), _) => nephele_loadgen::pose::UserDisplay::Stereo { ipd },
+            (None, true) => nephele_loadgen::pose::UserDisplay::Quilt,
+            (None, false) => nephele_loadgen::pose::UserDisplay::Flat,
+        },
         target_fps: args.fps,
         pose_interval: Duration::from_millis(args.pose_ms),
         orbit_speed: args.orbit_speed,
