@@ -137,9 +137,19 @@ pub(crate) fn decode(body: &[u8]) -> Result<BatchResult, ProtoError> {
     }
     let half = |c: &[u8]| f16::from_bits(u16::from_le_bytes([c[0], c[1]])).to_f32();
     let (mut color, mut opacity, mut depth) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
-    for v in b.values.chunks_exact(VALUE_BYTES) {
-        color.push([half(&v[0..2]), half(&v[2..4]), half(&v[4..6])]);
-        opacity.push(f32::from(u16::from_le_bytes([v[6], v[7]])) / 65535.0);
+    let mut kept = Vec::with_capacity(n);
+    for (v, &pixel) in b.values.chunks_exact(VALUE_BYTES).zip(&pixels) {
+        let (rgb, a) =
+            ([half(&v[0..2]), half(&v[2..4]), half(&v[4..6])], f32::from(u16::from_le_bytes([v[6], v[7]])) / 65535.0);
+        // A pixel sent with no opacity and no colour is a miss, as if it had not been sent
+        // (the encoder never sends one): dropped, so that a decoded result re-encodes to
+        // the same pixels (found by the `decode` fuzz target).
+        if a == 0.0 && rgb == [0.0; 3] {
+            continue;
+        }
+        kept.push(pixel);
+        color.push(rgb);
+        opacity.push(a);
         depth.push(half(&v[8..10]));
     }
     Ok(BatchResult {
@@ -147,7 +157,7 @@ pub(crate) fn decode(body: &[u8]) -> Result<BatchResult, ProtoError> {
         worker_id: b.worker_id,
         width: b.width,
         height: b.height,
-        pixels,
+        pixels: kept,
         color,
         opacity,
         depth,

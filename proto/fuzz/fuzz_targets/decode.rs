@@ -1,9 +1,11 @@
-//! Every decoder of nephele-proto on arbitrary bytes: none may panic, allocate beyond the
-//! frame limit, or accept a message that does not survive a re-encode.
+//! Every decoder of nephele-proto on arbitrary bytes (the farm's frames and payloads, the
+//! viewers' pose messages): none may panic, allocate beyond the frame limit, or accept a
+//! message that does not survive a re-encode.
 #![no_main]
 
 use bytes::BytesMut;
 use libfuzzer_sys::fuzz_target;
+use nephele_proto::pose::Pose;
 use nephele_proto::stream::FrameCodec;
 use nephele_proto::{FrameConfig, FrameReader, decode_frame, decode_payload, encode_frame};
 use tokio_util::codec::Decoder;
@@ -26,6 +28,12 @@ fuzz_target!(|data: &[u8]| {
 
     // A payload on its own (tag byte first).
     let _ = decode_payload(data);
+
+    // A viewer's pose message (the data channel's binary format): a pose that decodes
+    // re-encodes to the same bytes.
+    if let Ok(pose) = Pose::decode(data) {
+        assert_eq!(pose.encode(), data, "a decoded pose re-encodes to its bytes");
+    }
 
     // The blocking reader.
     let mut reader = FrameReader::new(std::io::Cursor::new(data), cfg);
