@@ -17,10 +17,10 @@
   const MODE_QUILT = 2;
   const MODE_AR = 3;
   // The light-field display's quilt (Looking Glass's 45-view layout): 5 columns, 9 rows, views
-  // of aspect 0.75 spread over a 35-degree view cone; view 0 (leftmost camera) bottom left.
+  // of aspect 0.75 spread over a 40-degree view cone (nephele_geometry::camera::QUILT_VIEW_CONE_DEG); view 0 (leftmost camera) bottom left.
   // The composer packs views row by row from the top in 5 columns
   // (nephele_proto::pose::grid_columns), so the pose lists them top row first.
-  const QUILT = { views: 45, columns: 5, rows: 9, viewWidth: 180, viewHeight: 240, viewConeDeg: 35 };
+  const QUILT = { views: 45, columns: 5, rows: 9, viewWidth: 180, viewHeight: 240, viewConeDeg: 40 };
   // The AR mode's key colour (sRGB, 0..1), as nephele_proto::pose::AR_KEY_SRGB.
   const AR_KEY = [0, 1, 0];
 

@@ -100,8 +100,7 @@ fn parse_values(text: &str) -> Result<Values, String> {
 const IPD: f32 = 0.064;
 /// The quilt: a 45-view Looking Glass rig over a 40-degree cone, every 8th view (and the last)
 /// rendered in full, the others shared from their two neighbouring full views.
-const QUILT_VIEWS: usize = 45;
-const QUILT_CONE_DEG: f32 = 40.0;
+use nephele_geometry::camera::{QUILT_VIEW_CONE_DEG as QUILT_CONE_DEG, QUILT_VIEWS};
 const QUILT_KEY_EVERY: usize = 8;
 /// Consecutive frames: a user orbiting at 45 degrees/s seen at 30 frames/s; every
 /// `FRAME_KEY_EVERY`th frame is rendered in full and the frames after it take from it

@@ -437,6 +437,13 @@ pub fn stereo_pair(center: &Camera, ipd: f32) -> Result<[Camera; 2], CameraError
     Ok([left, right])
 }
 
+/// Views of a light-field quilt: Looking Glass's 45 (the page's quilt display, loadgen's
+/// `--quilt`, the simulator's and `bench share`'s quilt rows).
+pub const QUILT_VIEWS: usize = 45;
+/// View cone of a quilt, degrees: the angle its cameras span seen from the focal point
+/// (Looking Glass: about 40).
+pub const QUILT_VIEW_CONE_DEG: f32 = 40.0;
+
 /// N-view horizontal rig for light-field displays (e.g. a 45-view Looking Glass quilt): cameras
 /// spread along the centre camera's X axis over a total angle `view_cone` (radians, seen from
 /// the focal point at `focal_distance` in front of the centre camera), all parallel to the

@@ -17,7 +17,7 @@ pub enum UserDisplay {
     /// A WebXR headset: two eyes this many metres apart.
     Stereo { ipd: f32 },
     /// A light-field display: Looking Glass's quilt of
-    /// [`nephele_proto::pose::QUILT_VIEWS`] views.
+    /// [`nephele_geometry::camera::QUILT_VIEWS`] views.
     Quilt,
 }
 
@@ -27,7 +27,7 @@ impl UserDisplay {
         match self {
             UserDisplay::Flat => 1,
             UserDisplay::Stereo { .. } => 2,
-            UserDisplay::Quilt => nephele_proto::pose::QUILT_VIEWS,
+            UserDisplay::Quilt => nephele_geometry::camera::QUILT_VIEWS as u16,
         }
     }
 
@@ -97,20 +97,20 @@ impl ScriptedOrbit {
     /// `nephele_geometry::camera::quilt_rig`, focused on the orbit's target, as the browser
     /// client's quilt display sends it.
     pub fn quilt_views_at(&self, t: f32, width: u16, height: u16) -> Vec<(Mat4, Mat4)> {
-        use nephele_geometry::camera::{Camera, quilt_rig};
-        use nephele_proto::pose::{QUILT_VIEW_CONE_DEG, QUILT_VIEWS, quilt_slot_views};
+        use nephele_geometry::camera::{Camera, QUILT_VIEW_CONE_DEG, QUILT_VIEWS, quilt_rig};
+        use nephele_proto::pose::quilt_slot_views;
         let (width, height) = (u32::from(width), u32::from(height));
         let (view, projection) = self.view_at(t, width as f32 / height as f32);
         let focal = self.eye.distance(self.target);
         let rig = Camera::from_view_projection(width, height, view, projection)
-            .and_then(|centre| quilt_rig(&centre, usize::from(QUILT_VIEWS), QUILT_VIEW_CONE_DEG.to_radians(), focal));
+            .and_then(|centre| quilt_rig(&centre, QUILT_VIEWS, QUILT_VIEW_CONE_DEG.to_radians(), focal));
         match rig {
-            Ok(rig) => quilt_slot_views(QUILT_VIEWS)
+            Ok(rig) => quilt_slot_views(QUILT_VIEWS as u16)
                 .into_iter()
                 .map(|k| (rig[k].world_to_camera(), rig[k].projection_matrix(NEAR, FAR)))
                 .collect(),
             // Only for a degenerate orbit (eye on the target): the centre view everywhere.
-            Err(_) => vec![(view, projection); usize::from(QUILT_VIEWS)],
+            Err(_) => vec![(view, projection); QUILT_VIEWS],
         }
     }
 
@@ -182,8 +182,9 @@ mod tests {
         let x = |slot: usize| cameras[22].right().dot(cameras[slot].position() - cameras[22].position());
         let step = x(41) - x(40);
         assert!(step > 0.0 && (x(0) - x(40) - 40.0 * step).abs() < 1e-3, "{} {}", x(0), step);
-        // 44 steps span 2 tan(35 / 2 degrees) focal distances.
-        let span = 2.0 * (17.5f32).to_radians().tan() * orbit.eye.distance(orbit.target);
+        // 44 steps span 2 tan(cone / 2) focal distances.
+        let half_cone = nephele_geometry::camera::QUILT_VIEW_CONE_DEG.to_radians() / 2.0;
+        let span = 2.0 * half_cone.tan() * orbit.eye.distance(orbit.target);
         assert!((44.0 * step - span).abs() < 1e-3, "{} vs {span}", 44.0 * step);
     }
 

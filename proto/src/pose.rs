@@ -72,11 +72,6 @@ pub fn grid_columns(views: u16) -> u16 {
     }
 }
 
-/// Views of a light-field quilt: Looking Glass's 45.
-pub const QUILT_VIEWS: u16 = 45;
-/// The quilt's view cone, degrees: the angle its cameras span, seen from the focal point.
-pub const QUILT_VIEW_CONE_DEG: f32 = 35.0;
-
 /// For a quilt of `views` views, the camera (0 = the leftmost of the rig) each slot of the
 /// packed grid shows, slots in packing order (rows from the top, left to right): Looking
 /// Glass reads view 0 from the bottom-left corner, so the bottom row holds views

@@ -7,7 +7,7 @@ use nephele_geometry::{Bounds, SplitMix64};
 /// Interpupillary distance of simulated headsets, metres.
 pub const IPD_M: f32 = 0.064;
 /// View cone of simulated quilt displays (Looking Glass: about 40 degrees).
-pub const QUILT_CONE_DEG: f32 = 40.0;
+pub use nephele_geometry::camera::QUILT_VIEW_CONE_DEG as QUILT_CONE_DEG;
 
 /// An object instance in the shared world: an axis-aligned cube.
 #[derive(Debug, Clone, PartialEq)]

@@ -380,14 +380,15 @@ fn the_quilt_display_sends_a_looking_glass_rig_of_45_views_in_quilt_order() {
     // The views, packed 5 to a row from the top, are Looking Glass's quilt: view k (k = 0 the
     // leftmost camera) in the bottom-left-first order, and the rig is the one
     // nephele_geometry::camera::quilt_rig makes around the centre view (k = 22) with a
-    // 35-degree cone focused on the orbit target.
+    // 40-degree cone (QUILT_VIEW_CONE_DEG) focused on the orbit target.
     let cameras: Vec<_> = pose.views.iter().map(|v| v.camera().expect("a valid camera")).collect();
     let (columns, rows) = (5, 9);
     let slot_of = |k: usize| (rows - 1 - k / columns) * columns + k % columns;
     let centre = cameras[slot_of(22)];
     let target = glam::Vec3::from(FIRST_VIEW.target);
     let focal = centre.position().distance(target);
-    let rig = nephele_geometry::camera::quilt_rig(&centre, 45, 35f32.to_radians(), focal).expect("rig");
+    use nephele_geometry::camera::{QUILT_VIEW_CONE_DEG, QUILT_VIEWS, quilt_rig};
+    let rig = quilt_rig(&centre, QUILT_VIEWS, QUILT_VIEW_CONE_DEG.to_radians(), focal).expect("rig");
     for (k, expected) in rig.iter().enumerate() {
         let got = &cameras[slot_of(k)];
         let apart = got.position().distance(expected.position());

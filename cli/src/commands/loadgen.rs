@@ -37,7 +37,7 @@ pub struct Args {
     #[arg(long, value_name = "IPD_M", num_args = 0..=1, default_missing_value = "0.064")]
     stereo: Option<f32>,
     /// Light-field users, as the page's quilt display: 45 views per pose (Looking Glass's
-    /// quilt, 5 columns x 9 rows, a 35-degree view cone focused on the orbit's target), each
+    /// quilt, 5 columns x 9 rows, a 40-degree view cone focused on the orbit's target), each
     /// of --size (the page's: 180x240), packed into one picture.
     #[arg(long, conflicts_with = "stereo")]
     quilt: bool,
