@@ -254,6 +254,8 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
         pixels: result.pixels.clone(),
         deadline_in_us: Some(50_000),
         composer: "127.0.0.1:9000".into(),
+        derived: Vec::new(),
+        reuse: Default::default(),
     });
     let mut batch_frame = Vec::new();
     encode_frame(&batch, &mut batch_frame, &cfg)?;

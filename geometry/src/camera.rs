@@ -331,6 +331,14 @@ impl Camera {
         self.world_to_camera
     }
 
+    /// The `width x height` window of this camera's image whose top-left pixel is `(x0, y0)`:
+    /// the same rays, pixel `(i, j)` of the crop being `(x0 + i, y0 + j)` of this image (the
+    /// window may reach past the image: it is the same pinhole).
+    pub fn crop(&self, x0: u32, y0: u32, width: u32, height: u32) -> Result<Camera, CameraError> {
+        let (fx, fy, cx, cy) = self.intrinsics();
+        Camera::from_intrinsics(width, height, fx, fy, cx - x0 as f32, cy - y0 as f32, self.camera_to_world)
+    }
+
     /// Camera centre in world space.
     pub fn position(&self) -> Vec3 {
         self.camera_to_world.w_axis.truncate()
@@ -493,6 +501,22 @@ mod tests {
             let (a, b, tol) = ($a, $b, $tol);
             assert!((a - b).abs().max_element() <= tol, "{a} != {b} (tol {tol})");
         }};
+    }
+
+    #[test]
+    fn a_crop_keeps_every_ray_and_projection() {
+        let full = Camera::look_at(64, 48, 0.9, Vec3::new(1.0, -3.0, 0.7), Vec3::ZERO, Vec3::Z).expect("camera");
+        let crop = full.crop(10, 7, 20, 9).expect("crop");
+        assert_eq!((crop.width(), crop.height()), (20, 9));
+        for (i, j) in [(0, 0), (19, 8), (5, 3)] {
+            let (a, b) = (crop.pixel_center_ray(i, j), full.pixel_center_ray(10 + i, 7 + j));
+            assert_near!(a.origin, b.origin, 1e-6);
+            assert_near!(a.direction, b.direction, 1e-6);
+        }
+        let p = Vec3::new(0.1, 0.2, 0.05);
+        let (a, b) = (crop.project(p).expect("in front"), full.project(p).expect("in front"));
+        assert!((a - (b - Vec2::new(10.0, 7.0))).abs().max_element() < 1e-4);
+        assert!(full.crop(0, 0, 0, 4).is_err());
     }
 
     /// Asserts a result is an error matching a pattern.

@@ -29,8 +29,9 @@ use std::time::{Duration, Instant};
 use glam::{Mat4, Vec3};
 use nephele_geometry::camera::Camera;
 use nephele_proto::{
-    BatchIds, Cancel, CancelTarget, ClientPose, CloseStream, ComposerRegister, ErrorCode, FramePlan, LoadReport,
-    Message, OpenStream, PlanPart, RayBatch, Register, ReleaseTask, StreamOpened, ViewProjection,
+    BatchIds, Cancel, CancelTarget, ClientPose, CloseStream, ComposerRegister, DerivedView, ErrorCode, FramePlan,
+    LoadReport, Message, OpenStream, PlanPart, RayBatch, Register, ReleaseTask, ReuseLimits, StreamOpened,
+    ViewProjection,
 };
 use nephele_scheduler::{
     Action, Admission as SchedAdmission, BatchId, BatchSpec, FrameId, FramePart, ObjectId, ObjectInfo, SchedError,
@@ -922,6 +923,25 @@ impl Actor {
             // started by then is not worth starting.
             deadline_in_us: Some(batch.timeout.since(self.now()).as_micros() as u64),
             composer: composer.results_address.clone(),
+            derived: batch
+                .derived
+                .iter()
+                .map(|d| {
+                    let (session, frame) = d.frames.first().copied().unwrap_or((session, frame));
+                    DerivedView {
+                        ids: BatchIds {
+                            batch_id: batch.id.0,
+                            task_id: d.task.0,
+                            session_id: session.0,
+                            frame_id: frame.0,
+                            view_index: 0,
+                        },
+                        camera: wire_camera(&d.camera, object.translation),
+                        pixels: d.pixels.indices(),
+                    }
+                })
+                .collect(),
+            reuse: ReuseLimits::default(),
         };
         self.metrics.links.batches_sent.inc();
         let _ = w.link.send(LinkCommand::Send(Message::RayBatch(message)));

@@ -41,7 +41,8 @@ pub const MAGIC: [u8; 4] = *b"NPHL";
 /// 3: compact batch results ([`compact`]).
 /// 5: the farm credential ([`auth`]: `Challenge` and `Proof` after the `Hello`s).
 /// 6: deadlines travel as time left (`deadline_in_us`), not as Unix instants.
-pub const PROTOCOL_VERSION: u16 = 6;
+/// 7: derived views ride on ray batches (`RayBatch::derived`, `RayBatch::reuse`).
+pub const PROTOCOL_VERSION: u16 = 7;
 
 /// The [`ErrorMessage`] that tells a peer why its connection is being closed.
 pub fn error_message(error: &ProtoError) -> Message {

@@ -180,6 +180,48 @@ pub struct RayBatch {
     pub deadline_in_us: Option<u64>,
     /// `host:port` of the composer that gathers this frame.
     pub composer: String,
+    /// Views of the same asset this batch's pixels also feed, by reprojection (issue 16;
+    /// NEPHELE's shared rays between adjacent views): empty for a plain batch.
+    pub derived: Vec<DerivedView>,
+    /// How strict that reuse is; ignored without `derived`.
+    pub reuse: ReuseLimits,
+}
+
+/// A view taken from a batch's rendered pixels (the eyes of a headset, the neighbours in a
+/// quilt): the worker renders the batch, lifts its solid pixels by their depth into
+/// `camera`'s image, renders only those of `pixels` that the reprojection does not cover
+/// (disocclusions, silhouettes, pixels seen at too large an angle), and sends all of
+/// `pixels` to the composer as one [`BatchResult`] under `ids`, before the batch's own.
+///
+/// The master promises that the batch holds *every* pixel of its camera's covered set in the
+/// rows it spans (whole rows of the task's coverage), so that a pixel of the batch's bounding
+/// box that the batch does not hold is known to be empty.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DerivedView {
+    pub ids: BatchIds,
+    pub camera: ViewProjection,
+    /// Pixel indices `y * width + x` of `camera`'s image; packed like [`RayBatch::pixels`].
+    #[serde(with = "packed")]
+    pub pixels: Vec<u32>,
+}
+
+/// The limits of `nephele_share::Settings` that the master sets per object.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ReuseLimits {
+    /// Largest angle at the surface point between the rendered and the derived view's rays,
+    /// degrees, in `[0, 90]`.
+    pub max_angle_deg: f32,
+    /// Largest colour difference (linear, per channel) among the source pixels read for one
+    /// reused pixel; `>= 0`, infinity for no limit.
+    pub max_contrast: f32,
+}
+
+impl Default for ReuseLimits {
+    /// The defaults of `nephele_share::Settings` (BENCHMARKS.md, "Shared rays between adjacent
+    /// views"): 6 degrees, contrast 0.2.
+    fn default() -> ReuseLimits {
+        ReuseLimits { max_angle_deg: 6.0, max_contrast: 0.2 }
+    }
 }
 
 /// Work a kernel did for a batch (mirrors `nephele_kernels::kernel::KernelStats`).

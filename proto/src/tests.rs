@@ -80,17 +80,35 @@ fn error_code() -> impl Strategy<Value = ErrorCode> {
     ]
 }
 
+fn derived_view() -> impl Strategy<Value = DerivedView> {
+    (ids(), camera_and_pixels()).prop_map(|(ids, (camera, pixels))| DerivedView { ids, camera, pixels })
+}
+
+fn reuse_limits() -> impl Strategy<Value = ReuseLimits> {
+    (0.0f32..=90.0, prop_oneof![0.0f32..10.0, Just(f32::INFINITY)])
+        .prop_map(|(max_angle_deg, max_contrast)| ReuseLimits { max_angle_deg, max_contrast })
+}
+
 fn ray_batch() -> impl Strategy<Value = RayBatch> {
-    (ids(), token(40), camera_and_pixels(), any::<Option<u64>>(), address()).prop_map(
-        |(ids, asset_id, (camera, pixels), deadline_in_us, composer)| RayBatch {
+    (
+        ids(),
+        token(40),
+        camera_and_pixels(),
+        any::<Option<u64>>(),
+        address(),
+        proptest::collection::vec(derived_view(), 0..3),
+        reuse_limits(),
+    )
+        .prop_map(|(ids, asset_id, (camera, pixels), deadline_in_us, composer, derived, reuse)| RayBatch {
             ids,
             asset_id,
             camera,
             pixels,
             deadline_in_us,
             composer,
-        },
-    )
+            derived,
+            reuse,
+        })
 }
 
 fn batch_result() -> impl Strategy<Value = BatchResult> {
@@ -271,6 +289,8 @@ fn good_batch() -> RayBatch {
         pixels: (0..64 * 48).step_by(7).collect(),
         deadline_in_us: Some(40_000),
         composer: "127.0.0.1:7000".into(),
+        derived: Vec::new(),
+        reuse: ReuseLimits::default(),
     }
 }
 
@@ -531,8 +551,9 @@ fn wrong_versions_magic_and_roles_are_refused() {
     assert!(matches!(decode_one(&long), Err(ProtoError::TrailingBytes { kind: MessageKind::Hello, count: 1 })));
     // An encoder can never produce another version's hello.
     let mut out = Vec::new();
-    encode_frame(&Message::Hello(Hello { version: 7, role: Role::Tool }), &mut out, &cfg()).expect("encodes");
-    assert!(matches!(decode_one(&out), Err(ProtoError::VersionMismatch { theirs: 7, .. })));
+    let other = PROTOCOL_VERSION + 7;
+    encode_frame(&Message::Hello(Hello { version: other, role: Role::Tool }), &mut out, &cfg()).expect("encodes");
+    assert!(matches!(decode_one(&out), Err(ProtoError::VersionMismatch { theirs, .. }) if theirs == other));
 }
 
 #[test]
@@ -570,6 +591,32 @@ fn nan_and_infinite_cameras_are_rejected_with_the_batch_ids() {
         let err = encode_frame(&Message::RayBatch(batch), &mut Vec::new(), &cfg()).expect_err("invalid");
         assert!(!err.is_fatal());
     }
+}
+
+#[test]
+fn derived_views_and_reuse_limits_are_checked() {
+    let mut batch = good_batch();
+    batch.derived.push(DerivedView { ids: batch.ids, camera: good_camera(), pixels: vec![0, 5, 64 * 48 - 1] });
+    let mut bytes = Vec::new();
+    encode_frame(&Message::RayBatch(batch.clone()), &mut bytes, &cfg()).expect("valid");
+    assert_eq!(decode_one(&bytes).expect("frame").expect("valid"), Message::RayBatch(batch.clone()));
+    let mut bad = batch.clone();
+    bad.derived[0].pixels.push(64 * 48);
+    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::PixelOutOfImage { .. }));
+    let mut bad = batch.clone();
+    bad.derived[0].camera.view.as_mut()[0] = f32::NAN;
+    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::NonFinite { .. }));
+    for (angle, contrast) in [(-1.0, 0.2), (91.0, 0.2), (f32::NAN, 0.2), (6.0, -0.1), (6.0, f32::NAN)] {
+        let mut bad = batch.clone();
+        bad.reuse = ReuseLimits { max_angle_deg: angle, max_contrast: contrast };
+        assert!(
+            matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::OutOfRange { .. }),
+            "{angle} {contrast}"
+        );
+    }
+    let mut bad = batch;
+    bad.derived = vec![bad.derived[0].clone(); validate::MAX_VIEWS as usize + 1];
+    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::Count { .. }));
 }
 
 #[test]

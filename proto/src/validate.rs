@@ -5,7 +5,7 @@
 use crate::error::ValidationError;
 use crate::messages::{
     BatchDone, BatchFailed, BatchResult, ClientPose, CloseStream, ComposerRegister, ErrorMessage, FramePlan, Goodbye,
-    LoadReport, Message, OpenStream, RayBatch, Register, Registered, StreamOpened, ViewProjection,
+    LoadReport, Message, OpenStream, RayBatch, Register, Registered, ReuseLimits, StreamOpened, ViewProjection,
 };
 
 /// Largest image side on the wire (a camera itself accepts up to
@@ -162,7 +162,28 @@ fn ray_batch(m: &RayBatch) -> Result<(), ValidationError> {
     asset_id(&m.asset_id)?;
     camera(&m.camera)?;
     pixel_set(&m.pixels, m.camera.width, m.camera.height)?;
-    address(&m.composer)
+    address(&m.composer)?;
+    count("derived views", m.derived.len(), 0, MAX_VIEWS as usize)?;
+    for view in &m.derived {
+        camera(&view.camera)?;
+        pixel_set(&view.pixels, view.camera.width, view.camera.height)?;
+    }
+    let ReuseLimits { max_angle_deg, max_contrast } = m.reuse;
+    if !(0.0..=90.0).contains(&max_angle_deg) {
+        return Err(ValidationError::OutOfRange {
+            field: "reuse max_angle_deg",
+            value: f64::from(max_angle_deg),
+            range: "[0, 90]",
+        });
+    }
+    if max_contrast.is_nan() || max_contrast < 0.0 {
+        return Err(ValidationError::OutOfRange {
+            field: "reuse max_contrast",
+            value: f64::from(max_contrast),
+            range: ">= 0",
+        });
+    }
+    Ok(())
 }
 
 fn batch_result(m: &BatchResult) -> Result<(), ValidationError> {

@@ -86,6 +86,31 @@ impl Default for ShareTolerance {
     }
 }
 
+/// Views of one frame derived from an adjacent view of the same frame (issue 16): the eyes of
+/// a headset, neighbours in a quilt. The key view's batches carry the derived views' pixels
+/// to the worker, which renders the key, reprojects it into the others by depth and renders
+/// only what reprojection does not cover (`nephele_worker::derive`, `nephele_share`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct DerivedViews {
+    /// Largest angle, seen from the object's centre, between a derived view's camera and its
+    /// key view's, degrees. 4: reuse is checked per pixel at 6 degrees at the surface point
+    /// (`nephele_share::Settings::max_angle_deg`), and a surface point nearer the cameras than
+    /// the centre sees a larger angle (by about 4/3 for an object a quarter as deep as it is
+    /// far); a 40-degree 45-view quilt then groups up to 9 views around each key (0.91
+    /// degrees apart), and a headset's eyes (64 mm apart) pair for objects from 0.92 m away.
+    pub max_view_angle_deg: f64,
+    /// Work of a derived pixel relative to rendering it, for time and capacity estimates: the
+    /// reprojection (0.2-0.35 of a full render of the view, `nephele bench share`) plus the
+    /// pixels left to render (12 % of a stereo eye or of a quilt's derived view).
+    pub work_fraction: f64,
+}
+
+impl Default for DerivedViews {
+    fn default() -> DerivedViews {
+        DerivedViews { max_view_angle_deg: 4.0, work_fraction: 0.45 }
+    }
+}
+
 /// Every tunable of the scheduler core. [`SchedulerConfig::for_policy`] gives the defaults of a
 /// policy; the baselines run without sharing, history and admission control, which are part of
 /// what NEPHELE adds.
@@ -110,6 +135,9 @@ pub struct SchedulerConfig {
     pub heavy_fraction: f64,
     /// Shared rays across views and users (`None`: every view renders its own).
     pub sharing: Option<ShareTolerance>,
+    /// Views derived from an adjacent view of the same frame by reprojection (`None`: every
+    /// view renders in full).
+    pub derived_views: Option<DerivedViews>,
     /// Entries of the history table of recent results (0 disables it).
     pub history_capacity: usize,
     /// How old a history entry may be and still be reused (static objects only; the age bounds
@@ -170,6 +198,7 @@ impl SchedulerConfig {
             band_rows: 16,
             heavy_fraction: 0.25,
             sharing: nephele.then(ShareTolerance::default),
+            derived_views: nephele.then(DerivedViews::default),
             history_capacity: if nephele { 4096 } else { 0 },
             history_max_age: Duration::from_millis(500),
             admission_control: nephele,
@@ -215,6 +244,14 @@ impl SchedulerConfig {
             let steps = [t.position_m, t.angle_rad, t.intrinsics_px];
             if !steps.iter().all(|s| s.is_finite() && *s > 0.0) {
                 return bad("sharing tolerances must be finite and positive");
+            }
+        }
+        if let Some(d) = self.derived_views {
+            if !(d.max_view_angle_deg.is_finite() && (0.0..=90.0).contains(&d.max_view_angle_deg)) {
+                return bad("derived views' max_view_angle_deg must lie in [0, 90]");
+            }
+            if !(d.work_fraction.is_finite() && d.work_fraction > 0.0 && d.work_fraction <= 2.0) {
+                return bad("derived views' work_fraction must lie in (0, 2]");
             }
         }
         Ok(())

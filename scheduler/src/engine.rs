@@ -107,6 +107,24 @@ pub struct BatchSpec {
     pub timeout: Time,
     /// Frames its results feed (for the composer address of each session).
     pub frames: Vec<(SessionId, FrameId)>,
+    /// Views derived from this batch's pixels on the worker (issue 16): each one's result
+    /// goes to the composer under its own task; they finish with the batch.
+    pub derived: Vec<DerivedSpec>,
+    /// Work in pixels' worth: `rays` plus the derived views' pixels at
+    /// [`crate::DerivedViews::work_fraction`] (times the object's `cost_per_ray` for rays of
+    /// the reference kernel).
+    pub work_rays: f64,
+}
+
+/// A view whose pixels in a batch's rows are derived from that batch (see [`BatchSpec`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DerivedSpec {
+    pub task: TaskId,
+    pub camera: Camera,
+    /// Within the rows the batch spans.
+    pub pixels: PixelSet,
+    pub rays: u64,
+    pub frames: Vec<(SessionId, FrameId)>,
 }
 
 /// How a view of a frame got its pixels.
@@ -119,6 +137,9 @@ pub enum PartSource {
     Shared,
     /// A result from the history table.
     History,
+    /// Derived from an adjacent view of the same frame by reprojection on the worker, only
+    /// its leftovers rendered ([`crate::DerivedViews`]).
+    Derived,
 }
 
 /// One object in one view of a frame, and the task whose results fill it.
@@ -283,6 +304,21 @@ struct Batch {
     dispatches: u32,
     /// Workers that held it before (excluded when re-issuing; their late answer still counts).
     previous: Vec<WorkerId>,
+    /// Views derived from its pixels; each finishes with it.
+    riders: Vec<Rider>,
+}
+
+/// A derived view's pixels in one batch's rows (see [`DerivedSpec`]).
+#[derive(Debug, Clone)]
+struct Rider {
+    task: TaskId,
+    pixels: PixelSet,
+    rays: u64,
+}
+
+/// Work of a batch in reference rays: its own plus its riders' at `fraction`.
+fn batch_work(b: &Batch, cost: f64, fraction: f64) -> f64 {
+    (b.rays as f64 + fraction * b.riders.iter().map(|r| r.rays as f64).sum::<f64>()) * cost
 }
 
 /// The scheduler core. See the module documentation for the model; every method takes the
@@ -611,17 +647,17 @@ impl Scheduler {
         }
         let b = self.batches.get(&batch).ok_or(SchedError::UnknownBatch(batch))?;
         let (tid, rays) = (b.task, b.rays);
+        let work = self.work_of(batch);
         match b.state {
             // A second copy answering after the first: nothing to do.
             BatchState::Done => return Ok(()),
             BatchState::InFlight { worker: holder, dispatched, est_s, .. } if holder == worker => {
                 self.detach(batch, worker, est_s);
-                let cost = self.tasks.get(&tid).map_or(1.0, |t| t.cost);
                 let smoothing = self.config.smoothing;
                 if let Some(w) = self.workers.get_mut(&worker) {
                     let start = dispatched.max(w.service_mark);
                     let service = secs(now.since(start)).max(1e-6);
-                    let sample = (rays as f64 * cost / service).clamp(w.declared * 1e-3, w.declared * 1e3);
+                    let sample = (work / service).clamp(w.declared * 1e-3, w.declared * 1e3);
                     w.measured = (1.0 - smoothing) * w.measured + smoothing * sample;
                     w.service_mark = now;
                     w.batches_done += 1;
@@ -814,7 +850,10 @@ impl Scheduler {
     }
 
     fn work_of(&self, batch: BatchId) -> f64 {
-        self.batches.get(&batch).map_or(0.0, |b| b.rays as f64 * self.tasks.get(&b.task).map_or(1.0, |t| t.cost))
+        let fraction = self.derived_work_fraction();
+        self.batches
+            .get(&batch)
+            .map_or(0.0, |b| batch_work(b, self.tasks.get(&b.task).map_or(1.0, |t| t.cost), fraction))
     }
 
     /// A batch's result is in (its worker books are already settled).
@@ -826,9 +865,16 @@ impl Scheduler {
         t.remaining = t.remaining.saturating_sub(1);
         let finished = t.remaining == 0;
         self.adjust(tid, 0, -1, None);
-        if let Some(b) = self.batches.get_mut(&batch) {
-            b.state = BatchState::Done;
-        }
+        let riders = match self.batches.get_mut(&batch) {
+            Some(b) => {
+                b.state = BatchState::Done;
+                std::mem::take(&mut b.riders)
+            }
+            None => Vec::new(),
+        };
+        // Derived views first: they may complete frames that the key's completion is not
+        // part of (another user sharing the derived view's camera).
+        self.finish_riders(riders, now);
         if finished {
             self.task_done(tid, now);
         }
@@ -977,12 +1023,19 @@ impl Scheduler {
         {
             self.live.remove(&(t.object, k));
         }
+        let fraction = self.derived_work_fraction();
+        let mut orphans = Vec::new();
         for batch in t.batches {
-            let Some(b) = self.batches.get(&batch) else { continue };
-            match b.state {
+            let Some(b) = self.batches.get_mut(&batch) else { continue };
+            let work = batch_work(b, t.cost, fraction);
+            let state = b.state;
+            if state != BatchState::Done {
+                orphans.append(&mut b.riders);
+            }
+            match state {
                 BatchState::Pending => {
                     if self.pending_all.remove(&batch) {
-                        self.pending_work -= b.rays as f64 * t.cost;
+                        self.pending_work -= work;
                     }
                 }
                 BatchState::InFlight { worker, est_s, .. } => {
@@ -994,6 +1047,7 @@ impl Scheduler {
             }
             self.batches.remove(&batch);
         }
+        self.orphan_riders(orphans);
         if self.pending_all.is_empty() {
             self.pending_work = 0.0; // no float drift carried across idle periods
         }
@@ -1083,10 +1137,18 @@ impl Scheduler {
                 });
             }
         }
+        self.plan_derived(&mut parts);
+        let fraction = self.derived_work_fraction();
         let rendered_work: f64 = parts
             .iter()
-            .filter(|p| p.source == PartSource::Rendered)
-            .filter_map(|p| self.tasks.get(&p.task).map(|t| t.rays as f64 * t.cost))
+            .filter_map(|p| {
+                let share = match p.source {
+                    PartSource::Rendered => 1.0,
+                    PartSource::Derived => fraction,
+                    PartSource::Shared | PartSource::History => return None,
+                };
+                self.tasks.get(&p.task).map(|t| share * t.rays as f64 * t.cost)
+            })
             .sum();
         let smoothing = self.config.smoothing;
         if let Some(s) = self.sessions.get_mut(&sid) {
@@ -1142,28 +1204,7 @@ impl Scheduler {
         };
         let tid = TaskId(self.next_task);
         self.next_task += 1;
-        let pieces = assign::split_batches(&coverage.pixels, self.config.max_batch_rays);
-        let mut batches = Vec::with_capacity(pieces.len());
-        for pixels in pieces {
-            let id = BatchId(self.next_batch);
-            self.next_batch += 1;
-            let rays = pixels.len();
-            self.batches.insert(
-                id,
-                Batch {
-                    task: tid,
-                    pixels,
-                    rays,
-                    state: BatchState::Pending,
-                    failures: 0,
-                    dispatches: 0,
-                    previous: Vec::new(),
-                },
-            );
-            self.pending_all.insert(id);
-            self.pending_work += rays as f64 * cost;
-            batches.push(id);
-        }
+        let batches = self.add_batches(tid, &coverage.pixels, cost);
         self.stats.tasks_created += 1;
         self.stats.rays_created += coverage.rays;
         match class {
@@ -1192,6 +1233,228 @@ impl Scheduler {
             self.live.insert(k, tid);
         }
         Some(tid)
+    }
+
+    /// Splits `pixels` into pending batches of task `tid` (the task's books are the caller's).
+    fn add_batches(&mut self, tid: TaskId, pixels: &PixelSet, cost: f64) -> Vec<BatchId> {
+        let pieces = assign::split_batches(pixels, self.config.max_batch_rays);
+        let mut batches = Vec::with_capacity(pieces.len());
+        for pixels in pieces {
+            let id = BatchId(self.next_batch);
+            self.next_batch += 1;
+            let rays = pixels.len();
+            let batch = Batch {
+                task: tid,
+                pixels,
+                rays,
+                state: BatchState::Pending,
+                failures: 0,
+                dispatches: 0,
+                previous: Vec::new(),
+                riders: Vec::new(),
+            };
+            self.batches.insert(id, batch);
+            self.pending_all.insert(id);
+            self.pending_work += rays as f64 * cost;
+            batches.push(id);
+        }
+        batches
+    }
+
+    fn derived_work_fraction(&self) -> f64 {
+        self.config.derived_views.map_or(1.0, |d| d.work_fraction)
+    }
+
+    /// Views of this frame taken from an adjacent view of it (issue 16). Per object, the
+    /// views rendered for this frame are grouped in view order (a rig's views are listed
+    /// along it) into runs around a key view, every view of a run within the limit angle of
+    /// the key, seen from the object's centre; the others ride on the key's batches (see
+    /// [`Self::derive_from`]).
+    fn plan_derived(&mut self, parts: &mut [FramePart]) {
+        let Some(config) = self.config.derived_views else { return };
+        let limit = config.max_view_angle_deg.to_radians();
+        let objects: BTreeSet<ObjectId> = parts.iter().map(|p| p.object).collect();
+        for oid in objects {
+            let Some(centre) = self.objects.get(&oid).map(|o| o.bounds.center()) else { continue };
+            let candidates: Vec<(usize, glam::Vec3)> = parts
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| p.object == oid && p.source == PartSource::Rendered)
+                .filter_map(|(i, p)| {
+                    let t = self.tasks.get(&p.task)?;
+                    let direction = (t.camera.position() - centre).try_normalize()?;
+                    Some((i, direction))
+                })
+                .collect();
+            let angle = |a: glam::Vec3, b: glam::Vec3| f64::from(a.dot(b).clamp(-1.0, 1.0).acos());
+            let within = |a: usize, b: usize| angle(candidates[a].1, candidates[b].1) <= limit;
+            let mut start = 0;
+            while start < candidates.len() {
+                // The key: the farthest view within the limit of the run's first; the run: up
+                // to the last view within the limit of the key. A run that ends at its key
+                // (its views all within the limit of each other) is keyed in its middle.
+                let mut key = start;
+                while key + 1 < candidates.len() && within(start, key + 1) {
+                    key += 1;
+                }
+                let mut end = key + 1;
+                while end < candidates.len() && within(key, end) {
+                    end += 1;
+                }
+                if end == key + 1 {
+                    key = start + (key - start) / 2;
+                }
+                for d in (start..end).filter(|&d| d != key) {
+                    if !within(key, d) {
+                        continue;
+                    }
+                    let (key_part, derived_part) = (candidates[key].0, candidates[d].0);
+                    if self.derive_from(parts[key_part].task, parts[derived_part].task) {
+                        parts[derived_part].source = PartSource::Derived;
+                        self.stats.views_derived += 1;
+                        self.stats.rays_derived += parts[derived_part].rays;
+                    }
+                }
+                start = end;
+            }
+        }
+    }
+
+    /// Moves task `derived`'s pixels onto the batches of task `key` (both just created, nothing
+    /// dispatched): the pixels in each key batch's rows ride on that batch; those in rows no
+    /// key batch spans stay batches of their own. Only when every key batch holds all of the
+    /// key's pixels in the rows it spans (the worker then knows the rest of its box is empty);
+    /// false, and nothing changed, otherwise.
+    fn derive_from(&mut self, key: TaskId, derived: TaskId) -> bool {
+        let (Some(k), Some(d)) = (self.tasks.get(&key), self.tasks.get(&derived)) else { return false };
+        let fresh = |t: &Task| t.in_flight == 0 && t.pending.len() == t.batches.len() && !t.done;
+        if key == derived || k.object != d.object || !fresh(k) || !fresh(d) {
+            return false;
+        }
+        if (k.camera.width(), k.camera.height()) != (d.camera.width(), d.camera.height()) {
+            return false;
+        }
+        let row_span = |set: &PixelSet| {
+            let y0 = set.rects().iter().map(|r| r.y0).min().unwrap_or(0);
+            let y1 = set.rects().iter().map(|r| r.y1).max().unwrap_or(0);
+            (y0, y1)
+        };
+        let mut spans: Vec<(u32, u32, BatchId)> = Vec::with_capacity(k.batches.len());
+        for id in &k.batches {
+            let Some(b) = self.batches.get(id) else { return false };
+            let (y0, y1) = row_span(&b.pixels);
+            spans.push((y0, y1, *id));
+        }
+        spans.sort_unstable();
+        if spans.windows(2).any(|w| w[0].1 > w[1].0) {
+            return false; // a row shared by two batches (rows wider than a batch)
+        }
+        let derived_rects: Vec<assign::PixelRect> = d
+            .batches
+            .iter()
+            .filter_map(|id| self.batches.get(id))
+            .flat_map(|b| b.pixels.rects().iter().copied())
+            .collect();
+        let (width, height, cost, key_cost) = (d.camera.width(), d.camera.height(), d.cost, k.cost);
+        let old: Vec<BatchId> = d.batches.clone();
+        let clip = |y0: u32, y1: u32| -> Vec<assign::PixelRect> {
+            derived_rects
+                .iter()
+                .map(|r| assign::PixelRect { y0: r.y0.max(y0), y1: r.y1.min(y1), ..*r })
+                .filter(|r| !r.is_empty())
+                .collect()
+        };
+        let mut riders = Vec::new();
+        let mut outside = Vec::new();
+        let mut row = 0;
+        for &(y0, y1, batch) in &spans {
+            outside.extend(clip(row, y0));
+            if let Some(pixels) = PixelSet::new(width, height, clip(y0, y1)).filter(|s| !s.is_empty()) {
+                let rays = pixels.len();
+                riders.push((batch, Rider { task: derived, pixels, rays }));
+            }
+            row = y1;
+        }
+        outside.extend(clip(row, height));
+        // The derived task's own batches are replaced.
+        for id in &old {
+            if let Some(b) = self.batches.remove(id)
+                && self.pending_all.remove(id)
+            {
+                self.pending_work -= b.rays as f64 * cost;
+            }
+        }
+        let own = match PixelSet::new(width, height, outside) {
+            Some(set) if !set.is_empty() => self.add_batches(derived, &set, cost),
+            _ => Vec::new(),
+        };
+        let fraction = self.derived_work_fraction();
+        let rider_count = riders.len();
+        for (batch, rider) in riders {
+            self.pending_work += fraction * rider.rays as f64 * key_cost;
+            if let Some(b) = self.batches.get_mut(&batch) {
+                b.riders.push(rider);
+            }
+        }
+        if let Some(t) = self.tasks.get_mut(&derived) {
+            t.pending = own.iter().copied().collect();
+            t.remaining = own.len() + rider_count;
+            t.batches = own;
+        }
+        true
+    }
+
+    /// What the worker needs of the views riding on `batch` (those still needed).
+    fn derived_specs(&self, batch: BatchId) -> Vec<DerivedSpec> {
+        let Some(b) = self.batches.get(&batch) else { return Vec::new() };
+        b.riders
+            .iter()
+            .filter_map(|r| {
+                let t = self.tasks.get(&r.task).filter(|t| !t.done)?;
+                Some(DerivedSpec {
+                    task: r.task,
+                    camera: t.camera,
+                    pixels: r.pixels.clone(),
+                    rays: r.rays,
+                    frames: t.subscribers.clone(),
+                })
+            })
+            .collect()
+    }
+
+    /// A key batch finished: so did each view derived from it.
+    fn finish_riders(&mut self, riders: Vec<Rider>, now: Time) {
+        for rider in riders {
+            let Some(t) = self.tasks.get_mut(&rider.task) else { continue }; // no longer needed
+            if t.done {
+                continue;
+            }
+            t.remaining = t.remaining.saturating_sub(1);
+            self.stats.rays_completed += rider.rays;
+            if t.remaining == 0 {
+                self.task_done(rider.task, now);
+            }
+        }
+    }
+
+    /// A key batch will not be rendered (its task was dropped): the views riding on it get
+    /// batches of their own.
+    fn orphan_riders(&mut self, riders: Vec<Rider>) {
+        for rider in riders {
+            let Some(t) = self.tasks.get(&rider.task) else { continue };
+            if t.done {
+                continue;
+            }
+            let cost = t.cost;
+            let ids = self.add_batches(rider.task, &rider.pixels, cost);
+            let added = ids.len();
+            if let Some(t) = self.tasks.get_mut(&rider.task) {
+                t.remaining = t.remaining.saturating_sub(1) + added;
+                t.pending.extend(ids.iter().copied());
+                t.batches.extend(ids);
+            }
+            self.adjust(rider.task, added as i64, 0, None);
+        }
     }
 
     // ----------------------------------------------------------------------------------------
@@ -1422,10 +1685,12 @@ impl Scheduler {
 
     fn dispatch(&mut self, batch: BatchId, worker: WorkerId, now: Time) {
         let (factor, min_timeout) = (self.config.straggler_factor, self.config.min_batch_timeout);
+        let work = self.work_of(batch);
+        let derived = self.derived_specs(batch);
         let Some(b) = self.batches.get_mut(&batch) else { return };
         let Some(t) = self.tasks.get_mut(&b.task) else { return };
         let Some(w) = self.workers.get_mut(&worker) else { return };
-        let est_s = b.rays as f64 * t.cost / w.measured;
+        let est_s = work / w.measured;
         if w.in_flight.is_empty() {
             w.service_mark = now;
         }
@@ -1439,7 +1704,7 @@ impl Scheduler {
         t.pending.remove(&batch);
         t.in_flight += 1;
         self.pending_all.remove(&batch);
-        self.pending_work = (self.pending_work - b.rays as f64 * t.cost).max(0.0);
+        self.pending_work = (self.pending_work - work).max(0.0);
         self.deadlines.insert((deadline, batch));
         self.stats.batches_dispatched += 1;
         self.stats.rays_dispatched += b.rays;
@@ -1464,6 +1729,8 @@ impl Scheduler {
             frame_deadline,
             timeout: deadline,
             frames,
+            derived,
+            work_rays: work / t.cost.max(f64::MIN_POSITIVE),
         };
         let tid = b.task;
         self.outbox.push(Action::Dispatch { worker, batch: Box::new(spec) });

@@ -633,3 +633,135 @@ fn a_user_sharing_every_ray_asks_nothing_of_the_farm() {
     assert!(work(a).is_some_and(|w| w > 0.0));
     assert_eq!(work(b), Some(0.0), "b joined a's tasks");
 }
+
+/// Every pixel index of a set.
+fn indices(set: &PixelSet) -> BTreeSet<u32> {
+    set.indices().into_iter().collect()
+}
+
+#[test]
+fn a_headsets_right_eye_rides_on_the_left_eyes_batches_and_completes_with_them() {
+    let mut s = scheduler(config(Policy::Nephele));
+    s.add_worker(WorkerId(1), 1e7, ms(0)).expect("worker");
+    let eyes = stereo_pair(&camera_at(0.0), 0.064).expect("eyes");
+    let user = open(&mut s, 30.0, &eyes, ms(0));
+    let actions = s.tick(ms(0));
+    let sent = dispatches(&actions);
+    assert!(!sent.is_empty());
+    // Every batch is the left eye's (or the right eye's rows beyond them), and the right
+    // eye's pixels in a batch's rows ride on it: whole rows, nothing twice.
+    let key = sent[0].1.task;
+    let mut right = BTreeSet::new();
+    for (_, batch) in &sent {
+        let rows: BTreeSet<u32> = batch.pixels.indices().iter().map(|p| p / 64).collect();
+        for d in &batch.derived {
+            assert_ne!(d.task, key);
+            assert_eq!(d.camera, eyes[1]);
+            assert!(d.pixels.indices().iter().all(|p| rows.contains(&(p / 64))), "rider outside its batch's rows");
+            assert!(indices(&d.pixels).is_disjoint(&right));
+            right.extend(indices(&d.pixels));
+            assert_eq!(d.frames, vec![(user, FrameId(0))]);
+        }
+        let expected = batch.rays as f64 + 0.45 * batch.derived.iter().map(|d| d.rays as f64).sum::<f64>();
+        assert!((batch.work_rays - expected).abs() < 1e-9);
+    }
+    assert!(!right.is_empty());
+    let all = run_to_quiet(&mut s, actions, ms(1));
+    let done = completions(&all);
+    assert_eq!(done.len(), 1, "one frame");
+    let parts = &done[0].2;
+    assert_eq!(parts.len(), 2);
+    assert_eq!(parts[0].source, PartSource::Rendered);
+    assert_eq!(parts[1].source, PartSource::Derived);
+    // The rider pixels plus the right eye's own batches are its whole coverage, once.
+    let own: Vec<BatchSpec> =
+        dispatches(&all).into_iter().map(|(_, b)| b).filter(|b| b.task == parts[1].task).collect();
+    let mut covered = right.clone();
+    for b in &own {
+        assert!(indices(&b.pixels).is_disjoint(&covered));
+        covered.extend(indices(&b.pixels));
+    }
+    assert_eq!(covered.len() as u64, parts[1].rays);
+    let stats = s.stats();
+    assert_eq!(stats.views_derived, 1);
+    assert_eq!(stats.rays_derived, parts[1].rays);
+}
+
+#[test]
+fn a_quilt_renders_a_few_keys_and_derives_the_rest_within_the_angle() {
+    let mut s = scheduler(config(Policy::Nephele));
+    s.add_worker(WorkerId(1), 1e7, ms(0)).expect("worker");
+    let centre = camera_at(0.0);
+    let rig = nephele_geometry::camera::quilt_rig(&centre, 45, 40f32.to_radians(), 4.0).expect("rig");
+    open(&mut s, 10.0, &rig, ms(0));
+    let first = s.tick(ms(0));
+    let all = run_to_quiet(&mut s, first, ms(1));
+    let done = completions(&all);
+    assert_eq!(done.len(), 1);
+    let parts = &done[0].2;
+    assert_eq!(parts.len(), 45);
+    let keys: Vec<u32> = parts.iter().filter(|p| p.source == PartSource::Rendered).map(|p| p.view).collect();
+    // 0.91 degrees between views: runs of up to 9 views within 8 degrees, keyed in the middle.
+    assert_eq!(keys, vec![4, 13, 22, 31, 40]);
+    assert!(parts.iter().all(|p| p.source != PartSource::Shared));
+    // Each derived view is within 4 views (3.6 degrees) of a key.
+    for p in parts.iter().filter(|p| p.source == PartSource::Derived) {
+        assert!(keys.iter().any(|&k| k.abs_diff(p.view) <= 4), "view {}", p.view);
+    }
+    assert_eq!(s.stats().views_derived, 40);
+}
+
+#[test]
+fn views_too_far_apart_or_derivation_switched_off_render_in_full() {
+    let views = [camera_at(0.0), camera_at(10.0)];
+    for derived in [true, false] {
+        let mut cfg = config(Policy::Nephele);
+        if !derived {
+            cfg.derived_views = None;
+        }
+        let mut s = scheduler(cfg);
+        s.add_worker(WorkerId(1), 1e7, ms(0)).expect("worker");
+        let eyes = stereo_pair(&camera_at(0.0), 0.064).expect("eyes");
+        open(&mut s, 30.0, &views, ms(0));
+        open(&mut s, 30.0, &eyes, ms(0));
+        let first = s.tick(ms(0));
+        let all = run_to_quiet(&mut s, first, ms(1));
+        assert!(dispatches(&all).iter().all(|(_, b)| derived || b.derived.is_empty()));
+        let sources: Vec<Vec<PartSource>> =
+            completions(&all).iter().map(|(_, _, parts)| parts.iter().map(|p| p.source).collect()).collect();
+        assert_eq!(sources.len(), 2);
+        // 10 degrees apart: both rendered whatever the setting.
+        assert_eq!(sources[0], vec![PartSource::Rendered, PartSource::Rendered]);
+        let right = if derived { PartSource::Derived } else { PartSource::Rendered };
+        assert_eq!(sources[1], vec![PartSource::Rendered, right]);
+    }
+}
+
+#[test]
+fn a_derived_view_another_user_shares_survives_its_key_being_dropped() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.history_capacity = 0;
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e7, ms(0)).expect("worker");
+    let eyes = stereo_pair(&camera_at(0.0), 0.064).expect("eyes");
+    let headset = open(&mut s, 30.0, &eyes, ms(0));
+    // A second user whose only view is the headset's right eye: it shares that task.
+    let screen = open(&mut s, 30.0, &eyes[1..], ms(0));
+    let first = s.tick(ms(0));
+    let sent = dispatches(&first);
+    assert!(sent.iter().any(|(_, b)| !b.derived.is_empty()));
+    // The headset leaves before anything is rendered: its left eye (the key) is cancelled,
+    // and the right eye, still needed by the screen, gets batches of its own.
+    s.close_session(headset, ms(0)).expect("close");
+    let after = s.tick(ms(0));
+    let own: Vec<BatchSpec> = dispatches(&after).into_iter().map(|(_, b)| b).collect();
+    assert!(!own.is_empty() && own.iter().all(|b| b.derived.is_empty() && b.frames[0].0 == screen));
+    for (worker, batch) in &sent {
+        let _ = s.batch_done(*worker, batch.id, ms(1)); // cancelled: unknown now, or ignored
+    }
+    let all = run_to_quiet(&mut s, after, ms(1));
+    let done = completions(&all);
+    assert_eq!(done.len(), 1);
+    assert_eq!(done[0].0, screen);
+    assert_eq!(done[0].2[0].source, PartSource::Shared);
+}

@@ -74,8 +74,10 @@ mod history;
 pub mod snapshot;
 
 pub use assign::{CameraKey, Coverage, OccupancyGrid, PixelRect, PixelSet, TaskClass};
-pub use config::{Policy, SchedulerConfig, ShareTolerance};
-pub use engine::{Action, Admission, BatchSpec, DropReason, FramePart, ObjectInfo, PartSource, Scheduler, SessionSpec};
+pub use config::{DerivedViews, Policy, SchedulerConfig, ShareTolerance};
+pub use engine::{
+    Action, Admission, BatchSpec, DerivedSpec, DropReason, FramePart, ObjectInfo, PartSource, Scheduler, SessionSpec,
+};
 pub use snapshot::{FarmSnapshot, Stats};
 
 use serde::{Deserialize, Serialize};

@@ -40,6 +40,10 @@ pub struct Stats {
     pub rays_shared: u64,
     /// Rays served from the history table.
     pub rays_from_history: u64,
+    /// Views derived from an adjacent view of their frame (issue 16), and their pixels: the
+    /// worker reprojects them and renders only the leftovers (counted in `rays_created`).
+    pub views_derived: u64,
+    pub rays_derived: u64,
     /// Rays sent to workers, re-issues included.
     pub rays_dispatched: u64,
     /// Rays of batches that came back.

@@ -168,6 +168,11 @@ pub struct SimParams {
     pub composite_s: f64,
     /// How often a refused user tries again (after the Retry-After it was given).
     pub retries: u32,
+    /// Share of a derived view's pixels (issue 16) that reprojection leaves to render: 12 %
+    /// for a stereo eye and for a quilt's derived views (`nephele bench share`, BENCHMARKS.md).
+    /// Counted as rays rendered; the time a worker spends on a derived view comes from the
+    /// scheduler's `work_rays` (reprojection included).
+    pub derived_render_fraction: f64,
 }
 
 impl Default for SimParams {
@@ -181,6 +186,7 @@ impl Default for SimParams {
             switch_cost_s: 0.5e-3,
             link_bytes_per_s: 3.125e9,
             bytes_per_pixel: 20.0,
+            derived_render_fraction: 0.12,
             composite_s: 1e-3,
             retries: 3,
         }

@@ -87,7 +87,14 @@ enum Event {
 struct Job {
     batch: BatchId,
     object: ObjectId,
-    rays: u64,
+    /// Rays rendered: the batch's own and the part of its derived views' pixels that
+    /// reprojection leaves.
+    rays: f64,
+    /// Reference rays of work (reprojection of derived views included), before the object's
+    /// cost per ray.
+    work: f64,
+    /// Pixels sent to the composer (derived views' included).
+    pixels: u64,
 }
 
 #[derive(Debug)]
@@ -309,7 +316,7 @@ impl Engine<'_> {
                 }
                 if let Some(r) = w.running.take() {
                     w.busy_s += now.since(r.start).as_secs_f64();
-                    w.rays_rendered += r.job.rays as f64;
+                    w.rays_rendered += r.job.rays;
                 }
                 let id = w.id;
                 // A copy that lost the race, or whose task finished meanwhile, is refused:
@@ -376,7 +383,7 @@ impl Engine<'_> {
         if let Some(r) = w.running.take() {
             let spent = now.since(r.start).as_secs_f64();
             w.busy_s += spent;
-            w.rays_rendered += r.job.rays as f64 * spent / r.end.since(r.start).as_secs_f64().max(1e-12);
+            w.rays_rendered += r.job.rays * spent / r.end.since(r.start).as_secs_f64().max(1e-12);
         }
         w.queue.clear();
         w.generation += 1;
@@ -392,10 +399,13 @@ impl Engine<'_> {
                 Action::Dispatch { worker, batch } => {
                     let i = worker.0 as usize - 1;
                     if self.workers.get(i).is_some_and(|w| w.connected) {
+                        let derived: u64 = batch.derived.iter().map(|d| d.rays).sum();
                         self.workers[i].queue.push_back(Job {
                             batch: batch.id,
                             object: batch.object,
-                            rays: batch.rays,
+                            rays: batch.rays as f64 + self.scenario.params.derived_render_fraction * derived as f64,
+                            work: batch.work_rays,
+                            pixels: batch.rays + derived,
                         });
                         if self.workers[i].running.is_none() {
                             self.start_next(i, now);
@@ -409,8 +419,7 @@ impl Engine<'_> {
                         if let Some(r) = w.running.take() {
                             let spent = now.since(r.start).as_secs_f64();
                             w.busy_s += spent;
-                            w.rays_rendered +=
-                                r.job.rays as f64 * spent / r.end.since(r.start).as_secs_f64().max(1e-12);
+                            w.rays_rendered += r.job.rays * spent / r.end.since(r.start).as_secs_f64().max(1e-12);
                         }
                         w.generation += 1;
                         self.start_next(i, now);
@@ -452,7 +461,7 @@ impl Engine<'_> {
         }
         let Some(job) = w.queue.pop_front() else { return };
         let cost = self.costs.get(job.object.0 as usize - 1).copied().unwrap_or(1.0);
-        let mut render = job.rays as f64 * cost / w.spec.rays_per_s;
+        let mut render = job.work * cost / w.spec.rays_per_s;
         if let Some((from, to, factor)) = w.spec.slow {
             let t = now.as_secs_f64();
             if t >= from && t < to {
@@ -461,7 +470,7 @@ impl Engine<'_> {
         }
         render *= 1.0 + w.spec.jitter * (2.0 * w.rng.unit() - 1.0);
         let switch = if w.last_object == Some(job.object) { 0.0 } else { p.switch_cost_s };
-        let transfer = job.rays as f64 * p.bytes_per_pixel / p.link_bytes_per_s;
+        let transfer = job.pixels as f64 * p.bytes_per_pixel / p.link_bytes_per_s;
         let duration = p.batch_overhead_s + switch + render + transfer;
         let end = now + Duration::from_secs_f64(duration.max(1e-6));
         w.last_object = Some(job.object);

@@ -18,8 +18,8 @@ use nephele_kernels::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pix
 use nephele_pathtracer::Renderer;
 use nephele_pathtracer::scenes;
 use nephele_proto::{
-    BatchIds, BatchResult, Cancel, CancelTarget, ErrorCode, FrameConfig, FrameReader, FrameWriter, Hello, Message,
-    RayBatch, Register, Registered, Rejected, Role, ViewProjection, encode_frame_unchecked,
+    BatchIds, BatchResult, Cancel, CancelTarget, DerivedView, ErrorCode, FrameConfig, FrameReader, FrameWriter, Hello,
+    Message, RayBatch, Register, Registered, Rejected, ReuseLimits, Role, ViewProjection, encode_frame_unchecked,
 };
 use nephele_tests::nephele_bin;
 
@@ -314,6 +314,8 @@ fn batches(frame: &Frame, count: usize, composer: SocketAddr) -> Vec<RayBatch> {
             pixels: chunk.to_vec(),
             deadline_in_us: None,
             composer: composer.to_string(),
+            derived: Vec::new(),
+            reuse: ReuseLimits::default(),
         })
         .collect()
 }
@@ -511,6 +513,83 @@ fn frame_camera(width: u32, height: u32) -> ViewProjection {
     ViewProjection::of_camera(&look, 0.05, 100.0)
 }
 
+/// Issue 16: a batch carrying a derived view (a headset's right eye taken from the left
+/// eye's rows). The worker sends the derived view's pixels under its own task before the
+/// batch's, renders only what reprojection leaves (bit for bit the kernel's pixels: the rows
+/// beyond the batch's), and reports the rays it really rendered.
+#[test]
+fn a_derived_view_rides_on_a_batch_and_only_its_leftovers_are_rendered() {
+    let (spp, bounces) = (4, 1);
+    let assets = assets();
+    let composer = Composer::start();
+    let mut master = Master::new();
+    let _worker = WorkerProcess::start(master.addr(), assets.path(), "eyes", &["--spp", "4", "--bounces", "1"]);
+    let w = master.accept_worker();
+    let scene = scenes::builtin("diffuse").expect("scene");
+    let (eye, target, fov_y) = scene.default_view();
+    let centre = Camera::look_at(64, 48, fov_y, eye, target, Vec3::Z).expect("camera");
+    let eyes = nephele_geometry::camera::stereo_pair(&centre, 0.064).expect("eyes");
+    let [left, right] = eyes.map(|c| ViewProjection::of_camera(&c, 0.05, 100.0));
+    let kernel = PathTracedKernel::new(Renderer::new(scene.scene).expect("renderer"), spp, bounces).expect("kernel");
+    let right_camera = right.camera().expect("camera");
+    let (truth, _) = kernel.render_pixels(&right_camera, &all_pixels(&right_camera)).expect("reference");
+    // The key batch: rows 8..40 of the left eye; the derived view asks every row of the right.
+    let asked: Vec<u32> = (0..64 * 48).collect();
+    let derived_ids = BatchIds { batch_id: 1, task_id: 2, session_id: 1, frame_id: 1, view_index: 1 };
+    let batch = RayBatch {
+        ids: BatchIds { batch_id: 1, task_id: 1, session_id: 1, frame_id: 1, view_index: 0 },
+        asset_id: "diffuse".into(),
+        camera: left,
+        pixels: (8 * 64..40 * 64).collect(),
+        deadline_in_us: None,
+        composer: composer.addr.to_string(),
+        derived: vec![DerivedView { ids: derived_ids, camera: right, pixels: asked.clone() }],
+        reuse: ReuseLimits::default(),
+    };
+    master.send(w, &Message::RayBatch(batch.clone()));
+    let done = match master.next() {
+        Event::Message(_, Message::BatchDone(done)) => done,
+        other => panic!("unexpected {other:?}"),
+    };
+    let first = composer.results.recv_timeout(WAIT).expect("derived result");
+    let second = composer.results.recv_timeout(WAIT).expect("key result");
+    assert_eq!((first.ids, second.ids), (derived_ids, batch.ids), "the derived view first, under its own task");
+    assert_eq!(first.pixels, asked);
+    assert_eq!(done.pixels as usize, batch.pixels.len() + asked.len());
+    // Rendered: every key pixel, and some of the derived view's, not all (pixels whose ray
+    // misses the object's box are empty without rendering, in any row).
+    let leftover = done.stats.rays / u64::from(spp) - batch.pixels.len() as u64;
+    assert!((1..asked.len() as u64 / 2).contains(&leftover), "{leftover} derived pixels rendered");
+    assert_eq!(first.stats.rays, leftover * u64::from(spp));
+    let (mut reused, mut off, mut silhouettes) = (0, 0.0f64, 0);
+    for (k, &p) in first.pixels.iter().enumerate() {
+        let p = p as usize;
+        let exact = first.color[k] == truth.color[p] && first.opacity[k] == truth.opacity[p];
+        let row = p / 64;
+        if !(8..40).contains(&row) {
+            assert!(exact, "pixel {p} (row {row}) has no source: the kernel's own");
+        }
+        if !exact {
+            reused += 1;
+            off += (0..3).map(|c| f64::from((first.color[k][c] - truth.color[p][c]).abs())).sum::<f64>() / 3.0;
+            // A covered pixel is never found empty, nor an empty one solid; a silhouette
+            // pixel that 1 of the 4 samples hit may be (the left eye's samples there missed).
+            let (got, want) = (first.opacity[k], truth.opacity[p]);
+            let lost = want == 1.0 && got == 0.0;
+            let invented = want == 0.0 && got >= 0.99;
+            assert!(!lost && !invented, "pixel {p}: {got} vs {want}");
+            silhouettes += usize::from((got > 0.0) != (want > 0.0));
+        }
+    }
+    // Reused pixels are the left eye's samples, not the right's: the same surface, other
+    // noise (4 samples a pixel), hence a small mean difference rather than none.
+    assert!(reused > 0);
+    let mean = off / f64::from(reused);
+    assert!(mean < 0.08, "reused pixels differ by {mean} on average");
+    let covered = truth.opacity.iter().filter(|&&a| a > 0.0).count();
+    assert!(silhouettes * 20 < covered, "{silhouettes} silhouette pixels lost of {covered} covered");
+}
+
 #[test]
 fn bad_batches_are_answered_and_the_worker_carries_on() {
     let assets = assets();
@@ -531,6 +610,8 @@ fn bad_batches_are_answered_and_the_worker_carries_on() {
         pixels: (0..64 * 48).collect(),
         deadline_in_us: None,
         composer: composer.addr.to_string(),
+        derived: Vec::new(),
+        reuse: ReuseLimits::default(),
     };
     let with = |id: u64, change: &dyn Fn(&mut RayBatch)| {
         let mut b = good.clone();
@@ -675,6 +756,8 @@ fn garbage_oversized_frames_and_wrong_versions_close_the_connection_without_a_cr
         pixels: (0..32 * 24).collect(),
         deadline_in_us: None,
         composer: composer.addr.to_string(),
+        derived: Vec::new(),
+        reuse: ReuseLimits::default(),
     };
     master.send(w, &Message::RayBatch(batch.clone()));
     assert!(matches!(master.next(), Event::Message(_, Message::BatchDone(_))));

@@ -1,7 +1,7 @@
 //! `nephele-worker`: the render worker process (`nephele worker`).
 //!
 //! Depends on `nephele-proto`, `nephele-geometry`, `nephele-kernels`, `nephele-pathtracer`
-//! (built-in scenes) and `nephele-telemetry` (metrics); never on a trainer (`nephele-train`) or another service.
+//! (built-in scenes), `nephele-share` (derived views) and `nephele-telemetry` (metrics); never on a trainer (`nephele-train`) or another service.
 //!
 //! A worker connects to the master, says hello, registers (name, threads, kernel kinds and
 //! the throughput a short calibration render measured), then serves [`nephele_proto::RayBatch`]es:
@@ -11,10 +11,12 @@
 //! (one cached connection per composer) and tells the master `BatchDone` or `BatchFailed`.
 //! It reports its load periodically (the heartbeat), honours cancellations, reconnects if it
 //! loses the master, and on shutdown hands back queued batches, finishes in-flight ones and
-//! says goodbye.
+//! says goodbye. A batch may carry derived views ([`derive`]): adjacent views of the same
+//! asset taken from its pixels by reprojection, only their leftovers rendered.
 
 pub mod assets;
 mod composer;
+pub mod derive;
 pub mod metrics;
 mod service;
 

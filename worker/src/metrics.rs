@@ -35,6 +35,8 @@ pub struct WorkerMetrics {
     pub(crate) render_ms: Histogram,
     pub(crate) deliver_ms: Histogram,
     pub(crate) master_connections: Counter,
+    pub(crate) derived_pixels: Counter,
+    pub(crate) derived_pixels_rendered: Counter,
 }
 
 impl WorkerMetrics {
@@ -76,6 +78,18 @@ impl WorkerMetrics {
             "Registrations with the master (reconnections included)",
             Counter::default(),
         );
+        let derived_pixels = register(
+            &mut registry,
+            "derived_pixels",
+            "Pixels of derived views (adjacent views taken from a batch by reprojection)",
+            Counter::default(),
+        );
+        let derived_pixels_rendered = register(
+            &mut registry,
+            "derived_pixels_rendered",
+            "Pixels of derived views that reprojection could not vouch for, rendered by the kernel",
+            Counter::default(),
+        );
         WorkerMetrics {
             registry: Arc::new(registry),
             phase: AtomicU8::new(Phase::Calibrating as u8),
@@ -88,6 +102,8 @@ impl WorkerMetrics {
             render_ms,
             deliver_ms,
             master_connections,
+            derived_pixels,
+            derived_pixels_rendered,
         }
     }
 

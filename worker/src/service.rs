@@ -29,6 +29,7 @@ use tokio::sync::mpsc;
 
 use crate::assets::AssetLoader;
 use crate::composer::ComposerLinks;
+use crate::derive::derive_view;
 use crate::metrics::{Phase, WorkerMetrics};
 
 /// How a worker runs.
@@ -529,30 +530,79 @@ async fn render_and_deliver(
     batch: RayBatch,
     cancelled: &AtomicBool,
 ) -> Result<BatchDone, (ErrorCode, String)> {
-    let RayBatch { ids, asset_id, camera: wire, pixels, composer, .. } = batch;
+    let RayBatch { ids, asset_id, camera: wire, pixels, composer, derived, reuse, .. } = batch;
     let camera = wire.camera().map_err(|e| (ErrorCode::InvalidField, format!("camera: {e}")))?;
+    let derived_cameras = derived
+        .iter()
+        .map(|view| view.camera.camera())
+        .collect::<Result<Vec<Camera>, _>>()
+        .map_err(|e| (ErrorCode::InvalidField, format!("derived view camera: {e}")))?;
+    let settings = nephele_share::Settings {
+        max_angle_deg: reuse.max_angle_deg,
+        max_contrast: reuse.max_contrast,
+        ..nephele_share::Settings::default()
+    };
     let worker = shared.clone();
-    let (pixels, rendered, render_time) = tokio::task::spawn_blocking(move || {
+    let (pixels, derived, rendered, render_time) = tokio::task::spawn_blocking(move || {
         let kernel = match worker.loader.load(&asset_id) {
             Ok(kernel) => kernel,
-            Err(e) => return (pixels, Err((e.code(), e.to_string())), Duration::ZERO),
+            Err(e) => return (pixels, derived, Err((e.code(), e.to_string())), Duration::ZERO),
         };
         let start = Instant::now();
-        let rendered = worker.pool.install(|| kernel.render_pixels(&camera, &pixels));
-        let rendered = rendered.map_err(|e| (ErrorCode::RenderFailed, e.to_string()));
+        let rendered = worker.pool.install(|| {
+            let (results, stats) = kernel.render_pixels(&camera, &pixels).map_err(|e| e.to_string())?;
+            let mut views = Vec::with_capacity(derived.len());
+            for (view, target) in derived.iter().zip(&derived_cameras) {
+                let view = derive_view(kernel.as_ref(), &camera, &pixels, &results, target, &view.pixels, &settings)
+                    .map_err(|e| e.to_string())?;
+                views.push(view);
+            }
+            Ok::<_, String>((results, stats, views))
+        });
+        let rendered = rendered.map_err(|e| (ErrorCode::RenderFailed, e));
         let elapsed = start.elapsed();
         worker.metrics.render_ms.observe(elapsed.as_secs_f64() * 1e3);
-        (pixels, rendered, elapsed)
+        (pixels, derived, rendered, elapsed)
     })
     .await
     .map_err(|e| (ErrorCode::Internal, format!("render task: {e}")))?;
-    let (results, stats) = rendered?;
+    let (results, stats, views) = rendered?;
     if cancelled.load(Ordering::Acquire) {
         return Err((ErrorCode::Cancelled, "cancelled while rendering".into()));
     }
-    let stats = KernelStats { rays: stats.rays, rays_hit: stats.rays_hit, queries: stats.queries };
+    let mut stats = KernelStats { rays: stats.rays, rays_hit: stats.rays_hit, queries: stats.queries };
     let render_time_us = render_time.as_micros() as u64;
-    let count = pixels.len() as u32;
+    let mut count = pixels.len() as u32;
+    // The derived views first: the master hears `BatchDone` after the batch's own result, so
+    // every result of the batch is at the composer by then.
+    for (view, made) in derived.into_iter().zip(views) {
+        stats.rays += made.stats.rays;
+        stats.rays_hit += made.stats.rays_hit;
+        stats.queries += made.stats.queries;
+        count = count.saturating_add(view.pixels.len() as u32);
+        shared.metrics.derived_pixels.inc_by(view.pixels.len() as u64);
+        shared.metrics.derived_pixels_rendered.inc_by(made.rendered as u64);
+        let result = Message::BatchResult(BatchResult {
+            ids: view.ids,
+            worker_id: shared.worker_id.load(Ordering::Relaxed),
+            width: view.camera.width,
+            height: view.camera.height,
+            pixels: view.pixels,
+            color: made.results.color,
+            opacity: made.results.opacity,
+            depth: made.results.depth,
+            render_time_us,
+            stats: KernelStats { rays: made.stats.rays, rays_hit: made.stats.rays_hit, queries: made.stats.queries },
+            encoding: shared.result_encoding,
+        });
+        validate::message(&result)
+            .map_err(|e| (ErrorCode::RenderFailed, format!("a derived view's result is invalid: {e}")))?;
+        shared
+            .composers
+            .send(&composer, &result)
+            .await
+            .map_err(|e| (ErrorCode::ComposerUnreachable, format!("composer {composer}: {e}")))?;
+    }
     let result = Message::BatchResult(BatchResult {
         ids,
         worker_id: shared.worker_id.load(Ordering::Relaxed),

@@ -51,6 +51,12 @@ pub struct Args {
     /// Largest ray batch, pixels.
     #[arg(long, value_name = "N")]
     max_batch_rays: Option<u32>,
+    /// Render every view of a headset or a light-field quilt in full, instead of deriving
+    /// views from an adjacent view of the same frame by reprojection on the worker (4 degrees
+    /// apart at most, seen from the object; only the pixels reprojection cannot vouch for
+    /// rendered). For comparisons.
+    #[arg(long)]
+    no_derived_views: bool,
     /// A batch not back after this long (at the least; more for long queues) is re-issued.
     #[arg(long, value_name = "MS", default_value_t = 50)]
     min_batch_timeout_ms: u64,
@@ -110,6 +116,10 @@ pub fn run(args: Args) -> Result<()> {
         scheduler.sharing = baseline.sharing;
         scheduler.history_capacity = baseline.history_capacity;
         scheduler.admission_control = baseline.admission_control;
+        scheduler.derived_views = baseline.derived_views;
+    }
+    if args.no_derived_views {
+        scheduler.derived_views = None;
     }
     if let Some(fraction) = args.admit_up_to {
         ensure!(fraction.is_finite() && fraction > 0.0, "--admit-up-to must be a positive fraction, e.g. 0.9");

@@ -69,6 +69,9 @@ pub struct Args {
     /// asked work would pass this fraction of the farm's measured throughput, e.g. 0.9.
     #[arg(long, value_name = "FRACTION")]
     admit_up_to: Option<f64>,
+    /// Render every view of a headset or a quilt in full (the master's `--no-derived-views`).
+    #[arg(long)]
+    no_derived_views: bool,
     #[command(flatten)]
     tls: crate::commands::TlsArgs,
     #[command(flatten)]
@@ -214,6 +217,9 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     }
     if let Some(fraction) = args.admit_up_to {
         master.args(["--admit-up-to", &fraction.to_string()]);
+    }
+    if args.no_derived_views {
+        master.arg("--no-derived-views");
     }
     // Read here too: `up` asks its master's `/v1/farm` whether the farm is whole.
     let operator_token = args.operator_token.resolve()?.map(|(token, _)| token);
