@@ -261,6 +261,95 @@ fn serve(
     Ok(())
 }
 
+/// The live path of a scenario's views (issue 16): the scheduler (live defaults, derived views
+/// on) plans one frame of a session with these views; each batch is rendered and its derived
+/// views made exactly as a worker does (`nephele_worker::derive::derive_view`), and each view
+/// is assembled from its task's results and compared with its full render.
+fn serve_live(
+    kernel: &dyn RayKernel,
+    bounds: &Bounds,
+    cameras: &[Camera],
+    full: &[FullRender],
+    settings: &Settings,
+    tally: &mut Tally,
+) -> Result<()> {
+    use nephele_scheduler::{Action, ObjectId, ObjectInfo, PartSource, Scheduler, SchedulerConfig, SessionSpec, Time};
+    use std::collections::HashMap;
+    let mut scheduler = Scheduler::new(SchedulerConfig::default())?;
+    let object = ObjectId(1);
+    scheduler.register_object(object, ObjectInfo { bounds: *bounds, occupancy: None, cost_per_ray: 1.0 })?;
+    scheduler.add_worker(nephele_scheduler::WorkerId(1), 1e9, Time::ZERO)?;
+    let session = scheduler.open_session(SessionSpec { target_fps: 1.0, objects: vec![object] }, Time::ZERO)?;
+    scheduler.pose(session, cameras, Time::ZERO)?;
+    let mut results: HashMap<nephele_scheduler::TaskId, Vec<(Vec<u32>, PixelResults)>> = HashMap::new();
+    let mut derive_s = 0.0;
+    let mut parts = None;
+    let mut now = Time::ZERO;
+    for _ in 0..10_000 {
+        for action in scheduler.tick(now) {
+            match action {
+                Action::Dispatch { worker, batch } => {
+                    let pixels = batch.pixels.indices();
+                    let (rendered, _) = kernel.render_pixels(&batch.camera, &pixels)?;
+                    tally.rendered_rays += pixels.len();
+                    for derived in &batch.derived {
+                        let asked = derived.pixels.indices();
+                        let start = Instant::now();
+                        let made = nephele_worker::derive::derive_view(
+                            kernel,
+                            &batch.camera,
+                            &pixels,
+                            &rendered,
+                            &derived.camera,
+                            &asked,
+                            settings,
+                        )?;
+                        derive_s += start.elapsed().as_secs_f64();
+                        tally.rendered_rays += made.rendered;
+                        results.entry(derived.task).or_default().push((asked, made.results));
+                    }
+                    results.entry(batch.task).or_default().push((pixels, rendered));
+                    scheduler.batch_done(worker, batch.id, now)?;
+                }
+                Action::FrameComplete { parts: done, .. } => parts = Some(done),
+                _ => {}
+            }
+        }
+        if parts.is_some() {
+            break;
+        }
+        now = now + std::time::Duration::from_millis(1);
+    }
+    let parts = parts.context("the scheduler never completed the frame")?;
+    for (view, camera) in cameras.iter().enumerate() {
+        let (w, h) = (camera.width(), camera.height());
+        tally.views += 1;
+        tally.full_rays += (w * h) as usize;
+        let Some(part) = parts.iter().find(|p| p.view as usize == view) else { continue };
+        // The live service without derived views renders each view's covered pixels (the
+        // TaskAssigner's estimate): the second ratio of a live row is against that.
+        tally.in_bounds_rays += part.rays as usize;
+        if part.source != PartSource::Derived {
+            continue;
+        }
+        let mut frame = PixelResults::with_len((w * h) as usize);
+        for (pixels, values) in results.get(&part.task).map(Vec::as_slice).unwrap_or_default() {
+            for (k, &p) in pixels.iter().enumerate() {
+                let p = p as usize;
+                (frame.color[p], frame.opacity[p], frame.depth[p]) =
+                    (values.color[k], values.opacity[k], values.depth[k]);
+            }
+        }
+        tally.shared_views += 1;
+        tally.full_render_s += full[view].seconds;
+        let image = frame_to_image(w, h, &frame).context("derived frame")?;
+        let reference = frame_to_image(w, h, &full[view].frame).context("full frame")?;
+        tally.shared_psnr.push(psnr(&image, &reference, [1.0; 3])?.min(99.0));
+    }
+    tally.reprojection_s += derive_s;
+    Ok(())
+}
+
 fn mean(values: &[f64]) -> Option<f64> {
     (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
 }
@@ -307,6 +396,17 @@ pub fn run(args: ShareArgs, progress: &dyn Progress) -> Result<()> {
                 }
             };
             serve(kernel.as_ref(), &bounds, &scenario, &full, anchor.truth.as_ref(), &base, &mut table[row].1)?;
+            if scenario.name.starts_with("stereo") || scenario.name.contains("quilt") {
+                let name = format!("live path: {}", scenario.name.split(" (").next().unwrap_or(&scenario.name));
+                let row = match table.iter().position(|(n, _)| *n == name) {
+                    Some(i) => i,
+                    None => {
+                        table.push((name, Tally::default()));
+                        table.len() - 1
+                    }
+                };
+                serve_live(kernel.as_ref(), &bounds, &scenario.cameras, &full, &base, &mut table[row].1)?;
+            }
             let mut variants: Vec<(String, Settings)> = Vec::new();
             if scenario.name.starts_with("4 users") {
                 let angles = args.sweep_angle.0.iter();
@@ -346,7 +446,9 @@ pub fn run(args: ShareArgs, progress: &dyn Progress) -> Result<()> {
         base.max_contrast
     );
     println!(
-        "rays rendered: shared against every view in full (all pixels; in-bounds: pixels whose ray enters the asset's box)"
+        "rays rendered: shared against every view in full (all pixels; in-bounds: pixels whose ray enters the asset's box; \
+         for the live-path rows: each view's covered pixels, what the service renders without derived views); \
+         time: reprojection (live rows: the worker's whole derived view, leftovers included) against full renders"
     );
     println!(
         "| scenario | views | rays rendered / full | / full in-bounds | shared views: PSNR vs own full render, mean (min) | anchor: dB lost vs ground truth | reprojection / full render time |"

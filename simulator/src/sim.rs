@@ -32,11 +32,12 @@ impl Variant {
         Variant { label: policy.name().to_string(), config: SchedulerConfig::for_policy(policy) }
     }
 
-    /// NEPHELE with sharing and the history table off: what ordering, admission and
-    /// Heavy/Light placement achieve alone.
+    /// NEPHELE with sharing, derived views and the history table off: what ordering,
+    /// admission and Heavy/Light placement achieve alone.
     pub fn nephele_without_sharing() -> Variant {
         let mut config = SchedulerConfig::for_policy(Policy::Nephele);
         config.sharing = None;
+        config.derived_views = None;
         config.history_capacity = 0;
         Variant { label: "nephele-noshare".to_string(), config }
     }
@@ -598,7 +599,10 @@ mod tests {
         assert_eq!(percentile_sorted(&values, 0.99), 99.0);
         assert_eq!(percentile(&[3.0, 1.0, 2.0], 1.0), 3.0);
         assert_eq!(percentile_sorted(&[], 0.5), 0.0);
-        assert!(Variant::parse("nephele-noshare").is_ok_and(|v| v.config.sharing.is_none()));
+        assert!(
+            Variant::parse("nephele-noshare")
+                .is_ok_and(|v| v.config.sharing.is_none() && v.config.derived_views.is_none())
+        );
         assert!(Variant::parse("lottery").is_err());
         assert_eq!(Variant::defaults().len(), 5);
     }

@@ -31,7 +31,7 @@ pub struct Args {
     #[arg(long, value_name = "FILE")]
     workers: Option<PathBuf>,
     /// Policies to compare, comma-separated: nephele, round-robin, fifo, object-per-worker,
-    /// nephele-noshare (NEPHELE with sharing and history off). Default: all five.
+    /// nephele-noshare (NEPHELE with sharing, derived views and history off). Default: all five.
     #[arg(long, value_delimiter = ',')]
     policy: Vec<String>,
     /// Seed of the simulated randomness (worker jitter).
