@@ -254,8 +254,13 @@ fn the_window_size_streams_the_stage_in_device_pixels_and_follows_a_resize() {
     client::wait_streaming(&browser, Duration::from_secs(15)).expect("streams again");
 }
 
-#[test]
-fn the_immersive_vr_path_streams_both_eyes_at_the_headsets_size_and_returns_to_flat() {
+/// An immersive WebXR session against the injected XR mock, from its page button back to the
+/// flat page: `button` (`enter-vr` or `enter-ar`) asks for `xr_mode`; the new two-view
+/// session at the headset's size sends both eyes' poses, 64 mm apart, in pose mode `mode`;
+/// both eyes' halves of the layer are drawn (through the drawer's program: a program that
+/// fails to link logs an error), the button reads `exit_label`; ending the XR session
+/// returns the page to a flat mode-0 stream, with no page error on the way.
+fn immersive_round_trip(button: &str, xr_mode: &str, mode: u8, exit_label: &str) {
     let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
     let service = Service::start(true);
     let farm = &service.farm;
@@ -264,23 +269,27 @@ fn the_immersive_vr_path_streams_both_eyes_at_the_headsets_size_and_returns_to_f
     browser.add_script_on_new_document(client::MOCK_XR).expect("inject the XR device");
     browser.goto(&format!("{base}?size=640x480")).expect("open the client");
     client::wait_streaming(&browser, Duration::from_secs(15)).expect("flat streaming");
-    browser.wait_until("!document.getElementById('enter-vr').hidden", Duration::from_secs(5)).expect("Enter VR shown");
-    browser.execute("document.getElementById('enter-vr').click(); return null;", Vec::new()).expect("click");
+    browser
+        .wait_until(&format!("!document.getElementById('{button}').hidden"), Duration::from_secs(5))
+        .unwrap_or_else(|e| panic!("{button} shown: {e}"));
+    browser.execute(&format!("document.getElementById('{button}').click(); return null;"), Vec::new()).expect("click");
 
     // A new session with two views at the size the headset recommends per eye.
-    let offers = wait_for("the VR session", Duration::from_secs(15), || {
+    let offers = wait_for("the immersive session", Duration::from_secs(15), || {
         let offers = farm.offers();
         (offers.len() >= 2).then_some(offers)
     });
-    let vr = &offers[1];
+    let immersive = &offers[1];
     assert_eq!((offers[0].request.views, offers[0].request.width, offers[0].request.height), (1, 640, 480));
-    assert_eq!((vr.request.views, vr.request.width, vr.request.height), (2, 320, 240));
-    client::wait_streaming(&browser, Duration::from_secs(15)).expect("VR streaming");
-    // Both eyes' poses reach the farm as one two-view pose in VR mode, 64 mm apart.
+    assert_eq!((immersive.request.views, immersive.request.width, immersive.request.height), (2, 320, 240));
+    let asked = browser.execute("return window.__xrMode;", Vec::new()).expect("mode asked");
+    assert_eq!(asked, serde_json::json!(xr_mode));
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("immersive streaming");
+    // Both eyes' poses reach the farm as one two-view pose in the session's mode, 64 mm apart.
     let pose = wait_for("a two-view pose", Duration::from_secs(5), || {
-        farm.latest_pose(&vr.session_id).filter(|p| p.views.len() == 2)
+        farm.latest_pose(&immersive.session_id).filter(|p| p.views.len() == 2)
     });
-    assert_eq!((pose.mode, pose.view_size()), (1, (320, 240)));
+    assert_eq!((pose.mode, pose.view_size()), (mode, (320, 240)));
     let (left, right) = (eye(&pose, 0), eye(&pose, 1));
     let apart = left.iter().zip(right).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
     assert!((apart - 0.064).abs() < 1e-4, "eyes {left:?} and {right:?} are {apart} m apart");
@@ -292,6 +301,8 @@ fn the_immersive_vr_path_streams_both_eyes_at_the_headsets_size_and_returns_to_f
         )
         .expect("both eyes' viewports drawn");
     assert_eq!(drawn, serde_json::Value::Bool(true));
+    let label = browser.execute(&format!("return document.getElementById('{button}').textContent;"), Vec::new()).ok();
+    assert_eq!(label, Some(serde_json::json!(exit_label)));
 
     // Ending the XR session returns the page to a flat stream.
     browser.execute("window.__xrSession.end(); return null;", Vec::new()).expect("end");
@@ -302,60 +313,22 @@ fn the_immersive_vr_path_streams_both_eyes_at_the_headsets_size_and_returns_to_f
     let flat = &offers[2];
     assert_eq!((flat.request.views, flat.request.width, flat.request.height), (1, 640, 480));
     client::wait_streaming(&browser, Duration::from_secs(15)).expect("flat streaming again");
+    let pose = wait_for("a flat pose", Duration::from_secs(5), || farm.latest_pose(&flat.session_id));
+    assert_eq!(pose.mode, nephele_proto::pose::MODE_FLAT);
     let errors = browser.console_log().expect("console log");
     assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
 }
 
 #[test]
+fn the_immersive_vr_path_streams_both_eyes_at_the_headsets_size_and_returns_to_flat() {
+    immersive_round_trip("enter-vr", "immersive-vr", nephele_proto::pose::MODE_XR, "Exit VR");
+}
+
+#[test]
 fn the_immersive_ar_path_streams_both_eyes_as_ar_poses_and_returns_to_flat() {
-    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
-    let service = Service::start(true);
-    let farm = &service.farm;
-    let base = service.url.split('?').next().expect("url").to_string();
-    let browser = Browser::start().expect("headless Chromium");
-    browser.add_script_on_new_document(client::MOCK_XR).expect("inject the XR device");
-    browser.goto(&format!("{base}?size=640x480")).expect("open the client");
-    client::wait_streaming(&browser, Duration::from_secs(15)).expect("flat streaming");
-    browser.wait_until("!document.getElementById('enter-ar').hidden", Duration::from_secs(5)).expect("Enter AR shown");
-    browser.execute("document.getElementById('enter-ar').click(); return null;", Vec::new()).expect("click");
-
-    let offers = wait_for("the AR session", Duration::from_secs(15), || {
-        let offers = farm.offers();
-        (offers.len() >= 2).then_some(offers)
-    });
-    let ar = &offers[1];
-    assert_eq!((ar.request.views, ar.request.width, ar.request.height), (2, 320, 240));
-    let asked = browser.execute("return window.__xrMode;", Vec::new()).expect("mode asked");
-    assert_eq!(asked, serde_json::json!("immersive-ar"));
-    client::wait_streaming(&browser, Duration::from_secs(15)).expect("AR streaming");
-    // Both eyes' poses reach the farm as one two-view pose in AR mode (the composer paints
-    // the key colour behind the objects for it).
-    let pose = wait_for("a two-view AR pose", Duration::from_secs(5), || {
-        farm.latest_pose(&ar.session_id).filter(|p| p.views.len() == 2)
-    });
-    assert_eq!((pose.mode, pose.view_size()), (nephele_proto::pose::MODE_AR, (320, 240)));
-    // Each eye's half of the layer is drawn, through the keying shader (it compiled: a
-    // failed program would log a WebGL error).
-    browser
-        .wait_until(
-            "window.__xrViewports.some(v => v.join() === '0,0,320,240') && window.__xrViewports.some(v => v.join() === '320,0,320,240')",
-            Duration::from_secs(5),
-        )
-        .expect("both eyes' viewports drawn");
-    let label = browser.execute("return document.getElementById('enter-ar').textContent;", Vec::new()).ok();
-    assert_eq!(label, Some(serde_json::json!("Exit AR")));
-
-    browser.execute("window.__xrSession.end(); return null;", Vec::new()).expect("end");
-    let offers = wait_for("the flat session again", Duration::from_secs(15), || {
-        let offers = farm.offers();
-        (offers.len() >= 3).then_some(offers)
-    });
-    assert_eq!(offers[2].request.views, 1);
-    client::wait_streaming(&browser, Duration::from_secs(15)).expect("flat streaming again");
-    let flat = wait_for("a flat pose", Duration::from_secs(5), || farm.latest_pose(&offers[2].session_id));
-    assert_eq!(flat.mode, nephele_proto::pose::MODE_FLAT);
-    let errors = browser.console_log().expect("console log");
-    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
+    // AR poses make the composer paint the key colour behind the objects; the page's drawer
+    // keys it out (the key colour itself is checked on the flat page, whole-service test).
+    immersive_round_trip("enter-ar", "immersive-ar", nephele_proto::pose::MODE_AR, "Exit AR");
 }
 
 #[test]
