@@ -279,6 +279,10 @@ struct Task {
     /// Frames referencing it, plus one while it is in the history table.
     refs: u32,
     done: bool,
+    /// Its pixels ride on another task's batches (it is no key for others).
+    derived: bool,
+    /// The session whose frame created it.
+    creator: SessionId,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -1096,6 +1100,9 @@ impl Scheduler {
         let (views, objects, budget) = (s.views.clone(), s.objects.clone(), secs(s.period));
         self.stats.frames_released += 1;
         let mut parts = Vec::with_capacity(views.len() * objects.len());
+        // Tasks this frame creates: its own views are grouped by `plan_derived` afterwards,
+        // not derived from each other one by one here.
+        let mut created: Vec<TaskId> = Vec::new();
         for (vi, camera) in views.iter().enumerate() {
             for &oid in &objects {
                 let Some(bounds) = self.objects.get(&oid).map(|i| i.bounds) else { continue };
@@ -1108,8 +1115,18 @@ impl Scheduler {
                 });
                 let (tid, source) = match reuse.filter(|(tid, _)| self.tasks.contains_key(tid)) {
                     Some(found) => found,
-                    None => match self.create_task(camera, oid, key, budget, reference_rate) {
-                        Some(tid) => (tid, PartSource::Rendered),
+                    None => match self.create_task(sid, camera, oid, key, budget, reference_rate) {
+                        Some(tid) => match self.adjacent_key(tid, &created) {
+                            Some(key_task) if self.derive_from(key_task, tid) => {
+                                self.stats.views_derived += 1;
+                                self.stats.rays_derived += self.tasks.get(&tid).map_or(0, |t| t.rays);
+                                (tid, PartSource::Derived)
+                            }
+                            _ => {
+                                created.push(tid);
+                                (tid, PartSource::Rendered)
+                            }
+                        },
                         None => continue, // not in view
                     },
                 };
@@ -1187,6 +1204,7 @@ impl Scheduler {
     /// The TaskAssigner: `nhit` estimate, batches, class. `None` if the object is not in view.
     fn create_task(
         &mut self,
+        creator: SessionId,
         camera: &Camera,
         oid: ObjectId,
         key: Option<ResultKey>,
@@ -1227,6 +1245,8 @@ impl Scheduler {
             subscribers: Vec::new(),
             refs: 0,
             done: false,
+            derived: false,
+            creator,
         };
         self.tasks.insert(tid, task);
         if let Some(k) = key {
@@ -1327,7 +1347,7 @@ impl Scheduler {
     /// false, and nothing changed, otherwise.
     fn derive_from(&mut self, key: TaskId, derived: TaskId) -> bool {
         let (Some(k), Some(d)) = (self.tasks.get(&key), self.tasks.get(&derived)) else { return false };
-        let fresh = |t: &Task| t.in_flight == 0 && t.pending.len() == t.batches.len() && !t.done;
+        let fresh = |t: &Task| t.in_flight == 0 && t.pending.len() == t.batches.len() && !t.done && !t.derived;
         if key == derived || k.object != d.object || !fresh(k) || !fresh(d) {
             return false;
         }
@@ -1400,8 +1420,43 @@ impl Scheduler {
             t.pending = own.iter().copied().collect();
             t.remaining = own.len() + rider_count;
             t.batches = own;
+            t.derived = true;
         }
         true
+    }
+
+    /// A key for a view of another user (issue 16's adjacent users): the nearest task of the
+    /// same object, not yet dispatched and not derived itself, created by another session's
+    /// frame, whose camera is within the limit angle of `task`'s seen from the object's
+    /// centre. Only tasks that can be shared (`live`, with `sharing` on) are looked at. Not
+    /// the same session's earlier frame: a frame taken from the one before would complete
+    /// with it, and the older would only be superseded (half the frames shown).
+    fn adjacent_key(&self, task: TaskId, exclude: &[TaskId]) -> Option<TaskId> {
+        let limit = self.config.derived_views?.max_view_angle_deg.to_radians();
+        let t = self.tasks.get(&task)?;
+        let centre = self.objects.get(&t.object)?.bounds.center();
+        let direction = (t.camera.position() - centre).try_normalize()?;
+        let size = (t.camera.width(), t.camera.height());
+        let mut best: Option<(f64, TaskId)> = None;
+        for (&(object, _), &candidate) in &self.live {
+            if object != t.object || candidate == task || exclude.contains(&candidate) {
+                continue;
+            }
+            let Some(k) = self.tasks.get(&candidate) else { continue };
+            if k.creator == t.creator {
+                continue;
+            }
+            let fresh = k.in_flight == 0 && k.pending.len() == k.batches.len() && !k.done && !k.derived;
+            if !fresh || (k.camera.width(), k.camera.height()) != size {
+                continue;
+            }
+            let Some(other) = (k.camera.position() - centre).try_normalize() else { continue };
+            let angle = f64::from(direction.dot(other).clamp(-1.0, 1.0).acos());
+            if angle <= limit && best.is_none_or(|(a, id)| (angle, candidate) < (a, id)) {
+                best = Some((angle, candidate));
+            }
+        }
+        best.map(|(_, id)| id)
     }
 
     /// What the worker needs of the views riding on `batch` (those still needed).

@@ -721,7 +721,8 @@ fn views_too_far_apart_or_derivation_switched_off_render_in_full() {
         }
         let mut s = scheduler(cfg);
         s.add_worker(WorkerId(1), 1e7, ms(0)).expect("worker");
-        let eyes = stereo_pair(&camera_at(0.0), 0.064).expect("eyes");
+        // The headset stands far from the first user's views: its eyes pair with each other.
+        let eyes = stereo_pair(&camera_at(60.0), 0.064).expect("eyes");
         open(&mut s, 30.0, &views, ms(0));
         open(&mut s, 30.0, &eyes, ms(0));
         let first = s.tick(ms(0));
@@ -735,6 +736,29 @@ fn views_too_far_apart_or_derivation_switched_off_render_in_full() {
         let right = if derived { PartSource::Derived } else { PartSource::Rendered };
         assert_eq!(sources[1], vec![PartSource::Rendered, right]);
     }
+}
+
+#[test]
+fn a_user_two_degrees_from_another_rides_on_its_view_and_one_ten_degrees_away_does_not() {
+    let mut s = scheduler(config(Policy::Nephele));
+    s.add_worker(WorkerId(1), 1e7, ms(0)).expect("worker");
+    let first = open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    let near = open(&mut s, 30.0, &[camera_at(2.0)], ms(0));
+    let far = open(&mut s, 30.0, &[camera_at(10.0)], ms(0));
+    let actions = s.tick(ms(0));
+    let sent = dispatches(&actions);
+    // The near user's view rides on the first user's batches; the far one renders its own.
+    let riders: Vec<(SessionId, SessionId)> =
+        sent.iter().flat_map(|(_, b)| b.derived.iter().map(|d| (b.frames[0].0, d.frames[0].0))).collect();
+    assert!(!riders.is_empty() && riders.iter().all(|&r| r == (first, near)), "{riders:?}");
+    assert!(sent.iter().any(|(_, b)| b.frames[0].0 == far && b.derived.is_empty()));
+    let all = run_to_quiet(&mut s, actions, ms(1));
+    let done = completions(&all);
+    let source = |user: SessionId| done.iter().find(|c| c.0 == user).map(|c| c.2[0].source);
+    assert_eq!(source(first), Some(PartSource::Rendered));
+    assert_eq!(source(near), Some(PartSource::Derived));
+    assert_eq!(source(far), Some(PartSource::Rendered));
+    assert_eq!(s.stats().views_derived, 1);
 }
 
 #[test]
@@ -764,4 +788,20 @@ fn a_derived_view_another_user_shares_survives_its_key_being_dropped() {
     assert_eq!(done.len(), 1);
     assert_eq!(done[0].0, screen);
     assert_eq!(done[0].2[0].source, PartSource::Shared);
+}
+
+#[test]
+fn a_users_next_frame_never_rides_on_its_own_earlier_frame() {
+    let mut s = scheduler(config(Policy::Nephele));
+    // No worker yet: the first frame's task waits undispatched when the second is released.
+    let user = open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    let _ = s.tick(ms(0));
+    s.pose(user, &[camera_at(1.0)], ms(34)).expect("pose");
+    let _ = s.tick(ms(34));
+    s.add_worker(WorkerId(1), 1e7, ms(35)).expect("worker");
+    let first = s.tick(ms(35));
+    assert!(dispatches(&first).iter().all(|(_, b)| b.derived.is_empty()), "a frame rode on its predecessor");
+    let all = run_to_quiet(&mut s, first, ms(36));
+    assert!(completions(&all).iter().all(|(_, _, parts)| parts.iter().all(|p| p.source == PartSource::Rendered)));
+    assert_eq!(s.stats().views_derived, 0);
 }
