@@ -285,6 +285,14 @@ struct Task {
     creator: SessionId,
 }
 
+impl Task {
+    /// Nothing of it dispatched, finished or riding elsewhere: it may still become a key or
+    /// be derived.
+    fn is_fresh(&self) -> bool {
+        self.in_flight == 0 && self.pending.len() == self.batches.len() && !self.done && !self.derived
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum BatchState {
     Pending,
@@ -1347,8 +1355,7 @@ impl Scheduler {
     /// false, and nothing changed, otherwise.
     fn derive_from(&mut self, key: TaskId, derived: TaskId) -> bool {
         let (Some(k), Some(d)) = (self.tasks.get(&key), self.tasks.get(&derived)) else { return false };
-        let fresh = |t: &Task| t.in_flight == 0 && t.pending.len() == t.batches.len() && !t.done && !t.derived;
-        if key == derived || k.object != d.object || !fresh(k) || !fresh(d) {
+        if key == derived || k.object != d.object || !k.is_fresh() || !d.is_fresh() {
             return false;
         }
         if (k.camera.width(), k.camera.height()) != (d.camera.width(), d.camera.height()) {
@@ -1446,8 +1453,7 @@ impl Scheduler {
             if k.creator == t.creator {
                 continue;
             }
-            let fresh = k.in_flight == 0 && k.pending.len() == k.batches.len() && !k.done && !k.derived;
-            if !fresh || (k.camera.width(), k.camera.height()) != size {
+            if !k.is_fresh() || (k.camera.width(), k.camera.height()) != size {
                 continue;
             }
             let Some(other) = (k.camera.position() - centre).try_normalize() else { continue };

@@ -524,6 +524,11 @@ async fn flush(conn: &mut Connection<TcpStream>, outbox: &mut Vec<Message>) -> R
     conn.flush().await
 }
 
+/// A kernel's work as the protocol carries it.
+fn wire_stats(stats: nephele_kernels::kernel::KernelStats) -> KernelStats {
+    KernelStats { rays: stats.rays, rays_hit: stats.rays_hit, queries: stats.queries }
+}
+
 /// Loads, renders, checks and sends one batch; returns what to tell the master.
 async fn render_and_deliver(
     shared: &Arc<Shared>,
@@ -570,7 +575,7 @@ async fn render_and_deliver(
     if cancelled.load(Ordering::Acquire) {
         return Err((ErrorCode::Cancelled, "cancelled while rendering".into()));
     }
-    let mut stats = KernelStats { rays: stats.rays, rays_hit: stats.rays_hit, queries: stats.queries };
+    let mut stats = wire_stats(stats);
     let render_time_us = render_time.as_micros() as u64;
     let mut count = pixels.len() as u32;
     // The derived views first: the master hears `BatchDone` after the batch's own result, so
@@ -592,7 +597,7 @@ async fn render_and_deliver(
             opacity: made.results.opacity,
             depth: made.results.depth,
             render_time_us,
-            stats: KernelStats { rays: made.stats.rays, rays_hit: made.stats.rays_hit, queries: made.stats.queries },
+            stats: wire_stats(made.stats),
             encoding: shared.result_encoding,
         });
         validate::message(&result)
