@@ -9,9 +9,13 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail, ensure};
+use nephele_geometry::camera::Camera;
+use nephele_kernels::environment::{GiKernel, GiServeSettings};
 use nephele_kernels::gi::{GI_INPUTS, GiModel};
+use nephele_kernels::kernel::{RayKernel, all_pixels};
 use nephele_nn::UNetWorkspace;
-use nephele_train::gi::stereo::{StereoEvaluation, evaluate_pairs, load_pairs, shade_pairs};
+use nephele_train::gi::data::read_manifest;
+use nephele_train::gi::stereo::{StereoEvaluation, StereoSample, evaluate_pairs, load_pairs, shade_pairs};
 
 use crate::Progress;
 
@@ -35,6 +39,111 @@ pub struct GiArgs {
     /// Timed repetitions of each (the median is reported).
     #[arg(long, default_value_t = 5)]
     repeats: usize,
+    /// Samples per pixel of the served G-buffer and direct light (the farm kernel's default).
+    #[arg(long, default_value_t = 2)]
+    served_spp: u32,
+}
+
+/// The models as the farm serves them ([`GiKernel`]: the G-buffer and direct light rendered
+/// at `--served-spp` at 1 and 0.5 of the view's resolution, then the U-Net, upsampled), on
+/// the evaluation pairs' cameras against path tracing, and the whole kernel's cost at the
+/// timed size: one stereo pair against two single-eye views.
+fn served(
+    args: &GiArgs,
+    teacher: &GiModel,
+    stereo: &GiModel,
+    pairs: &[StereoSample],
+    row: impl Fn(&str, &StereoEvaluation),
+) -> Result<()> {
+    if teacher.header.scene.is_none() {
+        println!("served: the model names no scene (trained before serving existed); skipped");
+        return Ok(());
+    }
+    let manifest = read_manifest(&args.data)?;
+    let camera = |name: String| -> Result<Camera> {
+        let frame = manifest.frames.iter().find(|f| f.name == name).with_context(|| format!("no frame {name}"))?;
+        Ok(manifest.spec.camera(frame)?)
+    };
+    // Each pair's cameras and moment of the animation (the ball rolls).
+    let cameras: Vec<([Camera; 2], f32)> = pairs
+        .iter()
+        .map(|p| {
+            let name = format!("{}_left", p.name);
+            let time = manifest.frames.iter().find(|f| f.name == name).map_or(0.0, |f| f.time);
+            Ok(([camera(name)?, camera(format!("{}_right", p.name))?], time))
+        })
+        .collect::<Result<_>>()?;
+    for scale in [1.0, 0.5] {
+        let (mut single, mut paired) = (Vec::new(), Vec::new());
+        for ([l, r], time_s) in &cameras {
+            let settings = GiServeSettings { samples_per_pixel: args.served_spp, scale, time_s: *time_s };
+            let kernel = GiKernel::new(teacher.clone(), Some(stereo.clone()), settings)?;
+            let all = all_pixels(l);
+            let eye = |c: &Camera| kernel.render_pixels(c, &all).map(|(p, _)| p.color);
+            single.push([eye(l)?, eye(r)?]);
+            let ([a, b], _) = kernel.render_pair((l, &all), (r, &all)).context("a stereo pass")??;
+            paired.push([a.color, b.color]);
+        }
+        let tag = format!("served at {scale}x, {} spp", args.served_spp);
+        row(&format!("{tag}, single-eye twice"), &evaluate_pairs(pairs, &single));
+        row(&format!("{tag}, stereo pass"), &evaluate_pairs(pairs, &paired));
+    }
+    // Cost of the whole kernel (G-buffer + network + upsampling) at the timed size.
+    let (w, h) = args.size;
+    let ([l, r], _) = &cameras[0];
+    let sized = |c: &Camera| Camera::from_fov_y(w, h, c.fov_y(), c.camera_to_world());
+    let (l, r) = (sized(l)?, sized(r)?);
+    let all = all_pixels(&l);
+    for scale in [1.0, 0.5] {
+        let settings = GiServeSettings { samples_per_pixel: args.served_spp, scale, time_s: 0.0 };
+        let kernel = GiKernel::new(teacher.clone(), Some(stereo.clone()), settings)?;
+        let (mut two, mut one) = (Vec::new(), Vec::new());
+        for _ in 0..args.repeats.max(1) + 1 {
+            let t = Instant::now();
+            kernel.render_pixels(&l, &all)?;
+            kernel.render_pixels(&r, &all)?;
+            two.push(t.elapsed().as_secs_f64() * 1e3);
+            let t = Instant::now();
+            kernel.render_pair((&l, &all), (&r, &all)).context("a stereo pass")??;
+            one.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        let (two, one) = (median(&mut two), median(&mut one));
+        println!(
+            "served kernel, CPU, {w}x{h} per eye at {scale}x, {} spp: two single-eye views {two:.1} ms, one stereo pair {one:.1} ms: ratio {:.3}; {:.3} us per view pixel (pair)",
+            args.served_spp,
+            one / two,
+            1e3 * one / (2.0 * f64::from(w) * f64::from(h))
+        );
+        // Two bands of rows (two workers) against the whole view: the seam's cost.
+        let half = all.len() / 2;
+        let (whole, _) = kernel.render_pixels(&l, &all)?;
+        let (top, _) = kernel.render_pixels(&l, &all[..half])?;
+        let (bottom, _) = kernel.render_pixels(&l, &all[half..])?;
+        let banded: Vec<[f32; 3]> = top.color.iter().chain(&bottom.color).copied().collect();
+        let mse = whole
+            .color
+            .iter()
+            .zip(&banded)
+            .flat_map(|(a, b)| {
+                (0..3).map(move |c| {
+                    let d = a[c].clamp(0.0, 1.0) - b[c].clamp(0.0, 1.0);
+                    f64::from(d * d)
+                })
+            })
+            .sum::<f64>()
+            / (3 * all.len()) as f64;
+        println!(
+            "  two bands of rows against the whole view at {scale}x: PSNR {:.2} dB (linear, clamped; the G-buffer's noise differs per band)",
+            10.0 * (1.0 / mse.max(1e-12)).log10()
+        );
+    }
+    Ok(())
+}
+
+fn median(v: &mut Vec<f64>) -> f64 {
+    v.remove(0);
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
 }
 
 fn load(path: &std::path::Path) -> Result<GiModel> {
@@ -89,11 +198,6 @@ pub fn run(args: GiArgs, _progress: &dyn Progress) -> Result<()> {
         stereo.network.forward(w, h, &both, &mut ws)?;
         one_stereo.push(t.elapsed().as_secs_f64() * 1e3);
     }
-    let median = |v: &mut Vec<f64>| {
-        v.remove(0);
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
     let (single_ms, stereo_ms) = (median(&mut two_single), median(&mut one_stereo));
     println!(
         "CPU, {w}x{h} per eye, {} threads: two single-eye passes {single_ms:.1} ms, one stereo pass {stereo_ms:.1} ms: ratio {:.3} (paper 0.53 on a GPU)",
@@ -130,6 +234,7 @@ pub fn run(args: GiArgs, _progress: &dyn Progress) -> Result<()> {
         student.psnr[0] - twice.psnr[0],
         student.psnr[1] - twice.psnr[1]
     );
+    served(&args, &teacher, &stereo, &pairs, row)?;
     if let Some(path) = &args.stereo_no_coherence {
         let plain = load(path)?;
         ensure!(plain.eyes() == 2, "{} is not a stereo model", path.display());

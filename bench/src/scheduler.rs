@@ -67,7 +67,10 @@ fn measure(policy: Policy, users: usize, pending: usize, workers: u32, rounds: u
         let a = i as f32 * 0.9;
         let center = Vec3::new(0.6 * a.cos(), 0.6 * a.sin(), 0.1 * (i % 5) as f32);
         let bounds = Bounds { min: center - Vec3::splat(0.08), max: center + Vec3::splat(0.08) };
-        s.register_object(ObjectId(i as u32), ObjectInfo { bounds, occupancy: None, cost_per_ray: 1.0 })?;
+        s.register_object(
+            ObjectId(i as u32),
+            ObjectInfo { bounds, occupancy: None, cost_per_ray: 1.0, full_frame: false },
+        )?;
     }
     let objects: Vec<ObjectId> = (0..objects_per_user as u32).map(ObjectId).collect();
     for u in 0..users {

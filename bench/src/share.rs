@@ -277,7 +277,10 @@ fn serve_live(
     use std::collections::HashMap;
     let mut scheduler = Scheduler::new(SchedulerConfig::default())?;
     let object = ObjectId(1);
-    scheduler.register_object(object, ObjectInfo { bounds: *bounds, occupancy: None, cost_per_ray: 1.0 })?;
+    scheduler.register_object(
+        object,
+        ObjectInfo { bounds: *bounds, occupancy: None, cost_per_ray: 1.0, full_frame: false },
+    )?;
     scheduler.add_worker(nephele_scheduler::WorkerId(1), 1e9, Time::ZERO)?;
     let session = scheduler.open_session(SessionSpec { target_fps: 1.0, objects: vec![object] }, Time::ZERO)?;
     scheduler.pose(session, cameras, Time::ZERO)?;

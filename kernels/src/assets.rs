@@ -81,6 +81,7 @@ pub const FORMATS: &[AssetFormat] = &[
     AssetFormat { extension: "nolf", kernel_kind: "inolf", magic: Some(crate::inolf::asset::MAGIC), load: load_inolf },
     AssetFormat { extension: "ngp", kernel_kind: "ngp", magic: Some(crate::ngp::FILE_MAGIC), load: load_ngp },
     AssetFormat { extension: "nelf", kernel_kind: "nelf", magic: Some(crate::nelf::NELF_MAGIC), load: load_nelf },
+    AssetFormat { extension: "ngi", kernel_kind: "gi", magic: Some(GI_MAGIC8), load: load_gi },
     AssetFormat { extension: "glb", kernel_kind: "pathtrace", magic: None, load: load_gltf },
     AssetFormat { extension: "gltf", kernel_kind: "pathtrace", magic: None, load: load_gltf },
 ];
@@ -110,6 +111,24 @@ fn load_nelf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, L
     kernel.set_simd(options.simd);
     if let Some(device) = &options.accelerator {
         tracing::warn!(asset = %path.display(), device = %device.label(), "NeLF has no GPU kernel yet: it runs on the CPU");
+    }
+    Ok(Arc::new(kernel))
+}
+
+/// The first eight bytes of a `.ngi` file: magic and format version.
+const GI_MAGIC8: [u8; 8] = {
+    let v = crate::gi::GI_FORMAT_VERSION.to_le_bytes();
+    let m = crate::gi::GI_MAGIC;
+    [m[0], m[1], m[2], m[3], v[0], v[1], v[2], v[3]]
+};
+
+/// An environment's GI model (and its `.stereo.ngi` twin beside it); CPU only for now (the
+/// U-Net has no WGSL kernel yet).
+fn load_gi(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
+    let settings = crate::environment::GiServeSettings::default();
+    let kernel = crate::environment::GiKernel::load(path, settings).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    if let Some(device) = &options.accelerator {
+        tracing::warn!(asset = %path.display(), device = %device.label(), "the GI U-Net has no GPU kernel yet: it runs on the CPU");
     }
     Ok(Arc::new(kernel))
 }

@@ -101,6 +101,10 @@ pub fn encode_target(radiance: f32) -> f32 {
 pub struct GiHeader {
     pub network: UNetConfig,
     pub features: GiFeatures,
+    /// The built-in scene the model was trained on (the environment a worker renders the
+    /// G-buffer of when it serves the model); absent in models from before serving existed.
+    #[serde(default)]
+    pub scene: Option<String>,
     /// How it was trained (free-form).
     #[serde(default)]
     pub training: serde_json::Value,
@@ -135,7 +139,7 @@ impl GiModel {
         if !(features.scale.is_finite() && features.scale > 0.0 && features.centre.iter().all(|c| c.is_finite())) {
             return Err(GiModelError::Format(format!("feature scales {features:?}")));
         }
-        Ok(GiModel { header: GiHeader { network: config.clone(), features, training }, network })
+        Ok(GiModel { header: GiHeader { network: config.clone(), features, scene: None, training }, network })
     }
 
     /// Eyes per pass: 1 (single-eye model) or 2 (stereo).
@@ -189,7 +193,9 @@ impl GiModel {
         }
         let params = rest.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
         let network = UNet::from_params(header.network.clone(), params)?;
-        GiModel::new(network, header.features, header.training)
+        let mut model = GiModel::new(network, header.features, header.training)?;
+        model.header.scene = header.scene;
+        Ok(model)
     }
 
     pub fn save(&self, path: &Path) -> Result<(), GiModelError> {

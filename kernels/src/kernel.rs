@@ -53,6 +53,23 @@ pub trait RayKernel: Send + Sync + Debug {
     /// Renders `pixels` (indices `y * width + x` of `camera`'s image). Implementations must
     /// call [`validate_pixels`] (or check the same) before touching memory.
     fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError>;
+
+    /// Renders two views (a headset's eyes) in one pass, where the kernel has such a pass (the
+    /// stereo GI model: one pass costs about half of two); `None`: render them one by one.
+    fn render_pair(
+        &self,
+        left: (&Camera, &[u32]),
+        right: (&Camera, &[u32]),
+    ) -> Option<Result<([PixelResults; 2], KernelStats), KernelError>> {
+        let _ = (left, right);
+        None
+    }
+
+    /// Whether the kernel's cost is a whole view whatever pixels are asked (an image-space
+    /// network such as the GI U-Net): then a derived view is rendered, not reprojected.
+    fn shades_whole_views(&self) -> bool {
+        false
+    }
 }
 
 /// A full frame's results (pixels in [`all_pixels`] order) as an image the way datasets store

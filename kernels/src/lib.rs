@@ -9,7 +9,8 @@
 //! * [`nelf`]: NeLF (R2L): a light field distilled from the radiance field, one query of a
 //!   deep residual MLP per ray, and its `.nelf` asset;
 //! * [`gi`]: the stereo global-illumination model (a U-Net over G-buffers) and its `.ngi`
-//!   file;
+//!   file; [`environment`]: a room shaded by it as a farm kernel (G-buffer, one stereo pass
+//!   for a pair of eyes, opaque pixels with depth);
 //! * [`assets`]: the one registry of asset formats, shared by the worker and `nephele render`.
 //!
 //! Depends on `nephele-geometry`, `nephele-imaging`, `nephele-nn` and `nephele-pathtracer`
@@ -17,6 +18,7 @@
 //! links this crate and nothing that trains.
 
 pub mod assets;
+pub mod environment;
 pub mod gi;
 pub mod inolf;
 pub mod kernel;

@@ -50,6 +50,14 @@ use crate::sessions::SessionRequest;
 pub const WIRE_NEAR: f32 = 0.01;
 pub const WIRE_FAR: f32 = 1000.0;
 
+/// Cost of one pixel of an environment in the unit of the workers' measured throughput (an
+/// i-NOLF ray of the default scene). The GI kernel at its defaults (half resolution, the
+/// G-buffer at 2 samples, the U-Net's 29,568 multiply-adds per shaded pixel) takes 1.1-1.3
+/// us of CPU per view pixel (`nephele bench gi`, BENCHMARKS.md "environment served by the
+/// farm"), against 2.2 us per dispatched ray the farm measured on the default scene: about
+/// half a ray; 1 keeps it on the safe side of admission (the scene's rays vary 2x).
+pub const ENVIRONMENT_COST_PER_PIXEL: f64 = 1.0;
+
 /// Poses remembered per session, to tell which pose a completed frame was rendered for
 /// (1.3 s at the client's 50 Hz).
 const POSE_MEMORY: usize = 64;
@@ -185,7 +193,9 @@ impl Farm {
         let mut scheduler = Scheduler::new(config.scheduler.clone())?;
         for object in catalog.objects() {
             let occupancy = catalog.occupancy(&object.asset).cloned();
-            let info = ObjectInfo { bounds: object.bounds, occupancy, cost_per_ray: 1.0 };
+            let full_frame = catalog.is_environment(&object.asset);
+            let cost_per_ray = if full_frame { ENVIRONMENT_COST_PER_PIXEL } else { 1.0 };
+            let info = ObjectInfo { bounds: object.bounds, occupancy, cost_per_ray, full_frame };
             scheduler.register_object(ObjectId(object.id), info)?;
         }
         let catalog = Arc::new(catalog);

@@ -17,7 +17,11 @@
 //! Built in: `default`, three objects side by side (the matte knot on the left, the glossy
 //! pair on the right, the glass shell behind them; see [`default_layout`]), and one
 //! single-object scene per built-in object scene (`diffuse`, `glossy`, `furry`, `shell`,
-//! `assembly`, `furnace`).
+//! `assembly`, `furnace`), and two scenes with an environment (issue 13): `room-day` and
+//! `room-night`, the furnished room shaded by its stereo GI model (the workers' asset
+//! `room-day.ngi`, `room-night.ngi`; without one, the path-traced room) with the matte knot
+//! standing in it ([`ROOM_OBJECT`]). An environment is a full-frame object for the scheduler:
+//! its views are rendered whole and fused behind the objects by depth.
 
 use glam::Vec3;
 use nephele_geometry::Bounds;
@@ -33,6 +37,17 @@ pub const BUILTIN_OBJECTS: [&str; 6] = ["diffuse", "glossy", "furry", "shell", "
 
 /// The `default` scene's objects: left, right, behind.
 pub const DEFAULT_OBJECTS: [&str; 3] = ["diffuse", "glossy", "shell"];
+
+/// The environments: built-in interiors served by a GI model (or path traced).
+pub const BUILTIN_ENVIRONMENTS: [&str; 2] = ["room-day", "room-night"];
+
+/// The object standing in the room scenes and where: the knot (2.5 m across) above the
+/// middle of the 5 x 4 m floor, clear of the floor and the ceiling.
+pub const ROOM_OBJECT: (&str, [f32; 3]) = ("diffuse", [0.0, 0.0, 1.3]);
+
+/// The room scenes' first view: 1.9 m from the knot's axis, so that a camera orbiting the
+/// target (the loadgen's scripted user, the page's drag) stays inside the 5 x 4 m room.
+pub const ROOM_VIEW: SceneView = SceneView { eye: [1.55, -1.1, 1.75], target: [0.0, 0.0, 1.1], fov_y_deg: 66.0 };
 
 /// Free space between the boxes of the `default` scene's objects, metres.
 pub const DEFAULT_GAP: f32 = 0.2;
@@ -82,6 +97,8 @@ pub struct Catalog {
     scenes: Vec<SceneDef>,
     /// Occupancy grids by asset, over the asset's own bounds (so every placement shares one).
     occupancy: Vec<(String, OccupancyGrid)>,
+    /// Assets that are environments (rendered as whole views behind everything).
+    environments: Vec<String>,
 }
 
 impl Catalog {
@@ -129,7 +146,25 @@ impl Catalog {
             });
             catalog.add_scene(name, vec![(name.to_string(), Vec3::ZERO, *bounds)], view)?;
         }
+        let (object, at) = ROOM_OBJECT;
+        let object_bounds = bounds_of(object)?;
+        for name in BUILTIN_ENVIRONMENTS {
+            let room =
+                scenes::builtin(name).map_err(|e| CatalogError::Asset { asset: name.into(), reason: e.to_string() })?;
+            let room_bounds = mesh_bounds(name, &room.scene)?;
+            catalog.environments.push(name.to_string());
+            catalog.add_scene(
+                name,
+                vec![(name.to_string(), Vec3::ZERO, room_bounds), (object.to_string(), Vec3::from(at), object_bounds)],
+                Some(ROOM_VIEW),
+            )?;
+        }
         Ok(catalog)
+    }
+
+    /// Whether `asset` is an environment (a full-frame object).
+    pub fn is_environment(&self, asset: &str) -> bool {
+        self.environments.iter().any(|e| e == asset)
     }
 
     /// Adds a scene of `(asset, translation, bounds in the asset's own coordinates)`. Objects
@@ -301,6 +336,27 @@ mod tests {
         assert_eq!(names[0], "default");
         for object in BUILTIN_OBJECTS {
             assert!(names.contains(&object), "{object}");
+            assert!(!catalog.is_environment(object));
+        }
+        // The rooms: the environment (its bounds the room's, at the origin) and the knot
+        // inside it, clear of the floor and the ceiling; the first view inside the room.
+        for room in BUILTIN_ENVIRONMENTS {
+            assert!(catalog.is_environment(room));
+            let scene = catalog.scene(room).expect("room scene");
+            let [env, knot] = [0, 1].map(|i| catalog.object(scene.objects[i]).expect("object"));
+            assert_eq!(env.asset, room);
+            assert_eq!(knot.asset, ROOM_OBJECT.0);
+            assert!(env.bounds.min.cmple(knot.bounds.min).all() && knot.bounds.max.cmple(env.bounds.max).all());
+            assert!(knot.bounds.min.z > 0.1 && knot.bounds.max.z < env.bounds.max.z - 0.1, "{:?}", knot.bounds);
+            // The first view, and the circle a camera orbiting its target draws, inside.
+            let (eye, target) = (Vec3::from(scene.view.eye), Vec3::from(scene.view.target));
+            let radius = (eye - target).truncate().length();
+            let inner = Bounds { min: env.bounds.min + 0.05, max: env.bounds.max - 0.05 };
+            for k in 0..32 {
+                let a = k as f32 * std::f32::consts::TAU / 32.0;
+                let p = Vec3::new(target.x + radius * a.cos(), target.y + radius * a.sin(), eye.z);
+                assert!(inner.min.cmplt(p).all() && p.cmplt(inner.max).all(), "{p} leaves the room");
+            }
         }
         let default = catalog.scene("default").expect("default");
         assert_eq!(default.objects.len(), 3);

@@ -344,6 +344,18 @@ fn slab_x_range(hull: &[[f64; 2]], ya: f64, yb: f64) -> Option<(f64, f64)> {
 /// Cuts a pixel set into batches of at most `max_rays` pixels, each again a list of
 /// rectangles: whole rectangles where they fit, rows of a rectangle otherwise, pieces of a row
 /// only for rows wider than `max_rays`. The batches partition the set exactly.
+/// `bands` horizontal bands of whole rows of the image (an environment's view split over
+/// workers; the kernel shades each band with a margin of rows around it).
+pub fn split_rows(width: u32, height: u32, bands: u32) -> Vec<PixelSet> {
+    let bands = bands.clamp(1, height.max(1));
+    (0..bands)
+        .filter_map(|k| {
+            let (y0, y1) = (k * height / bands, (k + 1) * height / bands);
+            PixelSet::new(width, height, vec![PixelRect { x0: 0, y0, x1: width, y1 }])
+        })
+        .collect()
+}
+
 pub fn split_batches(set: &PixelSet, max_rays: u32) -> Vec<PixelSet> {
     let max = u64::from(max_rays.max(1));
     let mut batches = Vec::new();

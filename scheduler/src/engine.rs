@@ -69,6 +69,12 @@ pub struct ObjectInfo {
     /// Cost of one ray relative to the unit the workers' throughput is measured in (1.0 = the
     /// kernel the throughput was measured with).
     pub cost_per_ray: f64,
+    /// An image-space kernel (the environment's stereo GI U-Net, issue 13): its tasks cover
+    /// every pixel of the view (an environment has matter behind every pixel) in bands of
+    /// whole rows, one per worker (a convolutional network needs its neighbourhood: the
+    /// kernel shades a margin of rows around its band), and a stereo frame's two eyes share
+    /// their bands (one pass of the stereo model, the right eye riding as a derived view).
+    pub full_frame: bool,
 }
 
 /// What a client asks for when it opens a session.
@@ -1220,7 +1226,14 @@ impl Scheduler {
         reference_rate: Option<f64>,
     ) -> Option<TaskId> {
         let info = self.objects.get(&oid)?;
-        let coverage = assign::estimate_coverage(camera, &info.bounds, info.occupancy.as_ref(), self.config.band_rows)?;
+        let whole = info.full_frame;
+        let coverage = if whole {
+            let (w, h) = (camera.width(), camera.height());
+            let mean_depth = camera.view_depth(info.bounds.center()).max(0.0);
+            assign::Coverage { pixels: PixelSet::full(w, h), rays: u64::from(w) * u64::from(h), mean_depth }
+        } else {
+            assign::estimate_coverage(camera, &info.bounds, info.occupancy.as_ref(), self.config.band_rows)?
+        };
         let cost = info.cost_per_ray;
         let estimate = reference_rate.map_or(0.0, |rate| coverage.rays as f64 * cost / rate);
         let class = assign::classify(estimate, budget, self.config.heavy_fraction);
@@ -1230,7 +1243,7 @@ impl Scheduler {
         };
         let tid = TaskId(self.next_task);
         self.next_task += 1;
-        let batches = self.add_batches(tid, &coverage.pixels, cost);
+        let batches = self.add_batches(tid, &coverage.pixels, cost, whole);
         self.stats.tasks_created += 1;
         self.stats.rays_created += coverage.rays;
         match class {
@@ -1264,8 +1277,18 @@ impl Scheduler {
     }
 
     /// Splits `pixels` into pending batches of task `tid` (the task's books are the caller's).
-    fn add_batches(&mut self, tid: TaskId, pixels: &PixelSet, cost: f64) -> Vec<BatchId> {
-        let pieces = assign::split_batches(pixels, self.config.max_batch_rays);
+    /// `whole` (a full-frame object's view): bands of whole rows, one per worker but none
+    /// under `max_batch_rays` pixels (each band costs its kernel a margin of rows).
+    fn add_batches(&mut self, tid: TaskId, pixels: &PixelSet, cost: f64, whole: bool) -> Vec<BatchId> {
+        let pieces = if whole && pixels.len() == u64::from(pixels.width()) * u64::from(pixels.height()) {
+            let most = (pixels.len() / u64::from(self.config.max_batch_rays)).max(1);
+            let bands = (self.workers.len() as u64).clamp(1, most) as u32;
+            assign::split_rows(pixels.width(), pixels.height(), bands)
+        } else if whole {
+            vec![pixels.clone()]
+        } else {
+            assign::split_batches(pixels, self.config.max_batch_rays)
+        };
         let mut batches = Vec::with_capacity(pieces.len());
         for pixels in pieces {
             let id = BatchId(self.next_batch);
@@ -1289,6 +1312,10 @@ impl Scheduler {
         batches
     }
 
+    fn is_full_frame(&self, object: ObjectId) -> bool {
+        self.objects.get(&object).is_some_and(|o| o.full_frame)
+    }
+
     fn derived_work_fraction(&self) -> f64 {
         self.config.derived_views.map_or(1.0, |d| d.work_fraction)
     }
@@ -1299,9 +1326,10 @@ impl Scheduler {
     /// the key, seen from the object's centre; the others ride on the key's batches (see
     /// [`Self::derive_from`]).
     fn plan_derived(&mut self, parts: &mut [FramePart]) {
+        self.pair_full_frame_eyes(parts);
         let Some(config) = self.config.derived_views else { return };
         let limit = config.max_view_angle_deg.to_radians();
-        let objects: BTreeSet<ObjectId> = parts.iter().map(|p| p.object).collect();
+        let objects: BTreeSet<ObjectId> = parts.iter().map(|p| p.object).filter(|&o| !self.is_full_frame(o)).collect();
         for oid in objects {
             let Some(centre) = self.objects.get(&oid).map(|o| o.bounds.center()) else { continue };
             let candidates: Vec<(usize, glam::Vec3)> = parts
@@ -1344,6 +1372,34 @@ impl Scheduler {
                     }
                 }
                 start = end;
+            }
+        }
+    }
+
+    /// A stereo frame's two eyes of a full-frame object (the environment) in one batch: the
+    /// right eye rides on the left eye's batch, whatever the angle between them, so that the
+    /// worker shades both in one pass of the stereo GI model (the paper's point: one stereo
+    /// pass costs about half of two single-eye passes). On with or without reprojected views
+    /// (`derived_views`), which are a different thing; only for two views (a headset), not a
+    /// quilt, whose views are farther apart than the eyes the stereo model was trained on.
+    fn pair_full_frame_eyes(&mut self, parts: &mut [FramePart]) {
+        let objects: BTreeSet<ObjectId> = parts.iter().map(|p| p.object).filter(|&o| self.is_full_frame(o)).collect();
+        for oid in objects {
+            let eyes: Vec<usize> = parts
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| p.object == oid && p.source == PartSource::Rendered)
+                .map(|(i, _)| i)
+                .collect();
+            let views: BTreeSet<u32> = parts.iter().filter(|p| p.object == oid).map(|p| p.view).collect();
+            if eyes.len() != 2 || views.len() != 2 {
+                continue;
+            }
+            let (left, right) = (eyes[0], eyes[1]);
+            if self.derive_from(parts[left].task, parts[right].task) {
+                parts[right].source = PartSource::Derived;
+                self.stats.views_derived += 1;
+                self.stats.rays_derived += parts[right].rays;
             }
         }
     }
@@ -1412,7 +1468,7 @@ impl Scheduler {
             }
         }
         let own = match PixelSet::new(width, height, outside) {
-            Some(set) if !set.is_empty() => self.add_batches(derived, &set, cost),
+            Some(set) if !set.is_empty() => self.add_batches(derived, &set, cost, false),
             _ => Vec::new(),
         };
         let fraction = self.derived_work_fraction();
@@ -1441,6 +1497,9 @@ impl Scheduler {
     fn adjacent_key(&self, task: TaskId, exclude: &[TaskId]) -> Option<TaskId> {
         let limit = self.config.derived_views?.max_view_angle_deg.to_radians();
         let t = self.tasks.get(&task)?;
+        if self.is_full_frame(t.object) {
+            return None; // an image-space kernel's views are not reprojected
+        }
         let centre = self.objects.get(&t.object)?.bounds.center();
         let direction = (t.camera.position() - centre).try_normalize()?;
         let size = (t.camera.width(), t.camera.height());
@@ -1506,8 +1565,8 @@ impl Scheduler {
             if t.done {
                 continue;
             }
-            let cost = t.cost;
-            let ids = self.add_batches(rider.task, &rider.pixels, cost);
+            let (cost, whole) = (t.cost, self.is_full_frame(t.object));
+            let ids = self.add_batches(rider.task, &rider.pixels, cost, whole);
             let added = ids.len();
             if let Some(t) = self.tasks.get_mut(&rider.task) {
                 t.remaining = t.remaining.saturating_sub(1) + added;

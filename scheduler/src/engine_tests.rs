@@ -17,6 +17,7 @@ fn unit_object(center: Vec3, half: f32, cost: f64) -> ObjectInfo {
         bounds: Bounds { min: center - Vec3::splat(half), max: center + Vec3::splat(half) },
         occupancy: None,
         cost_per_ray: cost,
+        full_frame: false,
     }
 }
 
@@ -445,10 +446,19 @@ fn bad_input_is_rejected_with_clear_errors() {
     assert_eq!(s.batch_done(other, batch, ms(2)), Err(SchedError::NotAssigned { batch, worker: other }));
     assert_eq!(s.batch_failed(other, batch, ms(2)), Err(SchedError::NotAssigned { batch, worker: other }));
     // Objects: NaN bounds, inverted box, zero cost, a different object under a used id.
-    let nan = ObjectInfo { bounds: Bounds { min: Vec3::NAN, max: Vec3::ONE }, occupancy: None, cost_per_ray: 1.0 };
+    let nan = ObjectInfo {
+        bounds: Bounds { min: Vec3::NAN, max: Vec3::ONE },
+        occupancy: None,
+        cost_per_ray: 1.0,
+        full_frame: false,
+    };
     assert!(matches!(s.register_object(ObjectId(5), nan), Err(SchedError::InvalidObject { .. })));
-    let inverted =
-        ObjectInfo { bounds: Bounds { min: Vec3::ONE, max: Vec3::ZERO }, occupancy: None, cost_per_ray: 1.0 };
+    let inverted = ObjectInfo {
+        bounds: Bounds { min: Vec3::ONE, max: Vec3::ZERO },
+        occupancy: None,
+        cost_per_ray: 1.0,
+        full_frame: false,
+    };
     assert!(s.register_object(ObjectId(5), inverted).is_err());
     assert!(s.register_object(ObjectId(5), unit_object(Vec3::ZERO, 1.0, 0.0)).is_err());
     assert!(s.register_object(OBJ, unit_object(Vec3::ZERO, 0.5, 1.0)).is_ok(), "same description again");
@@ -804,4 +814,84 @@ fn a_users_next_frame_never_rides_on_its_own_earlier_frame() {
     let all = run_to_quiet(&mut s, first, ms(36));
     assert!(completions(&all).iter().all(|(_, _, parts)| parts.iter().all(|p| p.source == PartSource::Rendered)));
     assert_eq!(s.stats().views_derived, 0);
+}
+
+/// The environment (a full-frame object, issue 13): one batch per view covering every pixel,
+/// whatever the batch-size limit; a headset's two eyes in one batch (the right eye riding on
+/// the left's, so the worker shades both in one stereo pass) even with reprojected views
+/// switched off; a flat user's single view alone; objects inside it batched as before.
+#[test]
+fn an_environment_renders_whole_views_and_a_headsets_eyes_in_one_batch() {
+    const ROOM: ObjectId = ObjectId(2);
+    for derived_views in [true, false] {
+        let mut cfg = config(Policy::Nephele);
+        if !derived_views {
+            cfg.derived_views = None;
+        }
+        let mut s = scheduler(cfg);
+        let room = ObjectInfo { full_frame: true, ..unit_object(Vec3::ZERO, 6.0, 8.0) };
+        s.register_object(ROOM, room).expect("room");
+        s.add_worker(WorkerId(1), 1e7, ms(0)).expect("worker");
+        let eyes = stereo_pair(&camera_at(0.0), 0.064).expect("eyes");
+        let user = s.open_session(SessionSpec { target_fps: 30.0, objects: vec![OBJ, ROOM] }, ms(0)).expect("user");
+        s.pose(user, &eyes, ms(0)).expect("pose");
+        let first = s.tick(ms(0));
+        let all = run_to_quiet(&mut s, first, ms(1));
+        let room_batches: Vec<BatchSpec> =
+            dispatches(&all).into_iter().map(|(_, b)| b).filter(|b| b.object == ROOM).collect();
+        assert_eq!(room_batches.len(), 1, "both eyes in one batch");
+        let batch = &room_batches[0];
+        assert_eq!(batch.rays, 64 * 64, "every pixel of the left eye, beyond max_batch_rays = 128");
+        assert_eq!(batch.camera, eyes[0]);
+        assert_eq!(batch.derived.len(), 1);
+        assert_eq!((batch.derived[0].camera, batch.derived[0].rays), (eyes[1], 64 * 64));
+        // The object inside is split into batches as always.
+        assert!(dispatches(&all).iter().filter(|(_, b)| b.object == OBJ).count() > 1);
+        let done = completions(&all);
+        assert_eq!(done.len(), 1);
+        let room_parts: Vec<&FramePart> = done[0].2.iter().filter(|p| p.object == ROOM).collect();
+        assert_eq!(room_parts.len(), 2);
+        assert_eq!((room_parts[0].source, room_parts[1].source), (PartSource::Rendered, PartSource::Derived));
+
+        // A flat user: one view, one whole batch, nothing derived.
+        let flat = s.open_session(SessionSpec { target_fps: 30.0, objects: vec![ROOM] }, ms(100)).expect("flat");
+        s.pose(flat, &[camera_at(30.0)], ms(100)).expect("pose");
+        let first = s.tick(ms(100));
+        let all = run_to_quiet(&mut s, first, ms(101));
+        let sent: Vec<BatchSpec> = dispatches(&all).into_iter().map(|(_, b)| b).filter(|b| b.object == ROOM).collect();
+        assert_eq!(sent.len(), 1);
+        assert!(sent[0].derived.is_empty() && sent[0].rays == 64 * 64);
+    }
+}
+
+/// With two workers an environment's view is two bands of whole rows (as many as workers,
+/// none under `max_batch_rays`, so that they can spread); the right eye's rows ride on the
+/// left eye's band of the same rows.
+#[test]
+fn an_environments_view_is_split_into_row_bands_one_per_worker() {
+    const ROOM: ObjectId = ObjectId(2);
+    let mut cfg = config(Policy::Nephele);
+    cfg.max_batch_rays = 1024;
+    let mut s = scheduler(cfg);
+    s.register_object(ROOM, ObjectInfo { full_frame: true, ..unit_object(Vec3::ZERO, 6.0, 1.0) }).expect("room");
+    s.add_worker(WorkerId(1), 1e7, ms(0)).expect("worker");
+    s.add_worker(WorkerId(2), 1e7, ms(0)).expect("worker");
+    let eyes = stereo_pair(&camera_at(0.0), 0.064).expect("eyes");
+    let user = s.open_session(SessionSpec { target_fps: 30.0, objects: vec![ROOM] }, ms(0)).expect("user");
+    s.pose(user, &eyes, ms(0)).expect("pose");
+    let first = s.tick(ms(0));
+    let all = run_to_quiet(&mut s, first, ms(1));
+    let sent: Vec<(WorkerId, BatchSpec)> = dispatches(&all);
+    assert_eq!(sent.len(), 2, "two bands");
+    let mut rows_seen = BTreeSet::new();
+    for (_, b) in &sent {
+        let rows: BTreeSet<u32> = b.pixels.indices().iter().map(|p| p / 64).collect();
+        assert_eq!(b.rays, 64 * rows.len() as u64, "whole rows");
+        assert!(rows.iter().all(|r| rows_seen.insert(*r)), "bands are disjoint");
+        assert_eq!(b.derived.len(), 1);
+        let right: BTreeSet<u32> = b.derived[0].pixels.indices().iter().map(|p| p / 64).collect();
+        assert_eq!(right, rows, "the right eye's same rows ride on the band");
+    }
+    assert_eq!(rows_seen.len(), 64);
+    assert_eq!(completions(&all).len(), 1);
 }

@@ -27,7 +27,7 @@
 //!
 //! let mut s = Scheduler::new(SchedulerConfig::default())?;
 //! let bounds = Bounds { min: Vec3::splat(-0.5), max: Vec3::splat(0.5) };
-//! s.register_object(ObjectId(1), ObjectInfo { bounds, occupancy: None, cost_per_ray: 1.0 })?;
+//! s.register_object(ObjectId(1), ObjectInfo { bounds, occupancy: None, cost_per_ray: 1.0, full_frame: false })?;
 //! let t0 = Time::ZERO;
 //! s.add_worker(WorkerId(1), 1e8, t0)?; // registration: measured rays/s
 //! let user = match s.admission(t0) {

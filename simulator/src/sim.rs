@@ -170,7 +170,12 @@ pub fn run(scenario: &Scenario, variant: &Variant) -> Result<Report, SimError> {
     let mut scheduler =
         Scheduler::new(variant.config.clone()).map_err(|error| SimError::Scheduler { at: Time::ZERO, error })?;
     for (i, object) in scenario.objects.iter().enumerate() {
-        let info = ObjectInfo { bounds: object.bounds(), occupancy: None, cost_per_ray: object.cost_per_ray };
+        let info = ObjectInfo {
+            bounds: object.bounds(),
+            occupancy: None,
+            cost_per_ray: object.cost_per_ray,
+            full_frame: false,
+        };
         scheduler
             .register_object(ObjectId(i as u32 + 1), info)
             .map_err(|e| invalid(format!("object '{}': {e}", object.name)))?;

@@ -292,8 +292,15 @@ fn dataset_gi_renders_both_lightings_and_resumes() {
         "--repeats",
         "1",
     ]);
-    for needle in ["one stereo pass", "ratio", "single-eye model, run twice", "coherence error with the loss / without"]
-    {
+    for needle in [
+        "one stereo pass",
+        "ratio",
+        "single-eye model, run twice",
+        "coherence error with the loss / without",
+        "served at 0.5x, 2 spp, stereo pass",
+        "served kernel, CPU, 32x32 per eye at 0.5x",
+        "two bands of rows against the whole view",
+    ] {
         assert!(bench.contains(needle), "{needle}: {bench}");
     }
     let err = nephele_err(&["bench", "gi", "--data", day_str, "--teacher", model_str, "--stereo", model_str]);

@@ -29,7 +29,7 @@ use tokio::sync::mpsc;
 
 use crate::assets::AssetLoader;
 use crate::composer::ComposerLinks;
-use crate::derive::derive_view;
+use crate::derive::{Derived, derive_view};
 use crate::metrics::{Phase, WorkerMetrics};
 
 /// How a worker runs.
@@ -555,11 +555,27 @@ async fn render_and_deliver(
         };
         let start = Instant::now();
         let rendered = worker.pool.install(|| {
+            // A headset's other eye in the same pass, where the kernel has one (stereo GI).
+            if let ([view], [target]) = (derived.as_slice(), derived_cameras.as_slice())
+                && let Some(pair) = kernel.render_pair((&camera, &pixels), (target, &view.pixels))
+            {
+                let ([results, other], stats) = pair.map_err(|e| e.to_string())?;
+                let rendered = view.pixels.len();
+                let none = nephele_kernels::kernel::KernelStats::default();
+                let other = Derived { results: other, stats: none, reused: 0, empty: 0, rendered };
+                return Ok::<_, String>((results, stats, vec![other]));
+            }
             let (results, stats) = kernel.render_pixels(&camera, &pixels).map_err(|e| e.to_string())?;
             let mut views = Vec::with_capacity(derived.len());
             for (view, target) in derived.iter().zip(&derived_cameras) {
-                let view = derive_view(kernel.as_ref(), &camera, &pixels, &results, target, &view.pixels, &settings)
-                    .map_err(|e| e.to_string())?;
+                let view = if kernel.shades_whole_views() {
+                    // Reprojection would save nothing: what it leaves costs a whole pass.
+                    let (results, stats) = kernel.render_pixels(target, &view.pixels).map_err(|e| e.to_string())?;
+                    Derived { results, stats, reused: 0, empty: 0, rendered: view.pixels.len() }
+                } else {
+                    derive_view(kernel.as_ref(), &camera, &pixels, &results, target, &view.pixels, &settings)
+                        .map_err(|e| e.to_string())?
+                };
                 views.push(view);
             }
             Ok::<_, String>((results, stats, views))

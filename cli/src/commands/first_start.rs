@@ -156,6 +156,157 @@ pub struct BakedObject {
 }
 
 /// Whether `path` holds an asset the workers will load (every size and checksum verified).
+/// The first start of an environment (issue 13): its GI dataset and the two trainings of
+/// `nephele dataset gi` and `nephele train gi`, small enough for two cores.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GiRecipe {
+    /// Side of the square dataset frames.
+    pub size: u32,
+    pub single: usize,
+    pub eval_pairs: usize,
+    pub train_pairs: usize,
+    pub spp: u32,
+    pub bounces: u32,
+    pub teacher_steps: u32,
+    pub student_steps: u32,
+    /// Side of the training crops (a multiple of 4, at most `size`).
+    pub crop: usize,
+}
+
+impl BakeQuality {
+    /// Standard: 64x64 frames at 64 spp, the teacher 600 steps, the student 1000 (about 3
+    /// minutes on two cores; 26.9 dB on held-out frames against the path tracer, the stereo
+    /// student 0.2 dB under its teacher: BENCHMARKS.md, "environment served by the farm").
+    /// Quick: seconds, a barely trained model, for trying the service and for the tests.
+    pub fn gi_recipe(self) -> Option<GiRecipe> {
+        match self {
+            BakeQuality::Standard => Some(GiRecipe {
+                size: 64,
+                single: 48,
+                eval_pairs: 4,
+                train_pairs: 24,
+                spp: 64,
+                bounces: 4,
+                teacher_steps: 600,
+                student_steps: 1000,
+                crop: 32,
+            }),
+            BakeQuality::Quick => Some(GiRecipe {
+                size: 32,
+                single: 8,
+                eval_pairs: 1,
+                train_pairs: 4,
+                spp: 8,
+                bounces: 2,
+                teacher_steps: 60,
+                student_steps: 60,
+                crop: 16,
+            }),
+            BakeQuality::Off => None,
+        }
+    }
+}
+
+/// Whether `path` holds a GI model the workers serve, with its stereo twin.
+fn environment_loads(path: &Path) -> bool {
+    use nephele_kernels::environment::{GiKernel, GiServeSettings};
+    path.is_file() && GiKernel::load(path, GiServeSettings::default()).is_ok_and(|k| k.has_stereo())
+}
+
+/// Makes sure `dir/<name>.ngi` and `dir/<name>.stereo.ngi` exist for a built-in environment
+/// (`room-day`, `room-night`), training the missing ones; `None` with `--bake off` (the
+/// workers then path trace the room).
+pub fn ensure_environment(
+    dir: &Path,
+    name: &str,
+    quality: BakeQuality,
+    progress: &Progress,
+) -> Result<Option<BakedObject>> {
+    use nephele_kernels::environment::stereo_path;
+    use nephele_train::gi::data::{GiSpec, render_gi_dataset};
+    use nephele_train::gi::stereo::{load_pairs, train_stereo};
+    use nephele_train::gi::train::{GiTrainOptions, evaluate_single_eye, load_single_eye, train_single_eye};
+
+    let Some(recipe) = quality.gi_recipe() else { return Ok(None) };
+    let path = dir.join(format!("{name}.ngi"));
+    if environment_loads(&path) {
+        return Ok(Some(BakedObject { name: name.into(), path, psnr_db: None, seconds: 0.0 }));
+    }
+    println!(
+        "first start: training the global-illumination model of '{name}' into {} (recipe {}; later starts reuse it)",
+        path.display(),
+        quality.folder()
+    );
+    let start = Instant::now();
+    std::fs::create_dir_all(dir).with_context(|| format!("creating the asset folder {}", dir.display()))?;
+    let work = tempfile::Builder::new()
+        .prefix(&format!(".bake-{}-{name}-", std::process::id()))
+        .tempdir_in(dir)
+        .context("a scratch folder for the dataset")?;
+    let data = work.path().join("dataset");
+    let spec = GiSpec {
+        scene: name.into(),
+        single: recipe.single,
+        stereo_pairs: recipe.eval_pairs,
+        train_pairs: recipe.train_pairs,
+        width: recipe.size,
+        height: recipe.size,
+        fov_y: 70f32.to_radians(),
+        spp: recipe.spp,
+        bounces: recipe.bounces,
+        seed: 0,
+    };
+    let frames = (spec.single + 2 * (spec.stereo_pairs + spec.train_pairs)) as u64;
+    let bar = progress.bar(frames * u64::from(spec.height), &format!("GI dataset, {name}"), "rows");
+    render_gi_dataset(&spec, &data, &|rows| bar.inc(u64::from(rows)))?;
+    bar.finish_and_clear();
+
+    let (train, held_out, features, _) = load_single_eye(&data)?;
+    let options = GiTrainOptions {
+        steps: recipe.teacher_steps,
+        crop: recipe.crop,
+        learning_rate: 2e-3,
+        ..GiTrainOptions::default()
+    };
+    let bar = progress.bar(u64::from(options.steps), "GI teacher", "steps");
+    let (mut teacher, _) = train_single_eye(
+        &train,
+        features,
+        &options,
+        None,
+        0,
+        &mut |s| bar.set_position(u64::from(s.step)),
+        &mut |_| Ok(()),
+    )?;
+    bar.finish_and_clear();
+    teacher.header.scene = Some(name.into());
+    let psnr = if held_out.is_empty() { f64::NAN } else { evaluate_single_eye(&teacher, &held_out)? };
+
+    let pairs = load_pairs(&data, &features, true)?;
+    let options = GiTrainOptions { steps: recipe.student_steps, learning_rate: 1e-3, ..options };
+    let bar = progress.bar(u64::from(options.steps), "GI stereo student", "steps");
+    let (student, _) = train_stereo(
+        &teacher,
+        &pairs,
+        &options,
+        1.0,
+        None,
+        0,
+        &mut |s| bar.set_position(u64::from(s.step)),
+        &mut |_| Ok(()),
+    )?;
+    bar.finish_and_clear();
+    // The student first: the single-eye model's presence says the pair is complete.
+    let scratch = |p: &Path| p.with_extension(format!("part-{}", std::process::id()));
+    for (model, target) in [(&student, stereo_path(&path)), (&teacher, path.clone())] {
+        let part = scratch(&target);
+        model.save(&part).with_context(|| format!("writing {}", part.display()))?;
+        std::fs::rename(&part, &target).with_context(|| format!("moving the model to {}", target.display()))?;
+    }
+    println!("'{name}': {psnr:.2} dB PSNR on {} held-out frames (GI model against the path tracer)", held_out.len());
+    Ok(Some(BakedObject { name: name.into(), path, psnr_db: Some(psnr), seconds: start.elapsed().as_secs_f64() }))
+}
+
 fn loads(path: &Path) -> bool {
     path.is_file() && InolfKernel::load(path).is_ok()
 }

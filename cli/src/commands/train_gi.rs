@@ -100,7 +100,7 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     if let Some(c) = &resume {
         bar.set_position(u64::from(c.state.step));
     }
-    let (model, state) = train_single_eye(
+    let (mut model, state) = train_single_eye(
         &train,
         features,
         &options,
@@ -110,6 +110,8 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         &mut |c| c.save(&checkpoint_path).map_err(Into::into),
     )?;
     bar.finish_and_clear();
+    // The scene the farm renders the G-buffer of when it serves the model.
+    model.header.scene = Some(nephele_train::gi::data::read_manifest(&args.data)?.spec.scene);
     model.save(&args.out).with_context(|| format!("writing {}", args.out.display()))?;
     let train_psnr = evaluate_single_eye(&model, &train)?;
     let held_psnr = if held_out.is_empty() { f64::NAN } else { evaluate_single_eye(&model, &held_out)? };

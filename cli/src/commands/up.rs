@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 
-use super::first_start::{BakeQuality, default_asset_dir, ensure_baked};
+use super::first_start::{BakeQuality, default_asset_dir, ensure_baked, ensure_environment};
 use crate::progress::Progress;
 use crate::supervise::{Restart, Supervisor, WatchEnd};
 use nephele_shutdown::Shutdown;
@@ -26,6 +26,13 @@ use nephele_shutdown::Shutdown;
 /// folder that later starts reuse (`--assets`; see `--bake` for the quality, or `--bake off`
 /// to have the workers path trace the objects instead). An object's asset is
 /// `ASSETS/<object>.nolf`; put your own there to serve it.
+///
+/// The scenes `room-day` and `room-night` (`--scene room-day`) put the knot inside a
+/// furnished room served as an environment: the first start also renders a small GI dataset
+/// of the room and trains its single-eye GI model and stereo student
+/// (`ASSETS/room-day.ngi`, `ASSETS/room-day.stereo.ngi`, about 3 minutes with the standard
+/// recipe); the workers shade every view of the room with it (a headset's two eyes in one
+/// stereo pass) and the composer fuses the objects into it by depth.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The master's HTTP address: the viewer page, `POST /v1/sessions`, `GET /v1/farm`.
@@ -153,6 +160,20 @@ fn builtin_objects_of(scene: &str) -> Result<Vec<String>> {
         .collect())
 }
 
+/// The environments of `scene` (built-in rooms served by a GI model).
+fn environments_of(scene: &str) -> Result<Vec<String>> {
+    use nephele_master::scenes::Catalog;
+    let catalog = Catalog::builtin().map_err(|e| anyhow::anyhow!("building the scene catalog: {e}"))?;
+    let Some(def) = catalog.scene(scene) else { return Ok(Vec::new()) };
+    Ok(def
+        .objects
+        .iter()
+        .filter_map(|id| catalog.object(*id))
+        .filter(|o| catalog.is_environment(&o.asset))
+        .map(|o| o.asset.clone())
+        .collect())
+}
+
 pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Result<()> {
     if args.workers == 0 {
         bail!("--workers must be at least 1");
@@ -162,7 +183,14 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     std::fs::create_dir_all(&assets).with_context(|| format!("creating the asset folder {}", assets.display()))?;
     // Before the Ctrl-C handler: a Ctrl-C while baking simply ends the process, and what is
     // baked by then stays (each asset is renamed into place only once complete).
-    let baked = ensure_baked(&assets, &objects, args.bake, progress)?;
+    let mut baked = ensure_baked(&assets, &objects, args.bake, progress)?;
+    let environments = environments_of(&args.scene)?;
+    for environment in &environments {
+        baked.extend(
+            ensure_environment(&assets, environment, args.bake, progress)
+                .with_context(|| format!("training the environment '{environment}'"))?,
+        );
+    }
     for object in &baked {
         match object.psnr_db {
             Some(db) => println!(
@@ -298,6 +326,18 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     }
     if !traced.is_empty() {
         println!("scene '{}': {} path traced at {} spp (no baked asset)", args.scene, list(&traced), args.spp);
+    }
+    for environment in &environments {
+        let model = assets.join(format!("{environment}.ngi"));
+        if model.is_file() {
+            println!(
+                "scene '{}': the environment '{environment}' shaded by its GI model, both eyes of a headset in one stereo pass ({})",
+                args.scene,
+                model.display()
+            );
+        } else {
+            println!("scene '{}': the environment '{environment}' path traced (no GI model)", args.scene);
+        }
     }
     println!("composer counters and latency: http://{composer_http}/v1/sessions");
     // With a viewer key, the link to open is an invitation (for a day).

@@ -207,7 +207,9 @@ pub fn train_stereo(
         "student_of": teacher.header.training, "steps": state.step, "batch": options.batch, "crop": crop,
         "pairs": pairs.len(), "coherence_weight": coherence_weight, "final_loss": state.curve.last().map(|c| c.1),
     });
-    Ok((GiModel::new(network, features, training)?, state))
+    let mut model = GiModel::new(network, features, training)?;
+    model.header.scene = teacher.header.scene.clone();
+    Ok((model, state))
 }
 
 /// What a model gives on the evaluation pairs.

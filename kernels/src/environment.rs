@@ -1,0 +1,468 @@
+//! The environment as a farm kernel (issue 13, "served by the farm"): a room's view shaded by
+//! the stereo neural global-illumination model ([`crate::gi`]), one eye or both eyes in one
+//! pass, returned as opaque pixels with view depth so that the composer fuses the i-NOLF
+//! objects into it by depth.
+//!
+//! Per batch the kernel
+//! 1. renders the G-buffer a real-time rasteriser would give (first-hit position, normal,
+//!    albedo, view depth) and the direct light (next-event estimation at the first hit plus
+//!    the MIS-weighted light its one bounce finds: the path tracer with `max_bounces = 1`,
+//!    [`GiServeSettings::samples_per_pixel`] samples) for the environment's scene, named in
+//!    the model's header, at [`GiServeSettings::scale`] of the view's resolution and sides
+//!    rounded up to what the U-Net's levels need (the window reaches past the image: the same
+//!    pinhole, real pixels, no padding artefacts);
+//! 2. runs the U-Net: the stereo model over both eyes in one pass when the batch is a pair
+//!    and a `<asset>.stereo.ngi` sits beside the single-eye model, the single-eye model per
+//!    eye otherwise;
+//! 3. upsamples to the view (colour bilinear, depth nearest: a depth interpolated across a
+//!    silhouette would float between the two surfaces) and returns the requested pixels.
+//!
+//! The whole window is shaded whatever pixels the batch asks for: a convolutional network
+//! needs its neighbourhood, so the scheduler sends an environment's views whole
+//! (`ObjectInfo::full_frame`). Pixels that see the sky through a window get
+//! [`SKY_DEPTH`], so that every object is fused in front of them.
+//!
+//! Not yet: the objects' shadows and light on the room (the room is shaded as if empty),
+//! pixels covered by opaque objects are still shaded (the network sees the whole image), the
+//! ball's motion (the room is rendered at one moment, [`GiServeSettings::time_s`]).
+
+use std::path::Path;
+use std::sync::Mutex;
+
+use nephele_geometry::camera::Camera;
+use nephele_nn::UNetWorkspace;
+use nephele_pathtracer::{Background, RenderOptions, RenderOutput, Renderer, scenes};
+
+use crate::gi::{GBufferPixel, GiModel, GiModelError};
+use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
+
+/// View depth given to pixels that see no geometry (the sky through a window), metres: behind
+/// anything an object can be, and inside the compact wire form's half-float range.
+pub const SKY_DEPTH: f32 = 1.0e4;
+
+/// Margin of rows shaded around a band of a view, in pooling steps of the U-Net (16 rows of
+/// the shaded image for the default three levels): most of the network's neighbourhood, so
+/// that bands shaded on different workers meet without a visible seam (`nephele bench gi`
+/// measures the difference to the whole view).
+pub const HALO_STEPS: u32 = 4;
+
+/// How the environment is served.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GiServeSettings {
+    /// Samples per pixel of the G-buffer and direct light. The models were trained on direct
+    /// light at the dataset's samples (128 in BENCHMARKS.md): fewer is noisier input.
+    pub samples_per_pixel: u32,
+    /// Resolution of the shaded image relative to the view, `(0, 1]`: global illumination is
+    /// smooth, so half resolution (a quarter of the work) loses little but texture edges.
+    pub scale: f32,
+    /// Seconds into the scene's animation (the room's rolling ball) the room is rendered at.
+    pub time_s: f32,
+}
+
+/// Two samples at half resolution: `nephele bench gi` (BENCHMARKS.md, "environment served by
+/// the farm") measured 0.54 us per view pixel for a stereo pair at 256x256 per eye on this
+/// 2-core VM, -0.2 dB against 4 samples and 1.5x faster; 1 sample loses another 0.3 dB.
+impl Default for GiServeSettings {
+    fn default() -> GiServeSettings {
+        GiServeSettings { samples_per_pixel: 2, scale: 0.5, time_s: 0.0 }
+    }
+}
+
+/// A room shaded by a GI model, behind [`RayKernel`].
+#[derive(Debug)]
+pub struct GiKernel {
+    single: GiModel,
+    stereo: Option<GiModel>,
+    renderer: Renderer,
+    settings: GiServeSettings,
+    bounds: Bounds,
+    /// Workspaces of finished passes, reused (their buffers are the size of a view).
+    workspaces: Mutex<Vec<UNetWorkspace>>,
+}
+
+/// Where a `.ngi` asset's stereo twin lives: `room-day.ngi` -> `room-day.stereo.ngi`.
+pub fn stereo_path(single: &Path) -> std::path::PathBuf {
+    single.with_extension("stereo.ngi")
+}
+
+impl GiKernel {
+    /// A kernel from a single-eye model and, optionally, its stereo student. The scene is the
+    /// built-in one the models' header names.
+    pub fn new(single: GiModel, stereo: Option<GiModel>, settings: GiServeSettings) -> Result<GiKernel, KernelError> {
+        let failed = |why: String| KernelError::Failed(why);
+        if single.eyes() != 1 {
+            return Err(failed(format!("the environment's model must be single-eye, not {}-eye", single.eyes())));
+        }
+        if !(settings.scale > 0.0 && settings.scale <= 1.0) || settings.samples_per_pixel == 0 {
+            return Err(failed(format!("environment settings {settings:?}: scale in (0, 1], at least one sample")));
+        }
+        let scene_name = single.header.scene.clone().ok_or_else(|| {
+            failed("the GI model names no scene (train it with this build's `nephele train gi`)".into())
+        })?;
+        if let Some(s) = &stereo {
+            if s.eyes() != 2 {
+                return Err(failed(format!("the stereo model has {} eyes", s.eyes())));
+            }
+            if s.header.scene.as_deref() != Some(scene_name.as_str()) || s.header.features != single.header.features {
+                return Err(failed("the stereo model was trained for another scene than the single-eye model".into()));
+            }
+        }
+        let scene = scenes::builtin_at(&scene_name, settings.time_s)
+            .map_err(|e| failed(format!("scene {scene_name:?}: {e}")))?;
+        let renderer = Renderer::new(scene.scene).map_err(|e| failed(e.to_string()))?;
+        let (min, max) = renderer.scene().bounds().ok_or_else(|| failed("the environment has no geometry".into()))?;
+        Ok(GiKernel {
+            single,
+            stereo,
+            renderer,
+            settings,
+            bounds: Bounds { min, max },
+            workspaces: Mutex::new(Vec::new()),
+        })
+    }
+
+    /// Opens `path` (a single-eye `.ngi`) and its stereo twin when there is one.
+    pub fn load(path: &Path, settings: GiServeSettings) -> Result<GiKernel, KernelError> {
+        let failed = |e: GiModelError| KernelError::Failed(e.to_string());
+        let single = GiModel::load(path).map_err(failed)?;
+        let twin = stereo_path(path);
+        let stereo = if twin.is_file() { Some(GiModel::load(&twin).map_err(failed)?) } else { None };
+        GiKernel::new(single, stereo, settings)
+    }
+
+    /// Whether a pair of views is shaded in one stereo pass.
+    pub fn has_stereo(&self) -> bool {
+        self.stereo.is_some()
+    }
+
+    /// The camera of the shaded image: the view at the scale, sides rounded up to the U-Net's
+    /// step (the same pinhole, reaching past the view's bottom-right edge).
+    fn shading_camera(&self, view: &Camera) -> Result<Camera, KernelError> {
+        let step = 1u32 << (self.single.network.config().levels() - 1);
+        let s = self.settings.scale;
+        let side = |n: u32| (((n as f32 * s).ceil() as u32).max(1)).div_ceil(step) * step;
+        let (w, h) = (side(view.width()), side(view.height()));
+        let (fx, fy, cx, cy) = view.intrinsics();
+        Camera::from_intrinsics(w, h, fx * s, fy * s, cx * s, cy * s, view.camera_to_world())
+            .map_err(|e| KernelError::Failed(e.to_string()))
+    }
+
+    fn g_buffer(&self, camera: &Camera) -> Result<(RenderOutput, Vec<GBufferPixel>), KernelError> {
+        let options = RenderOptions {
+            samples_per_pixel: self.settings.samples_per_pixel,
+            max_bounces: 1,
+            seed: 0,
+            background: Background::Environment,
+        };
+        let out = self.renderer.render(camera, &options, &|_| {}).map_err(|e| KernelError::Failed(e.to_string()))?;
+        let pixels = g_buffer_pixels(&out);
+        Ok((out, pixels))
+    }
+
+    /// The rows of the shaded image to shade for view rows `[y0, y1)`: a margin of
+    /// [`HALO_STEPS`] pooling steps of rows on each side (the network's neighbourhood), the
+    /// start aligned to a pooling step (so that the band's pooled grids are the whole view's),
+    /// the height a multiple of it. Returns `(first row, rows)`.
+    fn window(&self, shaded: &Camera, y0: u32, y1: u32) -> (u32, u32) {
+        let step = 1u32 << (self.single.network.config().levels() - 1);
+        let halo = HALO_STEPS * step;
+        let s = self.settings.scale;
+        let first = ((y0 as f32 * s).floor() as u32).saturating_sub(halo) / step * step;
+        let last = (((y1 as f32 * s).ceil() as u32) + halo).min(shaded.height());
+        let rows = (last.saturating_sub(first)).div_ceil(step) * step;
+        (first, rows.clamp(step, shaded.height() - first))
+    }
+
+    /// Shades the rows asked of one view, or of two for the stereo model (a band of rows with
+    /// a margin, [`Self::window`]), and returns each view's `requested` pixels.
+    fn shade(&self, views: &[(&Camera, &[u32])]) -> Result<(Vec<PixelResults>, KernelStats), KernelError> {
+        for (camera, pixels) in views {
+            validate_pixels(camera, pixels)?;
+        }
+        let rows = views.iter().flat_map(|(c, pixels)| pixels.iter().map(move |p| p / c.width()));
+        let Some((y0, y1)) = rows
+            .fold(None, |span: Option<(u32, u32)>, y| Some(span.map_or((y, y + 1), |(a, b)| (a.min(y), b.max(y + 1)))))
+        else {
+            return Ok((views.iter().map(|_| PixelResults::with_len(0)).collect(), KernelStats::default()));
+        };
+        let whole: Vec<Camera> = views.iter().map(|(c, _)| self.shading_camera(c)).collect::<Result<_, _>>()?;
+        let (first, count) = self.window(&whole[0], y0, y1);
+        let cameras: Vec<Camera> = whole
+            .iter()
+            .map(|c| c.crop(0, first, c.width(), count).map_err(|e| KernelError::Failed(e.to_string())))
+            .collect::<Result<_, _>>()?;
+        let buffers: Vec<(RenderOutput, Vec<GBufferPixel>)> =
+            cameras.iter().map(|c| self.g_buffer(c)).collect::<Result<_, _>>()?;
+        let mut ws = self.workspaces.lock().ok().and_then(|mut pool| pool.pop()).unwrap_or_default();
+        let (w, h) = (cameras[0].width() as usize, cameras[0].height() as usize);
+        let failed = |e: GiModelError| KernelError::Failed(e.to_string());
+        let mut images: Vec<Vec<[f32; 3]>> = Vec::with_capacity(views.len());
+        let mut non_finite = 0;
+        let mut passes = 0u64;
+        match (&self.stereo, buffers.as_slice()) {
+            (Some(stereo), [left, right]) => {
+                let shaded = stereo.shade(w, h, &[&left.1, &right.1], &mut ws).map_err(failed)?;
+                non_finite += shaded.non_finite_inputs;
+                images.extend(shaded.eyes);
+                passes += 1;
+            }
+            _ => {
+                for (_, pixels) in &buffers {
+                    let shaded = self.single.shade(w, h, &[pixels], &mut ws).map_err(failed)?;
+                    non_finite += shaded.non_finite_inputs;
+                    images.extend(shaded.eyes);
+                    passes += 1;
+                }
+            }
+        }
+        if let Ok(mut pool) = self.workspaces.lock() {
+            pool.push(ws);
+        }
+        if non_finite > 0 {
+            tracing::warn!(non_finite, "non-finite G-buffer values were zeroed before shading");
+        }
+        let mut results = Vec::with_capacity(views.len());
+        let mut rays = 0;
+        for (((view, pixels), camera), (image, (out, _))) in views.iter().zip(&cameras).zip(images.iter().zip(&buffers))
+        {
+            results.push(upsample(view, pixels, camera, first, image, &out.depth));
+            rays += u64::from(camera.width()) * u64::from(camera.height());
+        }
+        let stats =
+            KernelStats { rays: rays * u64::from(self.settings.samples_per_pixel), rays_hit: rays, queries: passes };
+        Ok((results, stats))
+    }
+}
+
+/// The G-buffer pixels of a render (the same fields the training data stores, so that served
+/// and trained inputs agree).
+pub fn g_buffer_pixels(out: &RenderOutput) -> Vec<GBufferPixel> {
+    (0..out.depth.len())
+        .map(|i| GBufferPixel {
+            position: out.position[i].to_array(),
+            normal: out.normal[i].to_array(),
+            albedo: out.albedo[i].to_array(),
+            depth: out.depth[i],
+            direct: out.direct[i].to_array(),
+        })
+        .collect()
+}
+
+/// `pixels` of `view` from an image shaded through `camera` (the view scaled, same pinhole,
+/// its rows from `first_row` of the scaled view on): colour bilinear, depth of the nearest
+/// shaded pixel ([`SKY_DEPTH`] where it saw no geometry), opacity 1.
+fn upsample(
+    view: &Camera,
+    pixels: &[u32],
+    camera: &Camera,
+    first_row: u32,
+    image: &[[f32; 3]],
+    depth: &[f32],
+) -> PixelResults {
+    let (sw, sh) = (camera.width() as usize, camera.height() as usize);
+    let sx = camera.intrinsics().0 / view.intrinsics().0;
+    let sy = camera.intrinsics().1 / view.intrinsics().1;
+    let mut out = PixelResults::with_len(pixels.len());
+    for (k, &p) in pixels.iter().enumerate() {
+        let (x, y) = ((p % view.width()) as f32, (p / view.width()) as f32);
+        // Centre of the view's pixel in the shaded image's pixel coordinates.
+        let (u, v) = ((x + 0.5) * sx - 0.5, (y + 0.5) * sy - 0.5 - first_row as f32);
+        let (x0, y0) = (u.floor().clamp(0.0, (sw - 1) as f32) as usize, v.floor().clamp(0.0, (sh - 1) as f32) as usize);
+        let (x1, y1) = ((x0 + 1).min(sw - 1), (y0 + 1).min(sh - 1));
+        let (fx, fy) = ((u - x0 as f32).clamp(0.0, 1.0), (v - y0 as f32).clamp(0.0, 1.0));
+        let at = |x: usize, y: usize| image[y * sw + x];
+        let (a, b, c, d) = (at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1));
+        for ch in 0..3 {
+            let top = a[ch] + (b[ch] - a[ch]) * fx;
+            let bottom = c[ch] + (d[ch] - c[ch]) * fx;
+            out.color[k][ch] = top + (bottom - top) * fy;
+        }
+        let nx = (u.round().clamp(0.0, (sw - 1) as f32)) as usize;
+        let ny = (v.round().clamp(0.0, (sh - 1) as f32)) as usize;
+        let z = depth[ny * sw + nx];
+        // The shaded camera's depth is the view's (same pose, z along the same axis).
+        out.depth[k] = if z.is_finite() && z > 0.0 { z } else { SKY_DEPTH };
+        out.opacity[k] = 1.0;
+    }
+    out
+}
+
+impl RayKernel for GiKernel {
+    fn kind(&self) -> &'static str {
+        "gi"
+    }
+
+    fn bounds(&self) -> Bounds {
+        self.bounds
+    }
+
+    fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
+        let (mut results, stats) = self.shade(&[(camera, pixels)])?;
+        Ok((results.remove(0), stats))
+    }
+
+    fn shades_whole_views(&self) -> bool {
+        true
+    }
+
+    fn render_pair(
+        &self,
+        left: (&Camera, &[u32]),
+        right: (&Camera, &[u32]),
+    ) -> Option<Result<([PixelResults; 2], KernelStats), KernelError>> {
+        if !self.has_stereo() || (left.0.width(), left.0.height()) != (right.0.width(), right.0.height()) {
+            return None;
+        }
+        Some(self.shade(&[left, right]).map(|(mut results, stats)| {
+            let right = results.remove(1);
+            ([results.remove(0), right], stats)
+        }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3;
+    use nephele_geometry::camera::stereo_pair;
+    use nephele_nn::{UNet, UNetConfig};
+
+    use super::*;
+    use crate::gi::{GI_INPUTS, GI_OUTPUTS, GiFeatures};
+
+    fn model(eyes: usize, scene: &str) -> GiModel {
+        let config = UNetConfig { inputs: GI_INPUTS, eyes, outputs: GI_OUTPUTS, channels: vec![4, 8] };
+        let features = GiFeatures { centre: [0.0, 0.0, 1.4], scale: 2.5 };
+        let mut m = GiModel::new(UNet::new(config, 7).expect("net"), features, serde_json::Value::Null).expect("model");
+        m.header.scene = Some(scene.into());
+        m
+    }
+
+    fn view(width: u32, height: u32) -> Camera {
+        Camera::look_at(width, height, 1.2, Vec3::new(0.0, -1.2, 1.5), Vec3::new(0.5, 1.0, 1.0), Vec3::Z)
+            .expect("camera")
+    }
+
+    #[test]
+    fn a_view_is_opaque_with_depth_and_a_subset_matches_the_whole() {
+        let settings = GiServeSettings { samples_per_pixel: 2, scale: 1.0, time_s: 0.0 };
+        let kernel = GiKernel::new(model(1, "room-day"), None, settings).expect("kernel");
+        let camera = view(16, 12);
+        let all: Vec<u32> = (0..16 * 12).collect();
+        let (full, stats) = kernel.render_pixels(&camera, &all).expect("render");
+        assert_eq!(stats.queries, 1, "one network pass");
+        assert!(full.opacity.iter().all(|&a| a == 1.0));
+        assert!(full.depth.iter().all(|&d| d > 0.0 && d.is_finite()));
+        assert!(full.color.iter().flatten().all(|c| c.is_finite() && *c >= 0.0));
+        // Inside the room: the nearest wall is within its 5 x 4 x 2.8 m.
+        assert!(full.depth.iter().any(|&d| d < 6.0));
+        let subset = [0u32, 17, 100, 191];
+        let (part, _) = kernel.render_pixels(&camera, &subset).expect("subset");
+        for (k, &p) in subset.iter().enumerate() {
+            assert_eq!(part.color[k], full.color[p as usize]);
+            assert_eq!(part.depth[k], full.depth[p as usize]);
+        }
+        assert!(kernel.render_pixels(&camera, &[16 * 12]).is_err(), "outside the view");
+    }
+
+    #[test]
+    fn views_of_any_size_are_shaded_at_the_scale() {
+        let kernel = GiKernel::new(
+            model(1, "room-night"),
+            None,
+            GiServeSettings { samples_per_pixel: 1, scale: 0.5, time_s: 0.0 },
+        )
+        .expect("kernel");
+        // 22 x 10 at half scale: 11 x 5, rounded up to even sides for the two-level U-Net.
+        let camera = view(22, 10);
+        let shaded = kernel.shading_camera(&camera).expect("camera");
+        assert_eq!((shaded.width(), shaded.height()), (12, 6));
+        let all: Vec<u32> = (0..22 * 10).collect();
+        let (out, stats) = kernel.render_pixels(&camera, &all).expect("render");
+        assert_eq!(out.len(), 220);
+        assert_eq!(stats.rays_hit, 12 * 6);
+        assert!(out.opacity.iter().all(|&a| a == 1.0) && out.depth.iter().all(|&d| d > 0.0));
+    }
+
+    /// A band of a view is shaded over its rows plus the margin, aligned to the pooling step,
+    /// inside the scaled view; the band's pixels come back valid.
+    #[test]
+    fn a_band_of_rows_is_shaded_with_an_aligned_margin() {
+        let settings = GiServeSettings { samples_per_pixel: 1, scale: 0.5, time_s: 0.0 };
+        let kernel = GiKernel::new(model(1, "room-day"), None, settings).expect("kernel");
+        let view = view(64, 96);
+        let shaded = kernel.shading_camera(&view).expect("camera");
+        assert_eq!((shaded.width(), shaded.height()), (32, 48));
+        // Two levels: step 2, margin 8 shaded rows.
+        for (y0, y1) in [(0, 48), (48, 96), (30, 31), (0, 96)] {
+            let (first, rows) = kernel.window(&shaded, y0, y1);
+            assert_eq!(first % 2, 0);
+            assert_eq!(rows % 2, 0);
+            assert!(first + rows <= 48);
+            let (need0, need1) = (y0 / 2, y1.div_ceil(2));
+            assert!(
+                first <= need0.saturating_sub(8) && first + rows >= (need1 + 8).min(48),
+                "{y0}..{y1}: {first}+{rows}"
+            );
+        }
+        let band: Vec<u32> = (48 * 64..96 * 64).collect();
+        let (out, stats) = kernel.render_pixels(&view, &band).expect("band");
+        assert_eq!(out.len(), band.len());
+        assert_eq!(stats.rays_hit, 32 * (24 + 8), "the band's 24 shaded rows and the 8 above it");
+        assert!(out.opacity.iter().all(|&a| a == 1.0) && out.depth.iter().all(|&d| d > 0.0));
+        let (none, _) = kernel.render_pixels(&view, &[]).expect("nothing asked");
+        assert!(none.is_empty());
+    }
+
+    #[test]
+    fn upsampling_interpolates_colour_and_gives_the_sky_the_far_depth() {
+        let fine = view(8, 8);
+        let kernel = GiKernel::new(
+            model(1, "room-day"),
+            None,
+            GiServeSettings { samples_per_pixel: 1, scale: 0.5, time_s: 0.0 },
+        )
+        .expect("k");
+        let coarse = kernel.shading_camera(&fine).expect("coarse");
+        assert_eq!((coarse.width(), coarse.height()), (4, 4));
+        // A horizontal ramp 0, 1, 2, 3 per coarse column; the sky (depth 0) in the top row.
+        let image: Vec<[f32; 3]> = (0..16).map(|i| [(i % 4) as f32; 3]).collect();
+        let depth: Vec<f32> = (0..16).map(|i| if i < 4 { 0.0 } else { 2.0 }).collect();
+        let all: Vec<u32> = (0..64).collect();
+        let out = upsample(&fine, &all, &coarse, 0, &image, &depth);
+        // Fine pixel x sits at coarse (x + 0.5) / 2 - 0.5: x = 1 -> 0.25, x = 2 -> 0.75.
+        assert!((out.color[8 + 1][0] - 0.25).abs() < 1e-5 && (out.color[8 + 2][0] - 0.75).abs() < 1e-5);
+        assert_eq!(out.color[8][0], 0.0, "clamped at the edge");
+        assert_eq!(out.depth[0], SKY_DEPTH);
+        assert_eq!(out.depth[7 * 8], 2.0);
+    }
+
+    #[test]
+    fn a_pair_is_one_stereo_pass_only_with_a_stereo_model_of_the_same_scene() {
+        let settings = GiServeSettings { samples_per_pixel: 1, scale: 1.0, time_s: 0.0 };
+        let eyes = stereo_pair(&view(16, 12), 0.064).expect("eyes");
+        let all: Vec<u32> = (0..16 * 12).collect();
+        let mono = GiKernel::new(model(1, "room-day"), None, settings).expect("mono");
+        assert!(mono.render_pair((&eyes[0], &all), (&eyes[1], &all)).is_none());
+        let stereo = GiKernel::new(model(1, "room-day"), Some(model(2, "room-day")), settings).expect("stereo");
+        let ([left, right], stats) =
+            stereo.render_pair((&eyes[0], &all), (&eyes[1], &all[..10])).expect("a pair pass").expect("rendered");
+        assert_eq!(stats.queries, 1, "both eyes in one network pass");
+        assert_eq!((left.len(), right.len()), (192, 10));
+        assert!(right.opacity.iter().all(|&a| a == 1.0));
+        // The left head is not the single-eye model's output: a different network.
+        let (single_left, _) = stereo.render_pixels(&eyes[0], &all).expect("single");
+        assert_ne!(single_left.color, left.color);
+        assert!(GiKernel::new(model(1, "room-day"), Some(model(2, "room-night")), settings).is_err());
+        assert!(GiKernel::new(model(2, "room-day"), None, settings).is_err());
+        assert!(GiKernel::new(model(1, "no-such-scene"), None, settings).is_err());
+        let mut unnamed = model(1, "room-day");
+        unnamed.header.scene = None;
+        assert!(GiKernel::new(unnamed, None, settings).expect_err("no scene").to_string().contains("names no scene"));
+    }
+
+    #[test]
+    fn the_scene_name_survives_the_file() {
+        let m = model(1, "room-night");
+        assert_eq!(GiModel::from_bytes(&m.to_bytes()).expect("decode").header.scene.as_deref(), Some("room-night"));
+    }
+}
