@@ -570,3 +570,35 @@ fn the_whole_service_streams_to_chromium_follows_the_pose_and_a_second_tab_is_a_
         client::page_errors(&errors).into_iter().filter(|e| !e.message.contains(refused)).collect();
     assert!(unexpected.is_empty(), "JavaScript errors: {errors:?}");
 }
+
+/// The room scene (issue 13) in Chromium: `nephele up --scene room-day` on a first start
+/// (quick recipes: the knot baked, the room's GI models trained in seconds) streams frames in
+/// which the environment fills what the knot leaves: the corner that is black in a scene of
+/// objects (the test above) shows the room.
+#[test]
+fn the_room_scene_streams_to_chromium_with_the_environment_around_the_knot() {
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|p| p.into_inner());
+    let assets = tempfile::tempdir().expect("an empty asset folder");
+    let assets_arg = assets.path().to_str().expect("utf-8 path");
+    let up = UpService::start_with(
+        2,
+        &["--bake", "quick", "--scene", "room-day", "--assets", assets_arg],
+        Duration::from_secs(600),
+    );
+    let url = format!("http://{}/?scene=room-day&width={WIDTH}&height={HEIGHT}", up.http);
+    let browser = Browser::start().expect("headless Chromium");
+    browser.goto(&url).expect("open the client");
+    client::wait_streaming(&browser, Duration::from_secs(30)).expect("the data channel opens");
+    wait_for("decoded frames", Duration::from_secs(60), || client::frames_decoded(&browser).ok().filter(|&n| n >= 5));
+    let corner = [0.0, 0.0, 0.25, 0.25];
+    let lit = wait_for("the room in the corner", Duration::from_secs(30), || {
+        let rgb = client::mean_rgb(&browser, corner).ok().flatten()?;
+        rgb.iter().any(|&c| c > 40.0).then_some(rgb)
+    });
+    let whole =
+        client::mean_grey(&browser, [0.0, 0.0, 1.0, 1.0]).expect("reading the picture back").expect("a picture");
+    eprintln!("room scene: corner {lit:.0?}, mean grey {whole:.1}");
+    assert!(whole > 20.0, "the picture is nearly black: {whole:.1}");
+    let errors = browser.console_log().expect("console log");
+    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
+}
