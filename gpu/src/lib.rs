@@ -10,6 +10,9 @@
 //!   dispatch per batch, one invocation per pixel; behind [`RayKernel`] like every kernel.
 //! * [`GpuNgpKernel`] is the i-NGP-style baseline (hash grid, two MLPs, occupancy
 //!   skipping), so that GPU ratios between i-NOLF and its baseline compare like with like.
+//! * [`GpuUNet`] is the stereo GI model's U-Net (issue 13), layer by layer: the farm's GI
+//!   kernel runs its networks through it with `--device gpu` (the G-buffer stays on the
+//!   CPU), and `nephele bench gi` measures it against the CPU forward.
 //! * [`accelerate`] turns a loaded CPU kernel into its GPU twin where one exists.
 //!
 //! [`RayKernel`]: nephele_kernels::kernel::RayKernel
@@ -23,6 +26,9 @@ mod ngp;
 mod ngp_tests;
 #[cfg(test)]
 mod tests;
+mod unet;
+#[cfg(test)]
+mod unet_tests;
 
 use std::sync::Arc;
 
@@ -30,9 +36,10 @@ pub use agreement::{Agreement, DEPTH_RELATIVE_TOLERANCE};
 pub use context::{DeviceChoice, GpuContext, GpuError};
 pub use inolf::{GpuInolfKernel, MAX_SPECULAR_PARAMS};
 pub use ngp::GpuNgpKernel;
+pub use unet::GpuUNet;
 
 /// The GPU as the kernels' registry sees it ([`Accelerator`]): i-NOLF assets and radiance
-/// fields get their GPU twins; path-traced assets stay on the CPU.
+/// fields get their GPU twins, GI models their U-Nets; path-traced assets stay on the CPU.
 ///
 /// [`Accelerator`]: nephele_kernels::assets::Accelerator
 #[derive(Debug, Clone)]
@@ -54,6 +61,11 @@ impl nephele_kernels::assets::Accelerator for GpuAccelerator {
     ) -> Result<Arc<dyn nephele_kernels::kernel::RayKernel>, String> {
         let gpu = GpuNgpKernel::new(self.0.clone(), kernel).map_err(|e| e.to_string())?;
         tracing::info!(device = %self.0.label(), bytes = gpu.device_bytes(), "radiance field resident on the GPU");
+        Ok(Arc::new(gpu))
+    }
+
+    fn unet(&self, network: &nephele_nn::UNet) -> Result<Arc<dyn nephele_kernels::gi::UNetDevice>, String> {
+        let gpu = GpuUNet::new(self.0.clone(), network).map_err(|e| e.to_string())?;
         Ok(Arc::new(gpu))
     }
 

@@ -25,6 +25,8 @@ pub trait Accelerator: Send + Sync + std::fmt::Debug {
     fn inolf(&self, kernel: &InolfKernel) -> Result<Arc<dyn RayKernel>, String>;
     /// The device's twin of the i-NGP-style baseline.
     fn ngp(&self, kernel: &NgpKernel) -> Result<Arc<dyn RayKernel>, String>;
+    /// A GI model's U-Net resident on the device (the G-buffer stays on the CPU).
+    fn unet(&self, network: &nephele_nn::UNet) -> Result<Arc<dyn crate::gi::UNetDevice>, String>;
     /// The device, for logs and reports.
     fn label(&self) -> String;
 }
@@ -122,14 +124,20 @@ const GI_MAGIC8: [u8; 8] = {
     [m[0], m[1], m[2], m[3], v[0], v[1], v[2], v[3]]
 };
 
-/// An environment's GI model (and its `.stereo.ngi` twin beside it); CPU only for now (the
-/// U-Net has no WGSL kernel yet).
+/// An environment's GI model (and its `.stereo.ngi` twin beside it); with an accelerator its
+/// networks run there (the G-buffer is path traced on the CPU either way).
 fn load_gi(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
     let settings = crate::environment::GiServeSettings::default();
     let kernel = crate::environment::GiKernel::load(path, settings).map_err(|e| LoadError::Invalid(e.to_string()))?;
-    if let Some(device) = &options.accelerator {
-        tracing::warn!(asset = %path.display(), device = %device.label(), "the GI U-Net has no GPU kernel yet: it runs on the CPU");
-    }
+    let Some(accelerator) = &options.accelerator else {
+        return Ok(Arc::new(kernel));
+    };
+    let (single, stereo) = kernel.models();
+    let single_net = accelerator.unet(&single.network).map_err(LoadError::Invalid)?;
+    let stereo_net = stereo.map(|s| accelerator.unet(&s.network)).transpose().map_err(LoadError::Invalid)?;
+    let devices = crate::environment::GiDevices { single: single_net, stereo: stereo_net };
+    let kernel = kernel.with_devices(devices).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    tracing::info!(asset = %path.display(), device = %kernel.network_device(), "GI networks resident on the device");
     Ok(Arc::new(kernel))
 }
 

@@ -27,13 +27,13 @@
 //! ball's motion (the room is rendered at one moment, [`GiServeSettings::time_s`]).
 
 use std::path::Path;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 use nephele_geometry::camera::Camera;
 use nephele_nn::UNetWorkspace;
 use nephele_pathtracer::{Background, RenderOptions, RenderOutput, Renderer, scenes};
 
-use crate::gi::{GBufferPixel, GiModel, GiModelError};
+use crate::gi::{GBufferPixel, GiModel, GiModelError, UNetDevice};
 use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 
 /// View depth given to pixels that see no geometry (the sky through a window), metres: behind
@@ -78,6 +78,15 @@ pub struct GiKernel {
     bounds: Bounds,
     /// Workspaces of finished passes, reused (their buffers are the size of a view).
     workspaces: Mutex<Vec<UNetWorkspace>>,
+    /// The networks' twins on a GPU (`--device`), `None`: the CPU runs them.
+    devices: Option<GiDevices>,
+}
+
+/// The single-eye and (where there is a stereo model) stereo networks resident on a device.
+#[derive(Debug, Clone)]
+pub struct GiDevices {
+    pub single: Arc<dyn UNetDevice>,
+    pub stereo: Option<Arc<dyn UNetDevice>>,
 }
 
 /// Where a `.ngi` asset's stereo twin lives: `room-day.ngi` -> `room-day.stereo.ngi`.
@@ -118,7 +127,29 @@ impl GiKernel {
             settings,
             bounds: Bounds { min, max },
             workspaces: Mutex::new(Vec::new()),
+            devices: None,
         })
+    }
+
+    /// The models this kernel shades with (the stereo one where there is one), for a device
+    /// to take copies of.
+    pub fn models(&self) -> (&GiModel, Option<&GiModel>) {
+        (&self.single, self.stereo.as_ref())
+    }
+
+    /// The same kernel with its networks run on a device (built from [`Self::models`]); the
+    /// G-buffer stays on the CPU.
+    pub fn with_devices(mut self, devices: GiDevices) -> Result<GiKernel, KernelError> {
+        if devices.stereo.is_some() != self.stereo.is_some() {
+            return Err(KernelError::Failed("a stereo device network without a stereo model, or the reverse".into()));
+        }
+        self.devices = Some(devices);
+        Ok(self)
+    }
+
+    /// Where the networks run: a device's label, or "cpu".
+    pub fn network_device(&self) -> String {
+        self.devices.as_ref().map_or_else(|| "cpu".into(), |d| d.single.label())
     }
 
     /// Opens `path` (a single-eye `.ngi`) and its stereo twin when there is one.
@@ -199,16 +230,27 @@ impl GiKernel {
         let mut images: Vec<Vec<[f32; 3]>> = Vec::with_capacity(views.len());
         let mut non_finite = 0;
         let mut passes = 0u64;
+        let stereo_device = self.devices.as_ref().and_then(|d| d.stereo.as_deref());
+        let single_device = self.devices.as_ref().map(|d| d.single.as_ref());
         match (&self.stereo, buffers.as_slice()) {
             (Some(stereo), [left, right]) => {
-                let shaded = stereo.shade(w, h, &[&left.1, &right.1], &mut ws).map_err(failed)?;
+                let eyes = [left.1.as_slice(), right.1.as_slice()];
+                let shaded = match stereo_device {
+                    Some(device) => stereo.shade_on(device, w, h, &eyes),
+                    None => stereo.shade(w, h, &eyes, &mut ws),
+                }
+                .map_err(failed)?;
                 non_finite += shaded.non_finite_inputs;
                 images.extend(shaded.eyes);
                 passes += 1;
             }
             _ => {
                 for (_, pixels) in &buffers {
-                    let shaded = self.single.shade(w, h, &[pixels], &mut ws).map_err(failed)?;
+                    let shaded = match single_device {
+                        Some(device) => self.single.shade_on(device, w, h, &[pixels]),
+                        None => self.single.shade(w, h, &[pixels], &mut ws),
+                    }
+                    .map_err(failed)?;
                     non_finite += shaded.non_finite_inputs;
                     images.extend(shaded.eyes);
                     passes += 1;

@@ -118,6 +118,17 @@ pub enum GiModelError {
     Network(#[from] NnError),
     #[error("{path}: {source}")]
     Io { path: String, source: std::io::Error },
+    #[error("U-Net on {device}: {message}")]
+    Device { device: String, message: String },
+}
+
+/// A U-Net's forward pass on another device than the CPU: the GPU crate's WGSL twin
+/// (`nephele_gpu::GpuUNet`), resident there with its parameters. The same inputs and outputs
+/// as [`UNet::forward`] (pixel-major, eyes interleaved; one output image per head, left first).
+pub trait UNetDevice: Send + Sync + std::fmt::Debug {
+    fn forward(&self, width: usize, height: usize, input: &[f32]) -> Result<Vec<Vec<f32>>, String>;
+    /// The device, for logs and errors.
+    fn label(&self) -> String;
 }
 
 /// A trained GI network and how its inputs are scaled.
@@ -220,6 +231,32 @@ impl GiModel {
         eyes: &[&[GBufferPixel]],
         ws: &mut UNetWorkspace,
     ) -> Result<Shaded, GiModelError> {
+        let (input, bad) = self.inputs(width, height, eyes)?;
+        let heads = self.network.forward(width, height, &input, ws)?;
+        Ok(Shaded { eyes: heads.iter().map(|head| decode_image(head)).collect(), non_finite_inputs: bad })
+    }
+
+    /// [`Self::shade`] with the network run on `device` (which must hold this model's
+    /// network: [`UNetDevice`]).
+    pub fn shade_on(
+        &self,
+        device: &dyn UNetDevice,
+        width: usize,
+        height: usize,
+        eyes: &[&[GBufferPixel]],
+    ) -> Result<Shaded, GiModelError> {
+        let (input, bad) = self.inputs(width, height, eyes)?;
+        let failed = |message: String| GiModelError::Device { device: device.label(), message };
+        let heads = device.forward(width, height, &input).map_err(failed)?;
+        let expected = width * height * GI_OUTPUTS;
+        if heads.len() != self.eyes() || heads.iter().any(|h| h.len() != expected) {
+            return Err(failed(format!("{} heads for a {}-eye model", heads.len(), self.eyes())));
+        }
+        Ok(Shaded { eyes: heads.iter().map(|head| decode_image(head)).collect(), non_finite_inputs: bad })
+    }
+
+    /// The network's input for the eyes' G-buffers, and how many values were not finite.
+    fn inputs(&self, width: usize, height: usize, eyes: &[&[GBufferPixel]]) -> Result<(Vec<f32>, usize), GiModelError> {
         if eyes.len() != self.eyes() || eyes.iter().any(|e| e.len() != width * height) {
             return Err(GiModelError::Format(format!(
                 "{} eye images for a {}-eye model of {width}x{height}",
@@ -235,17 +272,13 @@ impl GiModel {
                 bad += self.header.features.encode(pixel, &mut input[p * per_pixel + eye * GI_INPUTS..][..GI_INPUTS]);
             }
         }
-        let heads = self.network.forward(width, height, &input, ws)?;
-        let images = heads
-            .iter()
-            .map(|head| {
-                head.chunks_exact(GI_OUTPUTS)
-                    .map(|c| [decode_output(c[0]), decode_output(c[1]), decode_output(c[2])])
-                    .collect()
-            })
-            .collect();
-        Ok(Shaded { eyes: images, non_finite_inputs: bad })
+        Ok((input, bad))
     }
+}
+
+/// One head's output as linear RGB per pixel.
+fn decode_image(head: &[f32]) -> Vec<[f32; 3]> {
+    head.chunks_exact(GI_OUTPUTS).map(|c| [decode_output(c[0]), decode_output(c[1]), decode_output(c[2])]).collect()
 }
 
 /// What [`GiModel::shade`] gives.
@@ -336,5 +369,55 @@ mod tests {
         assert_eq!((decode_output(f32::NAN), decode_output(-3.0)), (0.0, 0.0));
         assert!(decode_output(1e9).is_finite() && decode_output(1e9) == decode_output(MAX_OUTPUT));
         assert!((decode_output(encode_target(2.5)) - 2.5).abs() < 1e-6);
+    }
+
+    /// A device that runs the CPU forward (or, broken, drops a head).
+    #[derive(Debug)]
+    struct CpuDevice {
+        network: UNet,
+        drop_a_head: bool,
+    }
+
+    impl UNetDevice for CpuDevice {
+        fn forward(&self, width: usize, height: usize, input: &[f32]) -> Result<Vec<Vec<f32>>, String> {
+            let mut ws = UNetWorkspace::new();
+            let mut heads: Vec<Vec<f32>> = self
+                .network
+                .forward(width, height, input, &mut ws)
+                .map_err(|e| e.to_string())?
+                .iter()
+                .map(|h| h.to_vec())
+                .collect();
+            if self.drop_a_head {
+                heads.pop();
+            }
+            Ok(heads)
+        }
+
+        fn label(&self) -> String {
+            "test device".into()
+        }
+    }
+
+    #[test]
+    fn shading_on_a_device_decodes_its_heads_as_the_cpu_does_and_refuses_missing_ones() {
+        let m = model(2);
+        let pixels: Vec<GBufferPixel> = (0..16)
+            .map(|i| GBufferPixel {
+                position: [i as f32 * 0.1, 0.5, 1.0],
+                normal: [0.0, 0.0, 1.0],
+                albedo: [0.5, 0.4, 0.3],
+                depth: 1.0 + i as f32 * 0.05,
+                direct: [0.2 * (i % 3) as f32; 3],
+            })
+            .collect();
+        let eyes = [pixels.as_slice(), pixels.as_slice()];
+        let cpu = m.shade(4, 4, &eyes, &mut UNetWorkspace::new()).expect("cpu");
+        let device = CpuDevice { network: m.network.clone(), drop_a_head: false };
+        assert_eq!(m.shade_on(&device, 4, 4, &eyes).expect("device"), cpu);
+        let broken = CpuDevice { network: m.network.clone(), drop_a_head: true };
+        let err = m.shade_on(&broken, 4, 4, &eyes).expect_err("one head for two eyes");
+        assert!(err.to_string().contains("test device"), "{err}");
+        assert!(m.shade_on(&device, 4, 4, &eyes[..1]).is_err(), "one eye for a stereo model");
     }
 }

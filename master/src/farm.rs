@@ -627,10 +627,24 @@ impl Actor {
                             let _ = self.scheduler.drain_worker(worker, now);
                         }
                     }
-                    code => tracing::warn!(worker = id, batch, ?code, "batch failed: {}", failed.message),
+                    _ => {}
                 }
-                if let Err(e) = self.scheduler.batch_failed(worker, BatchId(batch), now) {
-                    tracing::debug!(worker = id, batch, "failure report for a batch no longer there: {e}");
+                let known = self.scheduler.batch_failed(worker, BatchId(batch), now);
+                let code = failed.code;
+                match known {
+                    // Shed by a loaded worker after the scheduler had dropped it (its session
+                    // closed, its frame superseded): nothing was lost.
+                    Err(e)
+                        if matches!(
+                            code,
+                            ErrorCode::DeadlineExpired | ErrorCode::Overloaded | ErrorCode::ShuttingDown
+                        ) =>
+                    {
+                        tracing::debug!(worker = id, batch, ?code, "failure report for a batch no longer there: {e}")
+                    }
+                    Err(e) => tracing::warn!(worker = id, batch, ?code, "batch failed ({e}): {}", failed.message),
+                    Ok(()) if code == ErrorCode::ShuttingDown => {}
+                    Ok(()) => tracing::warn!(worker = id, batch, ?code, "batch failed: {}", failed.message),
                 }
             }
             Message::Goodbye(goodbye) => {

@@ -300,6 +300,7 @@ fn dataset_gi_renders_both_lightings_and_resumes() {
         "served at 0.5x, 2 spp, stereo pass",
         "served kernel, CPU, 32x32 per eye at 0.5x",
         "two bands of rows against the whole view",
+        "GPU backend",
     ] {
         assert!(bench.contains(needle), "{needle}: {bench}");
     }

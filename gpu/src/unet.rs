@@ -1,0 +1,257 @@
+//! The GI U-Net on the GPU (issue 13): the twin of [`nephele_nn::UNet::forward`], layer by
+//! layer in WGSL (`unet_conv.wgsl`, `unet_pool.wgsl`): the network's parameters uploaded
+//! once, one dispatch per convolution or pooling, every dispatch of a pass in one submission,
+//! the decoder's upsampling and skip concatenation read in place by the convolution that
+//! consumes them (no buffer for either). Checked against the CPU forward in `unet_tests.rs`.
+
+use std::sync::Arc;
+
+use nephele_nn::conv::ConvShape;
+use nephele_nn::{UNet, UNetConfig};
+use wgpu::util::DeviceExt;
+
+use crate::context::{GpuContext, GpuError};
+use crate::dispatch::{pipeline, upload};
+
+/// A U-Net resident on the GPU.
+#[derive(Debug)]
+pub struct GpuUNet {
+    ctx: Arc<GpuContext>,
+    config: UNetConfig,
+    layers: Vec<ConvShape>,
+    /// Start of each layer's parameters in `params` (floats).
+    offsets: Vec<u32>,
+    params: wgpu::Buffer,
+    conv: wgpu::ComputePipeline,
+    pool: wgpu::ComputePipeline,
+}
+
+const WORKGROUP: u32 = 64;
+
+impl GpuUNet {
+    /// Uploads `net`'s parameters and compiles the two kernels.
+    pub fn new(ctx: Arc<GpuContext>, net: &UNet) -> Result<GpuUNet, GpuError> {
+        let config = net.config().clone();
+        let layers = config.layers();
+        let mut offsets = Vec::with_capacity(layers.len());
+        let mut at = 0u32;
+        for layer in &layers {
+            offsets.push(at);
+            at += layer.param_count() as u32;
+        }
+        let words: Vec<u32> = net.params().iter().map(|v| v.to_bits()).collect();
+        let params = upload(&ctx, "U-Net parameters", &words)?;
+        let conv = pipeline(&ctx, "U-Net convolution", include_str!("unet_conv.wgsl").into())?;
+        let pool = pipeline(&ctx, "U-Net pooling", include_str!("unet_pool.wgsl").into())?;
+        Ok(GpuUNet { ctx, config, layers, offsets, params, conv, pool })
+    }
+
+    pub fn config(&self) -> &UNetConfig {
+        &self.config
+    }
+
+    /// One forward pass over an image of `width x height` (inputs as
+    /// [`nephele_nn::UNet::forward`] takes them); returns each head's output, left first.
+    pub fn forward(&self, width: usize, height: usize, input: &[f32]) -> Result<Vec<Vec<f32>>, GpuError> {
+        let c = &self.config;
+        c.check_size(width, height).map_err(|e| GpuError::Unsupported(e.to_string()))?;
+        let expected = width * height * c.eyes * c.inputs;
+        if input.len() != expected {
+            return Err(GpuError::Unsupported(format!("{} input values for {expected}", input.len())));
+        }
+        let device = &self.ctx.device;
+        let levels = c.levels();
+        let size = |level: usize| ((width >> level) as u32, (height >> level) as u32);
+        let words: Vec<u32> = input.iter().map(|v| v.to_bits()).collect();
+        let input_buf = upload(&self.ctx, "U-Net input", &words)?;
+        let empty = upload(&self.ctx, "nothing", &[])?;
+        let max = self.ctx.limits().max_storage_buffer_binding_size;
+        let buffer = |label: &str, floats: u64| -> Result<wgpu::Buffer, GpuError> {
+            if 4 * floats > max {
+                return Err(GpuError::TooLarge(format!(
+                    "{label}: {} bytes, the device binds at most {max}",
+                    4 * floats
+                )));
+            }
+            Ok(device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: 4 * floats.max(1),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }))
+        };
+        let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("U-Net") });
+        // Every layer's output, in layer order (as the CPU workspace).
+        let mut outputs: Vec<wgpu::Buffer> = Vec::with_capacity(self.layers.len());
+        let mut pooled: Vec<wgpu::Buffer> = Vec::with_capacity(levels);
+        let pixels = |(w, h): (u32, u32)| u64::from(w) * u64::from(h);
+        // Encoder.
+        for level in 0..levels {
+            let (w, h) = size(level);
+            for (n, index) in [2 * level, 2 * level + 1].into_iter().enumerate() {
+                let layer = self.layers[index];
+                let out = buffer("U-Net activations", pixels((w, h)) * layer.outputs as u64)?;
+                let source = match (n, level) {
+                    (0, 0) => &input_buf,
+                    (0, _) => &pooled[level - 1],
+                    _ => &outputs[index - 1],
+                };
+                self.conv(&mut encoder, index, (w, h), (source, layer.inputs as u32, false), (&empty, 0), &out);
+                outputs.push(out);
+            }
+            if level + 1 < levels {
+                let channels = c.channels[level] as u32;
+                let out = buffer("U-Net pooled", pixels((w / 2, h / 2)) * u64::from(channels))?;
+                self.pool_into(&mut encoder, (w, h), channels, &outputs[2 * level + 1], &out);
+                pooled.push(out);
+            }
+        }
+        // Decoder, coarsest first: the first convolution of a level reads the level below
+        // (upsampled) and the skip in place.
+        let mut below = 2 * levels - 1;
+        for (step, level) in (0..levels - 1).rev().enumerate() {
+            let (w, h) = size(level);
+            let (a, b) = (2 * levels + 2 * step, 2 * levels + 2 * step + 1);
+            let out_a = buffer("U-Net activations", pixels((w, h)) * self.layers[a].outputs as u64)?;
+            let below_channels = c.channels[level + 1] as u32;
+            let skip = (&outputs[2 * level + 1], c.channels[level] as u32);
+            self.conv(&mut encoder, a, (w, h), (&outputs[below], below_channels, true), skip, &out_a);
+            outputs.push(out_a);
+            let out_b = buffer("U-Net activations", pixels((w, h)) * self.layers[b].outputs as u64)?;
+            let source = (&outputs[a], self.layers[b].inputs as u32, false);
+            self.conv(&mut encoder, b, (w, h), source, (&empty, 0), &out_b);
+            outputs.push(out_b);
+            below = b;
+        }
+        // Heads.
+        let first_head = self.layers.len() - c.eyes;
+        let full = size(0);
+        let head_floats = pixels(full) * c.outputs as u64;
+        let mut readbacks = Vec::with_capacity(c.eyes);
+        for head in first_head..self.layers.len() {
+            let out = buffer("U-Net head", head_floats)?;
+            let source = (&outputs[below], self.layers[head].inputs as u32, false);
+            self.conv(&mut encoder, head, full, source, (&empty, 0), &out);
+            let readback = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("U-Net readback"),
+                size: 4 * head_floats,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            encoder.copy_buffer_to_buffer(&out, 0, &readback, 0, 4 * head_floats);
+            outputs.push(out);
+            readbacks.push(readback);
+        }
+        let submission = self.ctx.queue.submit([encoder.finish()]);
+        let failed = |e: &dyn std::fmt::Display| GpuError::Readback(e.to_string());
+        let (tx, rx) = std::sync::mpsc::channel();
+        for (head, readback) in readbacks.iter().enumerate() {
+            let tx = tx.clone();
+            readback.map_async(wgpu::MapMode::Read, .., move |r| {
+                let _ = tx.send((head, r));
+            });
+        }
+        device
+            .poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None })
+            .map_err(|e| failed(&e))?;
+        for _ in 0..readbacks.len() {
+            rx.recv().map_err(|e| failed(&e))?.1.map_err(|e| failed(&e))?;
+        }
+        let mut heads = Vec::with_capacity(readbacks.len());
+        for readback in &readbacks {
+            let values = {
+                let view = readback.get_mapped_range(..).map_err(|e| failed(&e))?;
+                bytemuck::cast_slice::<u8, f32>(&view).to_vec()
+            };
+            readback.unmap();
+            heads.push(values);
+        }
+        Ok(heads)
+    }
+
+    /// Records layer `index` over a `w x h` image: input `a` (`ca` channels, at half
+    /// resolution when `a_half`) then `b` (`cb` channels) per pixel, into `out`.
+    fn conv(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        index: usize,
+        (w, h): (u32, u32),
+        (a, ca, a_half): (&wgpu::Buffer, u32, bool),
+        (b, cb): (&wgpu::Buffer, u32),
+        out: &wgpu::Buffer,
+    ) {
+        let layer = self.layers[index];
+        let words = [
+            w,
+            h,
+            ca,
+            cb,
+            layer.outputs as u32,
+            layer.kernel as u32,
+            u32::from(layer.relu),
+            u32::from(a_half),
+            self.offsets[index],
+            0,
+            0,
+            0,
+        ];
+        let values = u64::from(w) * u64::from(h) * layer.outputs as u64;
+        self.dispatch(encoder, &self.conv, &words, &[&self.params, a, b, out], values);
+    }
+
+    fn pool_into(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        (w, h): (u32, u32),
+        channels: u32,
+        src: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+    ) {
+        let values = u64::from(w / 2) * u64::from(h / 2) * u64::from(channels);
+        self.dispatch(encoder, &self.pool, &[w, h, channels, 0], &[src, out], values);
+    }
+
+    /// One dispatch of `values` invocations: binding 0 the uniform `words`, then `buffers`.
+    fn dispatch(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        pipeline: &wgpu::ComputePipeline,
+        words: &[u32],
+        buffers: &[&wgpu::Buffer],
+        values: u64,
+    ) {
+        let device = &self.ctx.device;
+        let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("U-Net layer"),
+            contents: bytemuck::cast_slice(words),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let mut entries = vec![wgpu::BindGroupEntry { binding: 0, resource: uniform.as_entire_binding() }];
+        for (i, b) in buffers.iter().enumerate() {
+            entries.push(wgpu::BindGroupEntry { binding: 1 + i as u32, resource: b.as_entire_binding() });
+        }
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        let groups = values.div_ceil(u64::from(WORKGROUP)) as u32;
+        let max_x = self.ctx.limits().max_compute_workgroups_per_dimension.max(1);
+        let (gx, gy) = (groups.min(max_x), groups.div_ceil(max_x));
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: None, timestamp_writes: None });
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &bind_group, &[]);
+        pass.dispatch_workgroups(gx, gy, 1);
+    }
+}
+
+/// The farm's GI kernel runs its networks through this ([`nephele_kernels::gi::UNetDevice`]).
+impl nephele_kernels::gi::UNetDevice for GpuUNet {
+    fn forward(&self, width: usize, height: usize, input: &[f32]) -> Result<Vec<Vec<f32>>, String> {
+        GpuUNet::forward(self, width, height, input).map_err(|e| e.to_string())
+    }
+
+    fn label(&self) -> String {
+        self.ctx.label()
+    }
+}
