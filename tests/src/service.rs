@@ -75,10 +75,24 @@ impl UpService {
     /// `limit` for the URL it prints once the farm is whole (a first start that bakes takes
     /// longer).
     pub fn start_with(workers: usize, extra: &[&str], limit: Duration) -> UpService {
-        let http = free_port();
+        UpService::start_in(&[], free_port(), workers, extra, limit)
+    }
+
+    /// [`Self::start_with`] on a given HTTP address, the command run through `prefix`
+    /// (`ip netns exec NAME`: a service in a network namespace of its own).
+    pub fn start_in(prefix: &[&str], http: SocketAddr, workers: usize, extra: &[&str], limit: Duration) -> UpService {
         let log = tempfile::Builder::new().prefix("nephele-up-").suffix(".log").tempfile().expect("a log file");
         let ready_secs = (limit.as_secs() + 5).to_string();
-        let mut child = Command::new(nephele_bin())
+        let bin = nephele_bin();
+        let mut command = match prefix.split_first() {
+            Some((program, args)) => {
+                let mut c = Command::new(program);
+                c.args(args).arg(&bin);
+                c
+            }
+            None => Command::new(&bin),
+        };
+        let mut child = command
             .args([
                 "--quiet",
                 "up",

@@ -479,6 +479,11 @@ impl<'a> Session<'a> {
                 self.shared.metrics.rays_done.inc_by(done.pixels);
                 self.outbox.push(Message::BatchDone(batch_done));
             }
+            // Cancelled as the master asked (its session closed, its frame superseded): routine.
+            Err((code @ ErrorCode::Cancelled, message)) => {
+                tracing::debug!(batch = done.ids.batch_id, ?code, "batch not delivered: {message}");
+                self.fail(done.ids, code, message);
+            }
             Err((code, message)) => {
                 tracing::warn!(batch = done.ids.batch_id, ?code, "batch failed: {message}");
                 self.fail(done.ids, code, message);
