@@ -177,7 +177,11 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
         println!("{line}");
         report.push((frames, target, all[changes_before..].to_vec()));
     }
-    let users = viewer.await.expect("the viewer task").expect("loadgen runs");
+    let users = tokio::time::timeout(Duration::from_secs(60), viewer)
+        .await
+        .expect("loadgen ends within a minute of its duration")
+        .expect("the viewer task")
+        .expect("loadgen runs");
     println!("{}", nephele_loadgen::table(&users));
     let user = &users[0];
     assert!(user.error.is_none(), "{}", nephele_loadgen::table(&users));
