@@ -310,7 +310,9 @@ async fn run_user(
 ) -> Result<(), LoadError> {
     let pc = Arc::new(api.new_peer_connection(RTCConfiguration::default()).await?);
     let result = stream_user(config, base, &pc, clock, live, report).await;
-    let _ = pc.close().await;
+    if tokio::time::timeout(Duration::from_secs(5), pc.close()).await.is_err() {
+        tracing::debug!("the peer connection did not close within 5 s; dropped");
+    }
     result
 }
 
@@ -418,7 +420,9 @@ async fn stream_user(
                     let message =
                         pose::encode(sequence, ms_since(clock), config.width, config.height, config.display.mode(), &views);
                     // A full send buffer drops this pose, like the browser's unreliable channel.
-                    if dc.send(&Bytes::from(message)).await.is_ok() {
+                    // A send that never returns (a broken association) must not outlive the
+                    // run: select! polls nothing else while an arm's body waits.
+                    if let Ok(Ok(_)) = tokio::time::timeout_at(end, dc.send(&Bytes::from(message))).await {
                         sequence = sequence.wrapping_add(1);
                         report.poses_sent += 1;
                         live.poses.fetch_add(1, Ordering::Relaxed);
@@ -426,7 +430,8 @@ async fn stream_user(
                 }
                 _ = pings.tick() => {
                     ping_id += 1;
-                    let _ = dc.send_text(json!({ "type": "ping", "id": ping_id, "t": ms_since(clock) }).to_string()).await;
+                    let ping = json!({ "type": "ping", "id": ping_id, "t": ms_since(clock) }).to_string();
+                    let _ = tokio::time::timeout_at(end, dc.send_text(ping)).await;
                 }
             }
             let frames = frames_live.load(Ordering::Relaxed);
