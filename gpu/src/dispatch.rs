@@ -150,9 +150,7 @@ fn run(
         layout: &pipeline.get_bind_group_layout(0),
         entries: &entries,
     });
-    let groups = (n as u32).div_ceil(WORKGROUP);
-    let max_x = limits.max_compute_workgroups_per_dimension.max(1);
-    let (gx, gy) = (groups.min(max_x), groups.div_ceil(max_x));
+    let (gx, gy) = workgroup_grid(ctx, n as u64);
     let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
     {
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: None, timestamp_writes: None });
@@ -162,19 +160,48 @@ fn run(
     }
     encoder.copy_buffer_to_buffer(&out_buf, 0, &readback, 0, out_bytes);
     let submission = ctx.queue.submit([encoder.finish()]);
-    let (tx, rx) = std::sync::mpsc::channel();
-    readback.map_async(wgpu::MapMode::Read, .., move |r| {
-        let _ = tx.send(r);
-    });
+    let mut values = read_back(ctx, submission, &[&readback])?;
+    Ok(values.pop().unwrap_or_default())
+}
+
+/// Workgroups for `invocations` of `WORKGROUP` each, as an `x, y` grid within the device's
+/// per-dimension limit (shaders take `id.x + id.y * x * WORKGROUP`).
+pub(crate) fn workgroup_grid(ctx: &GpuContext, invocations: u64) -> (u32, u32) {
+    let groups = invocations.div_ceil(u64::from(WORKGROUP)) as u32;
+    let max_x = ctx.limits().max_compute_workgroups_per_dimension.max(1);
+    (groups.min(max_x), groups.div_ceil(max_x))
+}
+
+/// Waits for `submission` and returns the floats of each mapped-readable buffer, in order.
+pub(crate) fn read_back(
+    ctx: &GpuContext,
+    submission: wgpu::SubmissionIndex,
+    readbacks: &[&wgpu::Buffer],
+) -> Result<Vec<Vec<f32>>, GpuError> {
     let failed = |e: &dyn std::fmt::Display| GpuError::Readback(e.to_string());
-    device.poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None }).map_err(|e| failed(&e))?;
-    rx.recv().map_err(|e| failed(&e))?.map_err(|e| failed(&e))?;
-    let values = {
-        let view = readback.get_mapped_range(..).map_err(|e| failed(&e))?;
-        bytemuck::cast_slice::<u8, f32>(&view).to_vec()
-    };
-    readback.unmap();
-    Ok(values)
+    let (tx, rx) = std::sync::mpsc::channel();
+    for readback in readbacks {
+        let tx = tx.clone();
+        readback.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+    }
+    ctx.device
+        .poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None })
+        .map_err(|e| failed(&e))?;
+    for _ in readbacks {
+        rx.recv().map_err(|e| failed(&e))?.map_err(|e| failed(&e))?;
+    }
+    let mut all = Vec::with_capacity(readbacks.len());
+    for readback in readbacks {
+        let values = {
+            let view = readback.get_mapped_range(..).map_err(|e| failed(&e))?;
+            bytemuck::cast_slice::<u8, f32>(&view).to_vec()
+        };
+        readback.unmap();
+        all.push(values);
+    }
+    Ok(all)
 }
 
 /// Renders one pixel so that the driver compiles the pipeline now (most compile at the

@@ -11,7 +11,7 @@ use nephele_nn::{UNet, UNetConfig};
 use wgpu::util::DeviceExt;
 
 use crate::context::{GpuContext, GpuError};
-use crate::dispatch::{pipeline, upload};
+use crate::dispatch::{pipeline, read_back, upload, workgroup_grid};
 
 /// A U-Net resident on the GPU.
 #[derive(Debug)]
@@ -25,8 +25,6 @@ pub struct GpuUNet {
     conv: wgpu::ComputePipeline,
     pool: wgpu::ComputePipeline,
 }
-
-const WORKGROUP: u32 = 64;
 
 impl GpuUNet {
     /// Uploads `net`'s parameters and compiles the two kernels.
@@ -143,30 +141,8 @@ impl GpuUNet {
             readbacks.push(readback);
         }
         let submission = self.ctx.queue.submit([encoder.finish()]);
-        let failed = |e: &dyn std::fmt::Display| GpuError::Readback(e.to_string());
-        let (tx, rx) = std::sync::mpsc::channel();
-        for (head, readback) in readbacks.iter().enumerate() {
-            let tx = tx.clone();
-            readback.map_async(wgpu::MapMode::Read, .., move |r| {
-                let _ = tx.send((head, r));
-            });
-        }
-        device
-            .poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None })
-            .map_err(|e| failed(&e))?;
-        for _ in 0..readbacks.len() {
-            rx.recv().map_err(|e| failed(&e))?.1.map_err(|e| failed(&e))?;
-        }
-        let mut heads = Vec::with_capacity(readbacks.len());
-        for readback in &readbacks {
-            let values = {
-                let view = readback.get_mapped_range(..).map_err(|e| failed(&e))?;
-                bytemuck::cast_slice::<u8, f32>(&view).to_vec()
-            };
-            readback.unmap();
-            heads.push(values);
-        }
-        Ok(heads)
+        let readbacks: Vec<&wgpu::Buffer> = readbacks.iter().collect();
+        read_back(&self.ctx, submission, &readbacks)
     }
 
     /// Records layer `index` over a `w x h` image: input `a` (`ca` channels, at half
@@ -235,9 +211,7 @@ impl GpuUNet {
             layout: &pipeline.get_bind_group_layout(0),
             entries: &entries,
         });
-        let groups = values.div_ceil(u64::from(WORKGROUP)) as u32;
-        let max_x = self.ctx.limits().max_compute_workgroups_per_dimension.max(1);
-        let (gx, gy) = (groups.min(max_x), groups.div_ceil(max_x));
+        let (gx, gy) = workgroup_grid(&self.ctx, values);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: None, timestamp_writes: None });
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, &bind_group, &[]);
