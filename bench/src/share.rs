@@ -353,6 +353,72 @@ fn serve_live(
     Ok(())
 }
 
+/// The live path of a user's consecutive frames (`ReuseLimits::previous_frames`): each
+/// frame's batch planned, taken from the previous full render or rendered in full and kept,
+/// exactly as a worker does (`nephele_worker::temporal`, the master's default count), and
+/// each frame taken from a previous render compared with its own full render.
+fn serve_previous_frames(
+    kernel: &dyn RayKernel,
+    bounds: &Bounds,
+    cameras: &[Camera],
+    full: &[FullRender],
+    settings: &Settings,
+    tally: &mut Tally,
+) -> Result<()> {
+    use nephele_worker::derive::{Absent, derive_view_with};
+    use nephele_worker::temporal::{Plan, Previous, PreviousRenders};
+    let renders = PreviousRenders::new(usize::MAX);
+    let count = nephele_proto::ReuseLimits::DEFAULT_PREVIOUS_FRAMES;
+    let centre = bounds.center();
+    let slot = (1, "bench");
+    let band_rows = nephele_scheduler::SchedulerConfig::default().band_rows;
+    for (view, camera) in cameras.iter().enumerate() {
+        let (w, h) = (camera.width(), camera.height());
+        tally.views += 1;
+        tally.full_rays += (w * h) as usize;
+        // The batch the live service sends: the TaskAssigner's covered pixels, as one batch
+        // (whole rows of its task).
+        let Some(coverage) = nephele_scheduler::assign::estimate_coverage(camera, bounds, None, band_rows) else {
+            continue;
+        };
+        let pixels = coverage.pixels.indices();
+        tally.in_bounds_rays += pixels.len();
+        match renders.plan(slot, camera, centre, settings.max_angle_deg, count) {
+            Plan::Reuse(source) => {
+                let start = Instant::now();
+                let from = (&source.camera, source.pixels.as_slice(), &source.results);
+                let made = derive_view_with(kernel, from, source.absent, camera, &pixels, settings)?;
+                tally.reprojection_s += start.elapsed().as_secs_f64();
+                tally.full_render_s += full[view].seconds;
+                tally.rendered_rays += made.rendered;
+                tally.shared_views += 1;
+                let mut frame = PixelResults::with_len((w * h) as usize);
+                for (k, &p) in pixels.iter().enumerate() {
+                    let p = p as usize;
+                    (frame.color[p], frame.opacity[p], frame.depth[p]) =
+                        (made.results.color[k], made.results.opacity[k], made.results.depth[k]);
+                }
+                let image = frame_to_image(w, h, &frame).context("reused frame")?;
+                let reference = frame_to_image(w, h, &full[view].frame).context("full frame")?;
+                tally.shared_psnr.push(psnr(&image, &reference, [1.0; 3])?.min(99.0));
+            }
+            Plan::Render => {
+                tally.rendered_rays += pixels.len();
+                let source = &full[view].frame;
+                let mut results = PixelResults::with_len(pixels.len());
+                for (k, &p) in pixels.iter().enumerate() {
+                    let p = p as usize;
+                    (results.color[k], results.opacity[k], results.depth[k]) =
+                        (source.color[p], source.opacity[p], source.depth[p]);
+                }
+                let kept = Previous { camera: *camera, pixels, results, absent: Absent::Empty };
+                renders.remember(slot, kept, centre, settings.max_angle_deg, count);
+            }
+        }
+    }
+    Ok(())
+}
+
 fn mean(values: &[f64]) -> Option<f64> {
     (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64)
 }
@@ -409,6 +475,17 @@ pub fn run(args: ShareArgs, progress: &dyn Progress) -> Result<()> {
                     }
                 };
                 serve_live(kernel.as_ref(), &bounds, &scenario.cameras, &full, &base, &mut table[row].1)?;
+            }
+            if scenario.name.contains("frames of one user") {
+                let name = "live path: frames of one user".to_string();
+                let row = match table.iter().position(|(n, _)| *n == name) {
+                    Some(i) => i,
+                    None => {
+                        table.push((name, Tally::default()));
+                        table.len() - 1
+                    }
+                };
+                serve_previous_frames(kernel.as_ref(), &bounds, &scenario.cameras, &full, &base, &mut table[row].1)?;
             }
             let mut variants: Vec<(String, Settings)> = Vec::new();
             if scenario.name.starts_with("4 users") {

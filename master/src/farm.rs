@@ -75,7 +75,13 @@ pub struct FarmConfig {
     pub open_timeout: Duration,
     /// ICE servers for `GET /v1/config` (a JSON array).
     pub ice_servers: Value,
+    /// How many of a user's following frames a worker may take from its full render of a
+    /// view by reprojection ([`ReuseLimits::previous_frames`]); 0 renders every frame in full.
+    pub previous_frames: u32,
 }
+
+/// One frame in four rendered in full ([`ReuseLimits::DEFAULT_PREVIOUS_FRAMES`]).
+pub const DEFAULT_PREVIOUS_FRAMES: u32 = ReuseLimits::DEFAULT_PREVIOUS_FRAMES;
 
 impl Default for FarmConfig {
     fn default() -> FarmConfig {
@@ -84,6 +90,7 @@ impl Default for FarmConfig {
             load_report_interval_ms: 200,
             open_timeout: Duration::from_secs(10),
             ice_servers: json!([]),
+            previous_frames: DEFAULT_PREVIOUS_FRAMES,
         }
     }
 }
@@ -220,6 +227,7 @@ impl Farm {
             last_publish: None,
             round_us: Samples::default(),
             pose_to_plan_ms: Samples::default(),
+            previous_frames: config.previous_frames.min(ReuseLimits::MAX_PREVIOUS_FRAMES),
         };
         let task = tokio::spawn(actor.run(receiver));
         let inner = Inner {
@@ -413,6 +421,8 @@ struct Actor {
     last_publish: Option<Instant>,
     round_us: Samples,
     pose_to_plan_ms: Samples,
+    /// [`FarmConfig::previous_frames`], sent with every batch.
+    previous_frames: u32,
 }
 
 /// Events handled per round at most (the rest wait for the next round, so a flood of
@@ -965,7 +975,11 @@ impl Actor {
                     }
                 })
                 .collect(),
-            reuse: ReuseLimits::default(),
+            reuse: ReuseLimits {
+                previous_frames: self.previous_frames,
+                rows_complete: batch.rows_complete,
+                ..ReuseLimits::default()
+            },
         };
         self.metrics.links.batches_sent.inc();
         let _ = w.link.send(LinkCommand::Send(Message::RayBatch(message)));

@@ -42,7 +42,9 @@ pub const MAGIC: [u8; 4] = *b"NPHL";
 /// 5: the farm credential ([`auth`]: `Challenge` and `Proof` after the `Hello`s).
 /// 6: deadlines travel as time left (`deadline_in_us`), not as Unix instants.
 /// 7: derived views ride on ray batches (`RayBatch::derived`, `RayBatch::reuse`).
-pub const PROTOCOL_VERSION: u16 = 7;
+/// 8: a worker may take a batch from its previous render of the user's view
+///    (`ReuseLimits::previous_frames`).
+pub const PROTOCOL_VERSION: u16 = 8;
 
 /// The [`ErrorMessage`] that tells a peer why its connection is being closed.
 pub fn error_message(error: &ProtoError) -> Message {

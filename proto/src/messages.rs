@@ -183,7 +183,8 @@ pub struct RayBatch {
     /// Views of the same asset this batch's pixels also feed, by reprojection (issue 16;
     /// NEPHELE's shared rays between adjacent views): empty for a plain batch.
     pub derived: Vec<DerivedView>,
-    /// How strict that reuse is; ignored without `derived`.
+    /// How strict that reuse is, and whether the worker may also take this batch's own
+    /// pixels from its previous render of the same user's view of the asset.
     pub reuse: ReuseLimits,
 }
 
@@ -214,13 +215,34 @@ pub struct ReuseLimits {
     /// Largest colour difference (linear, per channel) among the source pixels read for one
     /// reused pixel; `>= 0`, infinity for no limit.
     pub max_contrast: f32,
+    /// A user's consecutive frames (issue 16, NEPHELE section 5: "consecutive frames of one
+    /// user"): for how many batches after rendering a view of this asset for this session in
+    /// full the worker may take a later view from that render by reprojection, rendering
+    /// only what it cannot vouch for; then it renders in full again, so that no pixel is
+    /// older than this many frames and none is resampled twice. 0: never (every batch in
+    /// full); at most [`ReuseLimits::MAX_PREVIOUS_FRAMES`].
+    pub previous_frames: u32,
+    /// The batch holds every covered pixel of the rows it spans (the promise a batch with
+    /// derived views always makes), so that, kept as a previous render, the pixels of its
+    /// bounding box it lacks are empty space; otherwise they are unknown, and whatever a
+    /// later view reads there is rendered.
+    pub rows_complete: bool,
+}
+
+impl ReuseLimits {
+    /// The most frames a full render may serve after its own.
+    pub const MAX_PREVIOUS_FRAMES: u32 = 15;
+    /// What the master asks by default: one frame in four rendered in full (the "frames of
+    /// one user" rows of `nephele bench share`, BENCHMARKS.md: 38.6-41.9 % of the rays at
+    /// 0.03-0.07 dB on the lego).
+    pub const DEFAULT_PREVIOUS_FRAMES: u32 = 3;
 }
 
 impl Default for ReuseLimits {
     /// The defaults of `nephele_share::Settings` (BENCHMARKS.md, "Shared rays between adjacent
-    /// views"): 6 degrees, contrast 0.2.
+    /// views"): 6 degrees, contrast 0.2; no reuse of previous frames.
     fn default() -> ReuseLimits {
-        ReuseLimits { max_angle_deg: 6.0, max_contrast: 0.2 }
+        ReuseLimits { max_angle_deg: 6.0, max_contrast: 0.2, previous_frames: 0, rows_complete: false }
     }
 }
 

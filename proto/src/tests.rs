@@ -85,8 +85,13 @@ fn derived_view() -> impl Strategy<Value = DerivedView> {
 }
 
 fn reuse_limits() -> impl Strategy<Value = ReuseLimits> {
-    (0.0f32..=90.0, prop_oneof![0.0f32..10.0, Just(f32::INFINITY)])
-        .prop_map(|(max_angle_deg, max_contrast)| ReuseLimits { max_angle_deg, max_contrast })
+    (0.0f32..=90.0, prop_oneof![0.0f32..10.0, Just(f32::INFINITY)], 0..=ReuseLimits::MAX_PREVIOUS_FRAMES, any::<bool>())
+        .prop_map(|(max_angle_deg, max_contrast, previous_frames, rows_complete)| ReuseLimits {
+            max_angle_deg,
+            max_contrast,
+            previous_frames,
+            rows_complete,
+        })
 }
 
 fn ray_batch() -> impl Strategy<Value = RayBatch> {
@@ -608,12 +613,15 @@ fn derived_views_and_reuse_limits_are_checked() {
     assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::NonFinite { .. }));
     for (angle, contrast) in [(-1.0, 0.2), (91.0, 0.2), (f32::NAN, 0.2), (6.0, -0.1), (6.0, f32::NAN)] {
         let mut bad = batch.clone();
-        bad.reuse = ReuseLimits { max_angle_deg: angle, max_contrast: contrast };
+        bad.reuse = ReuseLimits { max_angle_deg: angle, max_contrast: contrast, ..ReuseLimits::default() };
         assert!(
             matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::OutOfRange { .. }),
             "{angle} {contrast}"
         );
     }
+    let mut bad = batch.clone();
+    bad.reuse.previous_frames = ReuseLimits::MAX_PREVIOUS_FRAMES + 1;
+    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::Count { .. }));
     let mut bad = batch;
     bad.derived = vec![bad.derived[0].clone(); validate::MAX_VIEWS as usize + 1];
     assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::Count { .. }));

@@ -120,6 +120,9 @@ pub struct BatchSpec {
     /// [`crate::DerivedViews::work_fraction`] (times the object's `cost_per_ray` for rays of
     /// the reference kernel).
     pub work_rays: f64,
+    /// It holds every pixel of its task's coverage in the rows it spans (no row is split
+    /// with another batch), so the pixels of its bounding box it lacks are empty.
+    pub rows_complete: bool,
 }
 
 /// A view whose pixels in a batch's rows are derived from that batch (see [`BatchSpec`]).
@@ -1803,10 +1806,27 @@ impl Scheduler {
         }
     }
 
+    /// Whether `batch` holds every pixel of its task's coverage in the rows it spans (no row
+    /// is shared with another batch of the task): a pixel of its bounding box that it lacks
+    /// is then known empty.
+    fn rows_complete(&self, batch: BatchId) -> bool {
+        let Some(task) = self.batches.get(&batch).and_then(|b| self.tasks.get(&b.task)) else { return false };
+        let mut spans: Vec<(u32, u32)> = Vec::with_capacity(task.batches.len());
+        for id in &task.batches {
+            let Some(b) = self.batches.get(id) else { return false };
+            let y0 = b.pixels.rects().iter().map(|r| r.y0).min().unwrap_or(0);
+            let y1 = b.pixels.rects().iter().map(|r| r.y1).max().unwrap_or(0);
+            spans.push((y0, y1));
+        }
+        spans.sort_unstable();
+        spans.windows(2).all(|w| w[0].1 <= w[1].0)
+    }
+
     fn dispatch(&mut self, batch: BatchId, worker: WorkerId, now: Time) {
         let (factor, min_timeout) = (self.config.straggler_factor, self.config.min_batch_timeout);
         let work = self.work_of(batch);
         let derived = self.derived_specs(batch);
+        let rows_complete = self.rows_complete(batch);
         let Some(b) = self.batches.get_mut(&batch) else { return };
         let Some(t) = self.tasks.get_mut(&b.task) else { return };
         let Some(w) = self.workers.get_mut(&worker) else { return };
@@ -1851,6 +1871,7 @@ impl Scheduler {
             frames,
             derived,
             work_rays: work / t.cost.max(f64::MIN_POSITIVE),
+            rows_complete,
         };
         let tid = b.task;
         self.outbox.push(Action::Dispatch { worker, batch: Box::new(spec) });

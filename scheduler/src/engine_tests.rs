@@ -895,3 +895,31 @@ fn an_environments_view_is_split_into_row_bands_one_per_worker() {
     assert_eq!(rows_seen.len(), 64);
     assert_eq!(completions(&all).len(), 1);
 }
+
+/// `BatchSpec::rows_complete` is true exactly when no other batch of the task shares a row
+/// with it (a worker then takes the rest of the batch's box for empty space).
+#[test]
+fn a_batch_says_whether_it_holds_whole_rows_of_its_task() {
+    for (max_batch_rays, whole) in [(1 << 20, Some(true)), (8, None)] {
+        let mut s = scheduler(SchedulerConfig { max_batch_rays, ..config(Policy::Nephele) });
+        s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+        open(&mut s, 30.0, &[camera_at(10.0)], ms(0));
+        let first = s.tick(ms(0));
+        let sent = dispatches(&run_to_quiet(&mut s, first, ms(1)));
+        assert!(!sent.is_empty());
+        let rows = |b: &BatchSpec| -> BTreeSet<u32> { indices(&b.pixels).iter().map(|p| p / 64).collect() };
+        let mut split = false;
+        for (_, batch) in &sent {
+            let shares_a_row = sent
+                .iter()
+                .filter(|(_, other)| other.task == batch.task && other.id != batch.id)
+                .any(|(_, other)| !rows(other).is_disjoint(&rows(batch)));
+            assert_eq!(batch.rows_complete, !shares_a_row, "batch {:?}", batch.id);
+            split |= shares_a_row;
+        }
+        match whole {
+            Some(true) => assert!(sent.iter().all(|(_, b)| b.rows_complete), "one batch per task"),
+            _ => assert!(split, "batches of 8 rays must cut rows wider than 8 pixels"),
+        }
+    }
+}

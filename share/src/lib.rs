@@ -439,8 +439,12 @@ fn best_sample(
         if settings.filter == Filter::CatmullRom
             && let Some(sharper) = catmull_rom(source, pixel, (low_depth, high_depth), tolerance, settings)
         {
-            color = std::array::from_fn(|c| sharper[c].clamp(low[c], high[c]));
+            color = sharper;
         }
+        // Within the taps' range (weights summing to 1 + rounding once gave opacity
+        // 1.0000001, which a result's validation refuses).
+        color = std::array::from_fn(|c| color[c].max(low[c]).min(high[c]));
+        let opacity = opacity.clamp(0.0, 1.0);
         if color.iter().all(|c| c.is_finite()) && opacity.is_finite() {
             best = Some(Sample { color, opacity, point: refined, cos_angle });
         }

@@ -355,6 +355,9 @@ proptest! {
             if shared.fate[k] == Fate::Reused {
                 prop_assert!(shared.frame.color[k].iter().all(|c| c.is_finite()));
                 prop_assert!(shared.frame.opacity[k].is_finite() && shared.frame.depth[k].is_finite());
+                // A result's validation refuses opacity outside [0, 1] (1 + rounding once
+                // came out of four solid taps).
+                prop_assert!((0.0..=1.0).contains(&shared.frame.opacity[k]), "opacity {}", shared.frame.opacity[k]);
             }
         }
     }

@@ -85,7 +85,9 @@ impl Drop for WorkerProcess {
 // Test double of the master: accepts workers, one reader thread per connection feeding
 // one event channel.
 
+// What the fake master hears, through a channel: size does not matter here.
 #[derive(Debug)]
+#[allow(clippy::large_enum_variant)]
 enum Event {
     Message(usize, Message),
     Rejected(usize, Rejected),
@@ -588,6 +590,103 @@ fn a_derived_view_rides_on_a_batch_and_only_its_leftovers_are_rendered() {
     assert!(mean < 0.08, "reused pixels differ by {mean} on average");
     let covered = truth.opacity.iter().filter(|&&a| a > 0.0).count();
     assert!(silhouettes * 20 < covered, "{silhouettes} silhouette pixels lost of {covered} covered");
+}
+
+/// A user's consecutive frames (`ReuseLimits::previous_frames`): after a full render of a
+/// view, the next frames of that view are taken from it by reprojection, only the leftovers
+/// rendered; then the view is rendered in full again. The source batch held part of its
+/// rows, so what lies beyond them is rendered, never taken for empty space.
+#[test]
+fn a_users_next_frames_come_from_the_previous_render_until_it_is_renewed() {
+    let spp = 4;
+    let assets = assets();
+    let composer = Composer::start();
+    let mut master = Master::new();
+    let _worker = WorkerProcess::start(master.addr(), assets.path(), "frames", &["--spp", "4", "--bounces", "1"]);
+    let w = master.accept_worker();
+    let scene = scenes::builtin("diffuse").expect("scene");
+    let (eye, target, fov_y) = scene.default_view();
+    let kernel = PathTracedKernel::new(Renderer::new(scene.scene).expect("renderer"), spp, 1).expect("kernel");
+    // The user orbits the target by half a degree a frame.
+    let view = |frame: u32| {
+        let turn = glam::Quat::from_rotation_z((0.5 * frame as f32).to_radians());
+        let camera = Camera::look_at(64, 48, fov_y, target + turn * (eye - target), target, Vec3::Z).expect("camera");
+        (camera, ViewProjection::of_camera(&camera, 0.05, 100.0))
+    };
+    // A count with room for two reused frames after the staggered start of a new slot.
+    let previous_frames = (2..=ReuseLimits::MAX_PREVIOUS_FRAMES)
+        .find(|&n| n - nephele_worker::temporal::staggered_start("diffuse", n) >= 2)
+        .expect("a count");
+    let serves = previous_frames - nephele_worker::temporal::staggered_start("diffuse", previous_frames);
+    let all: Vec<u32> = (0..64 * 48).collect();
+    let mut frame_batch = |frame: u32, pixels: Vec<u32>| {
+        let batch = RayBatch {
+            ids: BatchIds {
+                batch_id: u64::from(frame),
+                task_id: u64::from(frame),
+                session_id: 9,
+                frame_id: u64::from(frame),
+                view_index: 0,
+            },
+            asset_id: "diffuse".into(),
+            camera: view(frame).1,
+            pixels,
+            deadline_in_us: None,
+            composer: composer.addr.to_string(),
+            derived: Vec::new(),
+            reuse: ReuseLimits { previous_frames, ..ReuseLimits::default() },
+        };
+        master.send(w, &Message::RayBatch(batch.clone()));
+        let done = match master.next() {
+            Event::Message(_, Message::BatchDone(done)) => done,
+            other => panic!("unexpected {other:?}"),
+        };
+        let result = composer.results.recv_timeout(WAIT).expect("result");
+        assert_eq!((result.ids, &result.pixels), (batch.ids, &batch.pixels));
+        (done.stats.rays / u64::from(spp), result)
+    };
+    // Frame 0: rows 8..40 only, in full.
+    let (rendered, _) = frame_batch(0, (8 * 64..40 * 64).collect());
+    assert_eq!(rendered, 32 * 64);
+    for frame in 1..=serves + 1 {
+        let (rendered, result) = frame_batch(frame, all.clone());
+        if frame > serves {
+            assert_eq!(rendered, all.len() as u64, "frame {frame}: the render has served its count: in full");
+            break;
+        }
+        // Rows 0..8 and 40..48 had no source (a third of the image): at most those and the
+        // edges are rendered. Only the first reuse is certain: later ones depend on the
+        // worker measuring reuse cheaper than rendering (it is, by far, for a path tracer,
+        // but a test must not rest on timing), and a frame rendered in full is as good.
+        // One rendered in full renews the slot (new source, new count): nothing more to check.
+        if frame > 1 && rendered == all.len() as u64 {
+            break;
+        }
+        assert!(rendered < all.len() as u64 * 2 / 3, "frame {frame}: {rendered} pixels rendered");
+        let (camera, _) = view(frame);
+        let (truth, _) = kernel.render_pixels(&camera, &all).expect("reference");
+        let (mut reused, mut off) = (0usize, 0.0f64);
+        for p in 0..all.len() {
+            let exact = result.color[p] == truth.color[p] && result.opacity[p] == truth.opacity[p];
+            let row = p / 64;
+            if !(4..44).contains(&row) {
+                assert!(exact, "frame {frame}, pixel {p} (row {row}): no source there, so the kernel's own");
+            }
+            if !exact {
+                reused += 1;
+                off += (0..3).map(|c| f64::from((result.color[p][c] - truth.color[p][c]).abs())).sum::<f64>() / 3.0;
+                let (got, want) = (result.opacity[p], truth.opacity[p]);
+                let (lost, invented) = (want == 1.0 && got == 0.0, want == 0.0 && got >= 0.99);
+                assert!(!lost && !invented, "pixel {p}: {got} vs {want}");
+            }
+        }
+        assert!(reused > 0, "frame {frame}");
+        assert!(
+            off / (reused as f64) < 0.08,
+            "frame {frame}: reused pixels differ by {} on average",
+            off / reused as f64
+        );
+    }
 }
 
 #[test]

@@ -59,6 +59,18 @@ fn pixel_box(pixels: &[u32], width: u32) -> Option<(u32, u32, u32, u32)> {
     bounds
 }
 
+/// What a pixel of the source's bounding box that the source does not hold stands for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Absent {
+    /// Empty space: the master promises that a batch holds every covered pixel of the rows
+    /// it spans ([`nephele_proto::DerivedView`]).
+    Empty,
+    /// Not known (a previous render, whose batch may have held part of its rows): such a
+    /// pixel is neither reused nor taken for empty space, so whatever lands on it is
+    /// rendered.
+    Unknown,
+}
+
 /// Renders `target_pixels` of `target` from `source_results` (the kernel's results for
 /// `source_pixels` of `source`, which must hold every non-empty pixel of their bounding box)
 /// plus what the kernel renders of the pixels reprojection leaves. Runs on the caller's rayon
@@ -68,6 +80,18 @@ pub fn derive_view(
     source: &Camera,
     source_pixels: &[u32],
     source_results: &PixelResults,
+    target: &Camera,
+    target_pixels: &[u32],
+    settings: &nephele_share::Settings,
+) -> Result<Derived, DeriveError> {
+    derive_view_with(kernel, (source, source_pixels, source_results), Absent::Empty, target, target_pixels, settings)
+}
+
+/// [`derive_view`] with the source's missing pixels standing for `absent`.
+pub fn derive_view_with(
+    kernel: &dyn RayKernel,
+    (source, source_pixels, source_results): (&Camera, &[u32], &PixelResults),
+    absent: Absent,
     target: &Camera,
     target_pixels: &[u32],
     settings: &nephele_share::Settings,
@@ -88,6 +112,11 @@ pub fn derive_view(
     let source_crop = source.crop(sx0, sy0, sx1 - sx0, sy1 - sy0)?;
     let box_width = (sx1 - sx0) as usize;
     let mut frame = PixelResults::with_len(box_width * (sy1 - sy0) as usize);
+    if absent == Absent::Unknown {
+        // Between "empty" and "solid": treated like a silhouette pixel (never reused, never
+        // empty space), so a target pixel that reads it is rendered.
+        frame.opacity.fill(0.5 * (settings.empty + settings.opaque));
+    }
     for (k, &p) in source_pixels.iter().enumerate() {
         let (x, y) = (p % source.width(), p / source.width());
         let local = (y - sy0) as usize * box_width + (x - sx0) as usize;
@@ -236,6 +265,32 @@ mod tests {
                 assert_eq!(derived.results.color[k], truth.color[k], "row {y} has no source: rendered");
             }
         }
+    }
+
+    #[test]
+    fn pixels_a_source_lacks_are_rendered_when_unknown_and_lost_when_taken_for_empty() {
+        let [left, right] = eyes();
+        let width = left.width();
+        // The source holds rows 20..40 of the left eye but not columns 30..60 of them: the
+        // sphere's middle is missing (a batch holding part of its rows).
+        let partial: Vec<u32> = rows(width, 20, 40).into_iter().filter(|p| !(30..60).contains(&(p % width))).collect();
+        let asked = rows(width, 20, 40);
+        let (source, _) = Sphere.render_pixels(&left, &partial).expect("source");
+        let (truth, _) = Sphere.render_pixels(&right, &asked).expect("truth");
+        let settings = nephele_share::Settings::default();
+        let derive = |absent| {
+            derive_view_with(&Sphere, (&left, &partial, &source), absent, &right, &asked, &settings).expect("derived")
+        };
+        let unknown = derive(Absent::Unknown);
+        assert!(unknown.reused > 0);
+        for (k, p) in asked.iter().enumerate() {
+            assert_eq!(unknown.results.opacity[k], truth.opacity[k], "pixel {p}: coverage");
+        }
+        // Taken for empty space (the promise a derived view's source makes), the gap would
+        // punch a hole into the sphere: why a previous render's gaps are unknown.
+        let empty = derive(Absent::Empty);
+        let lost = (0..asked.len()).filter(|&k| truth.opacity[k] > 0.0 && empty.results.opacity[k] == 0.0).count();
+        assert!(lost > 0, "the gap is not in view: the test proves nothing");
     }
 
     #[test]

@@ -12,13 +12,15 @@
 //! It reports its load periodically (the heartbeat), honours cancellations, reconnects if it
 //! loses the master, and on shutdown hands back queued batches, finishes in-flight ones and
 //! says goodbye. A batch may carry derived views ([`derive`]): adjacent views of the same
-//! asset taken from its pixels by reprojection, only their leftovers rendered.
+//! asset taken from its pixels by reprojection, only their leftovers rendered; and it may be
+//! taken from the worker's previous full render of the same user's view ([`temporal`]).
 
 pub mod assets;
 mod composer;
 pub mod derive;
 pub mod metrics;
 mod service;
+pub mod temporal;
 
 pub use assets::{AssetError, AssetLoader, AssetOptions, DirAssetLoader};
 pub use metrics::WorkerMetrics;

@@ -37,6 +37,8 @@ pub struct WorkerMetrics {
     pub(crate) master_connections: Counter,
     pub(crate) derived_pixels: Counter,
     pub(crate) derived_pixels_rendered: Counter,
+    pub(crate) previous_frame_pixels: Counter,
+    pub(crate) previous_frame_pixels_rendered: Counter,
 }
 
 impl WorkerMetrics {
@@ -90,6 +92,18 @@ impl WorkerMetrics {
             "Pixels of derived views that reprojection could not vouch for, rendered by the kernel",
             Counter::default(),
         );
+        let previous_frame_pixels = register(
+            &mut registry,
+            "previous_frame_pixels",
+            "Pixels of batches taken from the worker's previous full render of the same view by reprojection",
+            Counter::default(),
+        );
+        let previous_frame_pixels_rendered = register(
+            &mut registry,
+            "previous_frame_pixels_rendered",
+            "Pixels of those batches that reprojection could not vouch for, rendered by the kernel",
+            Counter::default(),
+        );
         WorkerMetrics {
             registry: Arc::new(registry),
             phase: AtomicU8::new(Phase::Calibrating as u8),
@@ -104,6 +118,8 @@ impl WorkerMetrics {
             master_connections,
             derived_pixels,
             derived_pixels_rendered,
+            previous_frame_pixels,
+            previous_frame_pixels_rendered,
         }
     }
 

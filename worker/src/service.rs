@@ -29,7 +29,12 @@ use tokio::sync::mpsc;
 
 use crate::assets::AssetLoader;
 use crate::composer::ComposerLinks;
-use crate::derive::{Derived, derive_view};
+use crate::derive::{Absent, Derived, derive_view, derive_view_with};
+use crate::temporal::{Made, Plan, Previous, PreviousRenders};
+
+/// Pixels of previous renders a worker keeps (24 bytes each: 96 MiB), enough for a dozen
+/// 720p users' objects.
+const PREVIOUS_RENDER_PIXELS: usize = 4 << 20;
 use crate::metrics::{Phase, WorkerMetrics};
 
 /// How a worker runs.
@@ -116,6 +121,8 @@ struct Shared {
     worker_id: AtomicU64,
     result_encoding: ResultEncoding,
     metrics: Arc<WorkerMetrics>,
+    /// Full renders later frames of the same views may be taken from.
+    previous: PreviousRenders,
 }
 
 /// Runs a worker until `shutdown` resolves (then drains and says goodbye: `Ok`) or the
@@ -133,6 +140,7 @@ pub async fn run<F: Future<Output = ()>>(
     let pool =
         rayon::ThreadPoolBuilder::new().num_threads(config.threads).thread_name(|i| format!("render-{i}")).build()?;
     let shared = Arc::new(Shared {
+        previous: PreviousRenders::new(PREVIOUS_RENDER_PIXELS),
         pool: Arc::new(pool),
         loader,
         composers: ComposerLinks::new(config.frame, config.io_timeout, config.farm_secret.clone()),
@@ -553,6 +561,7 @@ async fn render_and_deliver(
         ..nephele_share::Settings::default()
     };
     let worker = shared.clone();
+    let asset = asset_id.clone();
     let (pixels, derived, rendered, render_time) = tokio::task::spawn_blocking(move || {
         let kernel = match worker.loader.load(&asset_id) {
             Ok(kernel) => kernel,
@@ -570,7 +579,35 @@ async fn render_and_deliver(
                 let other = Derived { results: other, stats: none, reused: 0, empty: 0, rendered };
                 return Ok::<_, String>((results, stats, vec![other]));
             }
-            let (results, stats) = kernel.render_pixels(&camera, &pixels).map_err(|e| e.to_string())?;
+            // This batch from the previous render of the same view, where there is one.
+            let previous_frames = if kernel.shades_whole_views() { 0 } else { reuse.previous_frames };
+            let bounds = kernel.bounds();
+            let centre = 0.5 * (bounds.min + bounds.max);
+            let slot = (ids.session_id, asset_id.as_str());
+            let angle = settings.max_angle_deg;
+            let begun = Instant::now();
+            let (results, stats) = match worker.previous.plan(slot, &camera, centre, angle, previous_frames) {
+                Plan::Reuse(source) => {
+                    let absent = source.absent;
+                    let source = (&source.camera, source.pixels.as_slice(), &source.results);
+                    let made = derive_view_with(kernel.as_ref(), source, absent, &camera, &pixels, &settings)
+                        .map_err(|e| e.to_string())?;
+                    worker.previous.record(slot.1, Made::Reused, pixels.len(), begun.elapsed());
+                    worker.metrics.previous_frame_pixels.inc_by(pixels.len() as u64);
+                    worker.metrics.previous_frame_pixels_rendered.inc_by(made.rendered as u64);
+                    (made.results, made.stats)
+                }
+                Plan::Render => {
+                    let (results, stats) = kernel.render_pixels(&camera, &pixels).map_err(|e| e.to_string())?;
+                    if previous_frames > 0 {
+                        worker.previous.record(slot.1, Made::Full, pixels.len(), begun.elapsed());
+                        let absent = if reuse.rows_complete { Absent::Empty } else { Absent::Unknown };
+                        let kept = Previous { camera, pixels: pixels.clone(), results: results.clone(), absent };
+                        worker.previous.remember(slot, kept, centre, angle, previous_frames);
+                    }
+                    (results, stats)
+                }
+            };
             let mut views = Vec::with_capacity(derived.len());
             for (view, target) in derived.iter().zip(&derived_cameras) {
                 let view = if kernel.shades_whole_views() {
@@ -651,6 +688,6 @@ async fn render_and_deliver(
         .await
         .map_err(|e| (ErrorCode::ComposerUnreachable, format!("composer {composer}: {e}")))?;
     shared.metrics.deliver_ms.observe(delivering.elapsed().as_secs_f64() * 1e3);
-    tracing::debug!(batch = ids.batch_id, pixels = count, render_us = render_time_us, "batch delivered");
+    tracing::debug!(batch = ids.batch_id, %asset, pixels = count, rays = stats.rays, render_us = render_time_us, "batch delivered");
     Ok(BatchDone { ids, pixels: count, render_time_us, stats })
 }

@@ -4,9 +4,9 @@ use std::io::Write;
 use std::time::Duration;
 
 use anyhow::{Context, Result, ensure};
-use nephele_master::farm::{FarmConfig, live_scheduler_config};
+use nephele_master::farm::{DEFAULT_PREVIOUS_FRAMES, FarmConfig, live_scheduler_config};
 use nephele_master::service::{Master, MasterConfig};
-use nephele_proto::FrameConfig;
+use nephele_proto::{FrameConfig, ReuseLimits};
 use nephele_scheduler::Policy;
 use nephele_shutdown::Shutdown;
 use serde_json::json;
@@ -57,6 +57,13 @@ pub struct Args {
     /// rendered). For comparisons.
     #[arg(long)]
     no_derived_views: bool,
+    /// A user's consecutive frames: a worker renders a view of an object in full, then takes
+    /// up to N following frames of it from that render by reprojection (seen within 6
+    /// degrees of it, younger than a second), rendering only the pixels reprojection cannot
+    /// vouch for. 0 renders every frame in full. Default: 3 (one frame in four in full) for
+    /// the nephele policy, 0 for the baselines.
+    #[arg(long, value_name = "N")]
+    previous_frames: Option<u32>,
     /// A batch not back after this long (at the least; more for long queues) is re-issued.
     #[arg(long, value_name = "MS", default_value_t = 50)]
     min_batch_timeout_ms: u64,
@@ -132,6 +139,13 @@ pub fn run(args: Args) -> Result<()> {
     scheduler.min_batch_timeout = Duration::from_millis(args.min_batch_timeout_ms);
     scheduler.heartbeat_timeout = Some(Duration::from_millis(args.heartbeat_timeout_ms));
     scheduler.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
+    let default_previous = if args.policy == Policy::Nephele { DEFAULT_PREVIOUS_FRAMES } else { 0 };
+    let previous_frames = args.previous_frames.unwrap_or(default_previous);
+    ensure!(
+        previous_frames <= ReuseLimits::MAX_PREVIOUS_FRAMES,
+        "--previous-frames must be at most {}",
+        ReuseLimits::MAX_PREVIOUS_FRAMES
+    );
     let config = MasterConfig {
         http: args.http,
         farm: args.farm_listen,
@@ -140,6 +154,7 @@ pub fn run(args: Args) -> Result<()> {
             load_report_interval_ms: args.load_report_ms,
             open_timeout: Duration::from_secs(args.open_timeout_secs.max(1)),
             ice_servers: json!(ice_servers),
+            previous_frames,
         },
         frame: FrameConfig { max_frame: args.max_frame_mib.saturating_mul(1 << 20) },
         farm_secret: args.farm_secret.resolve()?,

@@ -79,6 +79,10 @@ pub struct Args {
     /// Render every view of a headset or a quilt in full (the master's `--no-derived-views`).
     #[arg(long)]
     no_derived_views: bool,
+    /// Frames a worker may take from its previous full render of a view (the master's
+    /// `--previous-frames`; 0: every frame in full).
+    #[arg(long, value_name = "N")]
+    previous_frames: Option<u32>,
     #[command(flatten)]
     tls: crate::commands::TlsArgs,
     #[command(flatten)]
@@ -248,6 +252,9 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     }
     if args.no_derived_views {
         master.arg("--no-derived-views");
+    }
+    if let Some(n) = args.previous_frames {
+        master.args(["--previous-frames", &n.to_string()]);
     }
     // Read here too: `up` asks its master's `/v1/farm` whether the farm is whole.
     let operator_token = args.operator_token.resolve()?.map(|(token, _)| token);
