@@ -402,7 +402,7 @@ fn serve_previous_frames(
                 let reference = frame_to_image(w, h, &full[view].frame).context("full frame")?;
                 tally.shared_psnr.push(psnr(&image, &reference, [1.0; 3])?.min(99.0));
             }
-            Plan::Render => {
+            Plan::Render(_) => {
                 tally.rendered_rays += pixels.len();
                 let source = &full[view].frame;
                 let mut results = PixelResults::with_len(pixels.len());

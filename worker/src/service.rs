@@ -597,7 +597,8 @@ async fn render_and_deliver(
                     worker.metrics.previous_frame_pixels_rendered.inc_by(made.rendered as u64);
                     (made.results, made.stats)
                 }
-                Plan::Render => {
+                Plan::Render(why) => {
+                    tracing::trace!(asset = %slot.1, ?why, "rendered in full");
                     let (results, stats) = kernel.render_pixels(&camera, &pixels).map_err(|e| e.to_string())?;
                     if previous_frames > 0 {
                         worker.previous.record(slot.1, Made::Full, pixels.len(), begun.elapsed());

@@ -91,7 +91,21 @@ pub enum Plan {
     /// Take it from this render.
     Reuse(Arc<Previous>),
     /// Render it in full (and [`PreviousRenders::remember`] it).
-    Render,
+    Render(Why),
+}
+
+/// Why a batch is rendered in full.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Why {
+    /// Reuse is off for it.
+    Off,
+    /// No previous render of this view here (first frame, another worker had it, too far
+    /// in angle or too old).
+    NoSource,
+    /// The previous render has served its count.
+    ServedOut,
+    /// Rendering in full measured cheaper for this asset.
+    NotPaying,
 }
 
 /// Where a new slot of `asset` starts its count of served frames, in `0..=previous_frames`:
@@ -181,19 +195,21 @@ impl PreviousRenders {
         previous_frames: u32,
     ) -> Plan {
         if previous_frames == 0 {
-            return Plan::Render;
+            return Plan::Render(Why::Off);
         }
         let mut all = self.slots.lock().unwrap_or_else(PoisonError::into_inner);
-        let Some(slots) = all.get_mut(&(session, asset.to_owned())) else { return Plan::Render };
+        let Some(slots) = all.get_mut(&(session, asset.to_owned())) else { return Plan::Render(Why::NoSource) };
         let now = Instant::now();
         slots.retain(|s| now.duration_since(s.rendered_at) < Self::MAX_AGE);
-        match Self::nearest(slots, camera, centre, max_angle_deg) {
-            Some(k) if slots[k].served < previous_frames && self.pays(asset) => {
-                slots[k].served += 1;
-                Plan::Reuse(slots[k].source.clone())
-            }
-            _ => Plan::Render,
+        let Some(k) = Self::nearest(slots, camera, centre, max_angle_deg) else { return Plan::Render(Why::NoSource) };
+        if slots[k].served >= previous_frames {
+            return Plan::Render(Why::ServedOut);
         }
+        if !self.pays(asset) {
+            return Plan::Render(Why::NotPaying);
+        }
+        slots[k].served += 1;
+        Plan::Reuse(slots[k].source.clone())
     }
 
     /// Keeps a full render as the source of its slot (replacing the slot it renews, or a new
