@@ -30,12 +30,12 @@ use tokio::sync::mpsc;
 use crate::assets::AssetLoader;
 use crate::composer::ComposerLinks;
 use crate::derive::{Absent, Derived, derive_view, derive_view_with};
+use crate::metrics::{Phase, WorkerMetrics};
 use crate::temporal::{Made, Plan, Previous, PreviousRenders};
 
 /// Pixels of previous renders a worker keeps (24 bytes each: 96 MiB), enough for a dozen
 /// 720p users' objects.
 const PREVIOUS_RENDER_PIXELS: usize = 4 << 20;
-use crate::metrics::{Phase, WorkerMetrics};
 
 /// How a worker runs.
 #[derive(Debug, Clone)]
@@ -542,6 +542,46 @@ fn wire_stats(stats: nephele_kernels::kernel::KernelStats) -> KernelStats {
     KernelStats { rays: stats.rays, rays_hit: stats.rays_hit, queries: stats.queries }
 }
 
+/// Renders a batch's own pixels, or takes them from this worker's previous render of the same
+/// session's view of the asset where the batch allows it and that pays ([`crate::temporal`]).
+/// Runs on the caller's rayon pool.
+fn render_or_reuse(
+    worker: &Shared,
+    kernel: &dyn nephele_kernels::kernel::RayKernel,
+    slot: (u64, &str),
+    camera: &Camera,
+    pixels: &[u32],
+    reuse: &nephele_proto::ReuseLimits,
+    settings: &nephele_share::Settings,
+) -> Result<(nephele_kernels::kernel::PixelResults, nephele_kernels::kernel::KernelStats), String> {
+    let previous_frames = if kernel.shades_whole_views() { 0 } else { reuse.previous_frames };
+    let centre = kernel.bounds().center();
+    let angle = settings.max_angle_deg;
+    let begun = Instant::now();
+    match worker.previous.plan(slot, camera, centre, angle, previous_frames) {
+        Plan::Reuse(source) => {
+            let from = (&source.camera, source.pixels.as_slice(), &source.results);
+            let made =
+                derive_view_with(kernel, from, source.absent, camera, pixels, settings).map_err(|e| e.to_string())?;
+            worker.previous.record(slot.1, Made::Reused, pixels.len(), begun.elapsed());
+            worker.metrics.previous_frame_pixels.inc_by(pixels.len() as u64);
+            worker.metrics.previous_frame_pixels_rendered.inc_by(made.rendered as u64);
+            Ok((made.results, made.stats))
+        }
+        Plan::Render(why) => {
+            tracing::trace!(asset = %slot.1, ?why, "rendered in full");
+            let (results, stats) = kernel.render_pixels(camera, pixels).map_err(|e| e.to_string())?;
+            if previous_frames > 0 {
+                worker.previous.record(slot.1, Made::Full, pixels.len(), begun.elapsed());
+                let absent = if reuse.rows_complete { Absent::Empty } else { Absent::Unknown };
+                let kept = Previous { camera: *camera, pixels: pixels.to_vec(), results: results.clone(), absent };
+                worker.previous.remember(slot, kept, centre, angle, previous_frames);
+            }
+            Ok((results, stats))
+        }
+    }
+}
+
 /// Loads, renders, checks and sends one batch; returns what to tell the master.
 async fn render_and_deliver(
     shared: &Arc<Shared>,
@@ -579,36 +619,9 @@ async fn render_and_deliver(
                 let other = Derived { results: other, stats: none, reused: 0, empty: 0, rendered };
                 return Ok::<_, String>((results, stats, vec![other]));
             }
-            // This batch from the previous render of the same view, where there is one.
-            let previous_frames = if kernel.shades_whole_views() { 0 } else { reuse.previous_frames };
-            let bounds = kernel.bounds();
-            let centre = 0.5 * (bounds.min + bounds.max);
             let slot = (ids.session_id, asset_id.as_str());
-            let angle = settings.max_angle_deg;
-            let begun = Instant::now();
-            let (results, stats) = match worker.previous.plan(slot, &camera, centre, angle, previous_frames) {
-                Plan::Reuse(source) => {
-                    let absent = source.absent;
-                    let source = (&source.camera, source.pixels.as_slice(), &source.results);
-                    let made = derive_view_with(kernel.as_ref(), source, absent, &camera, &pixels, &settings)
-                        .map_err(|e| e.to_string())?;
-                    worker.previous.record(slot.1, Made::Reused, pixels.len(), begun.elapsed());
-                    worker.metrics.previous_frame_pixels.inc_by(pixels.len() as u64);
-                    worker.metrics.previous_frame_pixels_rendered.inc_by(made.rendered as u64);
-                    (made.results, made.stats)
-                }
-                Plan::Render(why) => {
-                    tracing::trace!(asset = %slot.1, ?why, "rendered in full");
-                    let (results, stats) = kernel.render_pixels(&camera, &pixels).map_err(|e| e.to_string())?;
-                    if previous_frames > 0 {
-                        worker.previous.record(slot.1, Made::Full, pixels.len(), begun.elapsed());
-                        let absent = if reuse.rows_complete { Absent::Empty } else { Absent::Unknown };
-                        let kept = Previous { camera, pixels: pixels.clone(), results: results.clone(), absent };
-                        worker.previous.remember(slot, kept, centre, angle, previous_frames);
-                    }
-                    (results, stats)
-                }
-            };
+            let (results, stats) =
+                render_or_reuse(&worker, kernel.as_ref(), slot, &camera, &pixels, &reuse, &settings)?;
             let mut views = Vec::with_capacity(derived.len());
             for (view, target) in derived.iter().zip(&derived_cameras) {
                 let view = if kernel.shades_whole_views() {

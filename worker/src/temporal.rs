@@ -16,7 +16,6 @@
 //!   says the batch held whole rows of its task's coverage (`ReuseLimits::rows_complete`);
 //!   otherwise (a large task split inside rows) it is unknown
 //!   ([`crate::derive::Absent::Unknown`]), and what a later view reads there is rendered.
-//!
 //! * It is used only while it pays: per asset, the worker keeps the time per pixel of full
 //!   renders and of frames taken from a previous render (reprojection plus leftovers), and
 //!   renders in full while that is cheaper, trying reuse again every
@@ -28,9 +27,11 @@
 //! keep their own. A new slot starts part-way through its count (by the asset's name), so
 //! the objects of one frame are not all rendered in full on the same frame.
 //!
-//! Why on the worker: the scheduler gives a light task to the worker that last rendered its
-//! object (`object_switch_cost`), so the previous render is usually here; where it is not,
-//! the batch is rendered in full, which is what it cost before.
+//! Why on the worker: it holds the render the moment it is made and the kernel for the
+//! leftovers, so no source travels. The previous render is not always where the next batch
+//! lands: with two frames in flight the next frame's batch often goes to the other worker
+//! while the previous one still renders (live, 43-58 % of the object batches were reused,
+//! BENCHMARKS.md); such a batch is rendered in full, which is what it cost before.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, PoisonError};
