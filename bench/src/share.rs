@@ -337,11 +337,7 @@ fn serve_live(
         }
         let mut frame = PixelResults::with_len((w * h) as usize);
         for (pixels, values) in results.get(&part.task).map(Vec::as_slice).unwrap_or_default() {
-            for (k, &p) in pixels.iter().enumerate() {
-                let p = p as usize;
-                (frame.color[p], frame.opacity[p], frame.depth[p]) =
-                    (values.color[k], values.opacity[k], values.depth[k]);
-            }
+            scatter_into(&mut frame, pixels, values);
         }
         tally.shared_views += 1;
         tally.full_render_s += full[view].seconds;
@@ -351,6 +347,25 @@ fn serve_live(
     }
     tally.reprojection_s += derive_s;
     Ok(())
+}
+
+/// Writes `values` (one per index of `pixels`) into the whole-image `frame`.
+fn scatter_into(frame: &mut PixelResults, pixels: &[u32], values: &PixelResults) {
+    for (k, &p) in pixels.iter().enumerate() {
+        let p = p as usize;
+        (frame.color[p], frame.opacity[p], frame.depth[p]) = (values.color[k], values.opacity[k], values.depth[k]);
+    }
+}
+
+/// The index of `table`'s row called `name`, added empty if missing.
+fn row(table: &mut Vec<(String, Tally)>, name: String) -> usize {
+    match table.iter().position(|(n, _)| *n == name) {
+        Some(i) => i,
+        None => {
+            table.push((name, Tally::default()));
+            table.len() - 1
+        }
+    }
 }
 
 /// The live path of a user's consecutive frames (`ReuseLimits::previous_frames`): each
@@ -393,11 +408,7 @@ fn serve_previous_frames(
                 tally.rendered_rays += made.rendered;
                 tally.shared_views += 1;
                 let mut frame = PixelResults::with_len((w * h) as usize);
-                for (k, &p) in pixels.iter().enumerate() {
-                    let p = p as usize;
-                    (frame.color[p], frame.opacity[p], frame.depth[p]) =
-                        (made.results.color[k], made.results.opacity[k], made.results.depth[k]);
-                }
+                scatter_into(&mut frame, &pixels, &made.results);
                 let image = frame_to_image(w, h, &frame).context("reused frame")?;
                 let reference = frame_to_image(w, h, &full[view].frame).context("full frame")?;
                 tally.shared_psnr.push(psnr(&image, &reference, [1.0; 3])?.min(99.0));
@@ -457,35 +468,16 @@ pub fn run(args: ShareArgs, progress: &dyn Progress) -> Result<()> {
                 full.push(FullRender { frame, seconds, in_bounds });
                 bar.inc(1);
             }
-            let row = match table.iter().position(|(n, _)| *n == scenario.name) {
-                Some(i) => i,
-                None => {
-                    table.push((scenario.name.clone(), Tally::default()));
-                    table.len() - 1
-                }
-            };
-            serve(kernel.as_ref(), &bounds, &scenario, &full, anchor.truth.as_ref(), &base, &mut table[row].1)?;
+            let k = row(&mut table, scenario.name.clone());
+            serve(kernel.as_ref(), &bounds, &scenario, &full, anchor.truth.as_ref(), &base, &mut table[k].1)?;
             if scenario.name.starts_with("stereo") || scenario.name.contains("quilt") {
                 let name = format!("live path: {}", scenario.name.split(" (").next().unwrap_or(&scenario.name));
-                let row = match table.iter().position(|(n, _)| *n == name) {
-                    Some(i) => i,
-                    None => {
-                        table.push((name, Tally::default()));
-                        table.len() - 1
-                    }
-                };
-                serve_live(kernel.as_ref(), &bounds, &scenario.cameras, &full, &base, &mut table[row].1)?;
+                let k = row(&mut table, name);
+                serve_live(kernel.as_ref(), &bounds, &scenario.cameras, &full, &base, &mut table[k].1)?;
             }
             if scenario.name.contains("frames of one user") {
-                let name = "live path: frames of one user".to_string();
-                let row = match table.iter().position(|(n, _)| *n == name) {
-                    Some(i) => i,
-                    None => {
-                        table.push((name, Tally::default()));
-                        table.len() - 1
-                    }
-                };
-                serve_previous_frames(kernel.as_ref(), &bounds, &scenario.cameras, &full, &base, &mut table[row].1)?;
+                let k = row(&mut table, "live path: frames of one user".to_string());
+                serve_previous_frames(kernel.as_ref(), &bounds, &scenario.cameras, &full, &base, &mut table[k].1)?;
             }
             let mut variants: Vec<(String, Settings)> = Vec::new();
             if scenario.name.starts_with("4 users") {

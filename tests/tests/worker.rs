@@ -563,30 +563,10 @@ fn a_derived_view_rides_on_a_batch_and_only_its_leftovers_are_rendered() {
     let leftover = done.stats.rays / u64::from(spp) - batch.pixels.len() as u64;
     assert!((1..asked.len() as u64 / 2).contains(&leftover), "{leftover} derived pixels rendered");
     assert_eq!(first.stats.rays, leftover * u64::from(spp));
-    let (mut reused, mut off, mut silhouettes) = (0, 0.0f64, 0);
-    for (k, &p) in first.pixels.iter().enumerate() {
-        let p = p as usize;
-        let exact = first.color[k] == truth.color[p] && first.opacity[k] == truth.opacity[p];
-        let row = p / 64;
-        if !(8..40).contains(&row) {
-            assert!(exact, "pixel {p} (row {row}) has no source: the kernel's own");
-        }
-        if !exact {
-            reused += 1;
-            off += (0..3).map(|c| f64::from((first.color[k][c] - truth.color[p][c]).abs())).sum::<f64>() / 3.0;
-            // A covered pixel is never found empty, nor an empty one solid; a silhouette
-            // pixel that 1 of the 4 samples hit may be (the left eye's samples there missed).
-            let (got, want) = (first.opacity[k], truth.opacity[p]);
-            let lost = want == 1.0 && got == 0.0;
-            let invented = want == 0.0 && got >= 0.99;
-            assert!(!lost && !invented, "pixel {p}: {got} vs {want}");
-            silhouettes += usize::from((got > 0.0) != (want > 0.0));
-        }
-    }
+    let (reused, mean, silhouettes) = compare_with_truth(&first, &truth, 8..40);
     // Reused pixels are the left eye's samples, not the right's: the same surface, other
     // noise (4 samples a pixel), hence a small mean difference rather than none.
     assert!(reused > 0);
-    let mean = off / f64::from(reused);
     assert!(mean < 0.08, "reused pixels differ by {mean} on average");
     let covered = truth.opacity.iter().filter(|&&a| a > 0.0).count();
     assert!(silhouettes * 20 < covered, "{silhouettes} silhouette pixels lost of {covered} covered");
@@ -665,28 +645,40 @@ fn a_users_next_frames_come_from_the_previous_render_until_it_is_renewed() {
         assert!(rendered < all.len() as u64 * 2 / 3, "frame {frame}: {rendered} pixels rendered");
         let (camera, _) = view(frame);
         let (truth, _) = kernel.render_pixels(&camera, &all).expect("reference");
-        let (mut reused, mut off) = (0usize, 0.0f64);
-        for p in 0..all.len() {
-            let exact = result.color[p] == truth.color[p] && result.opacity[p] == truth.opacity[p];
-            let row = p / 64;
-            if !(4..44).contains(&row) {
-                assert!(exact, "frame {frame}, pixel {p} (row {row}): no source there, so the kernel's own");
-            }
-            if !exact {
-                reused += 1;
-                off += (0..3).map(|c| f64::from((result.color[p][c] - truth.color[p][c]).abs())).sum::<f64>() / 3.0;
-                let (got, want) = (result.opacity[p], truth.opacity[p]);
-                let (lost, invented) = (want == 1.0 && got == 0.0, want == 0.0 && got >= 0.99);
-                assert!(!lost && !invented, "pixel {p}: {got} vs {want}");
-            }
-        }
+        let (reused, mean, _) = compare_with_truth(&result, &truth, 4..44);
         assert!(reused > 0, "frame {frame}");
-        assert!(
-            off / (reused as f64) < 0.08,
-            "frame {frame}: reused pixels differ by {} on average",
-            off / reused as f64
-        );
+        assert!(mean < 0.08, "frame {frame}: reused pixels differ by {mean} on average");
     }
+}
+
+/// A result with reused pixels against the kernel's own render `truth` of the whole 64-pixel
+/// wide view: pixels outside the rows `sourced` had no source, so they are the kernel's own,
+/// exactly; a pixel that differs (reused) never loses full coverage nor invents solid
+/// coverage (a silhouette pixel that some samples hit may change). Returns the reused
+/// pixels, their mean colour difference, and the silhouette pixels whose coverage changed.
+fn compare_with_truth(
+    result: &BatchResult,
+    truth: &PixelResults,
+    sourced: std::ops::Range<u32>,
+) -> (usize, f64, usize) {
+    let (mut reused, mut off, mut silhouettes) = (0usize, 0.0f64, 0usize);
+    for (k, &p) in result.pixels.iter().enumerate() {
+        let row = p / 64;
+        let p = p as usize;
+        let exact = result.color[k] == truth.color[p] && result.opacity[k] == truth.opacity[p];
+        if !sourced.contains(&row) {
+            assert!(exact, "pixel {p} (row {row}) has no source: the kernel's own");
+        }
+        if !exact {
+            reused += 1;
+            off += (0..3).map(|c| f64::from((result.color[k][c] - truth.color[p][c]).abs())).sum::<f64>() / 3.0;
+            let (got, want) = (result.opacity[k], truth.opacity[p]);
+            let (lost, invented) = (want == 1.0 && got == 0.0, want == 0.0 && got >= 0.99);
+            assert!(!lost && !invented, "pixel {p}: {got} vs {want}");
+            silhouettes += usize::from((got > 0.0) != (want > 0.0));
+        }
+    }
+    (reused, off / reused.max(1) as f64, silhouettes)
 }
 
 #[test]
