@@ -43,11 +43,15 @@ pub struct LoadOptions {
     pub simd: SimdMode,
     /// Where kernels with a GPU twin run (`--device`); `None`: the CPU.
     pub accelerator: Option<Arc<dyn Accelerator>>,
+    /// Voxels between the i-NOLF march's samples (`--march-stride`; 1: every voxel). The CPU
+    /// kernel's speed-for-error knob; the GPU twin marches every voxel, so a stride above 1
+    /// with an accelerator is refused.
+    pub march_stride: u32,
 }
 
 impl Default for LoadOptions {
     fn default() -> LoadOptions {
-        LoadOptions { pathtrace_spp: 4, pathtrace_bounces: 4, simd: SimdMode::Auto, accelerator: None }
+        LoadOptions { pathtrace_spp: 4, pathtrace_bounces: 4, simd: SimdMode::Auto, accelerator: None, march_stride: 1 }
     }
 }
 
@@ -91,10 +95,23 @@ pub const FORMATS: &[AssetFormat] = &[
 fn load_inolf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
     let mut kernel = InolfKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?;
     kernel.set_simd(options.simd);
+    kernel.set_march_stride(options.march_stride).map_err(|e| LoadError::Invalid(e.to_string()))?;
     match &options.accelerator {
-        Some(device) => device.inolf(&kernel).map_err(LoadError::Invalid),
+        Some(device) => inolf_on(device.as_ref(), &kernel),
         None => Ok(Arc::new(kernel)),
     }
+}
+
+/// The device's twin of `kernel`; the twin marches every voxel, so a kernel set to a coarser
+/// march is refused rather than silently rendered otherwise.
+fn inolf_on(device: &dyn Accelerator, kernel: &InolfKernel) -> Result<Arc<dyn RayKernel>, LoadError> {
+    let stride = kernel.density().march_stride();
+    if stride != 1 {
+        return Err(LoadError::Invalid(format!(
+            "march stride {stride} asked, but the GPU kernel marches every voxel: use the CPU (--device cpu) or stride 1"
+        )));
+    }
+    device.inolf(kernel).map_err(LoadError::Invalid)
 }
 
 fn load_ngp(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
@@ -203,6 +220,35 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A device that has no twins.
+    #[derive(Debug)]
+    struct NoTwins;
+
+    impl Accelerator for NoTwins {
+        fn inolf(&self, _: &InolfKernel) -> Result<Arc<dyn RayKernel>, String> {
+            Err("no i-NOLF twin".into())
+        }
+        fn ngp(&self, _: &NgpKernel) -> Result<Arc<dyn RayKernel>, String> {
+            Err("no i-NGP twin".into())
+        }
+        fn unet(&self, _: &nephele_nn::UNet) -> Result<Arc<dyn crate::gi::UNetDevice>, String> {
+            Err("no U-Net".into())
+        }
+        fn label(&self) -> String {
+            "none".into()
+        }
+    }
+
+    #[test]
+    fn a_coarser_march_is_refused_on_a_device_whose_twin_marches_every_voxel() {
+        let mut kernel = crate::inolf::synthetic::synthetic_object(1.0).expect("object").kernel;
+        let reached = inolf_on(&NoTwins, &kernel).expect_err("no twin");
+        assert!(reached.to_string().contains("no i-NOLF twin"), "{reached}");
+        kernel.set_march_stride(2).expect("stride 2");
+        let refused = inolf_on(&NoTwins, &kernel).expect_err("refused");
+        assert!(refused.to_string().contains("--device cpu"), "{refused}");
     }
 
     #[test]

@@ -42,6 +42,12 @@ pub struct Args {
     /// cpu, or gpu (a hardware GPU, else a software Vulkan adapter).
     #[arg(long, default_value = "auto", value_name = "auto|cpu|gpu")]
     device: nephele_gpu::DeviceChoice,
+    /// Voxels between the i-NOLF density march's samples: 1 marches every voxel (the asset's
+    /// own accuracy); 2 about halves the samples of objects whose rays cross thick
+    /// semi-transparent matter (the glass shell: 0.08 dB against the path tracer,
+    /// BENCHMARKS.md). CPU only: the GPU kernel marches every voxel.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
+    march_stride: u32,
 }
 
 /// Opens an asset, choosing the kernel by the file's magic bytes (the kernels' registry),
@@ -50,9 +56,10 @@ pub fn load_kernel(
     path: &Path,
     simd: nephele_nn::SimdMode,
     device: nephele_gpu::DeviceChoice,
+    march_stride: u32,
 ) -> Result<std::sync::Arc<dyn RayKernel>> {
     let (accelerator, _) = super::open_device(device, simd)?;
-    let options = nephele_kernels::assets::LoadOptions { simd, accelerator, ..Default::default() };
+    let options = nephele_kernels::assets::LoadOptions { simd, accelerator, march_stride, ..Default::default() };
     Ok(nephele_kernels::assets::load_by_magic(path, &options)?)
 }
 
@@ -64,7 +71,7 @@ fn frame_image(dir: &Path, file_path: &str) -> PathBuf {
 
 pub fn run(args: Args, progress: &Progress) -> Result<()> {
     anyhow::ensure!(args.downscale > 0, "--downscale must be at least 1");
-    let kernel = load_kernel(&args.asset, args.simd, args.device)?;
+    let kernel = load_kernel(&args.asset, args.simd, args.device, args.march_stride)?;
     let transforms =
         dataset::read_transforms(&args.transforms).with_context(|| format!("reading {}", args.transforms.display()))?;
     let dir = args.transforms.parent().unwrap_or(Path::new("."));

@@ -60,6 +60,12 @@ pub struct Args {
     /// the CPU), cpu, or gpu (a hardware GPU, else a software Vulkan adapter).
     #[arg(long, default_value = "auto", value_name = "auto|cpu|gpu")]
     device: nephele_gpu::DeviceChoice,
+    /// The workers' voxels between the i-NOLF density march's samples: 1 marches every voxel (the asset's
+    /// own accuracy); 2 about halves the samples of objects whose rays cross thick
+    /// semi-transparent matter (the glass shell: 0.08 dB against the path tracer,
+    /// BENCHMARKS.md). CPU only: the GPU kernel marches every voxel.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
+    march_stride: u32,
     /// Asset folder of the workers, where the first start bakes missing objects (default:
     /// `$NEPHELE_CACHE`, `$XDG_CACHE_HOME/nephele` or `~/.cache/nephele`, then
     /// `assets/<quality>`).
@@ -288,6 +294,8 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
             &args.simd.to_string(),
             "--device",
             &args.device.to_string(),
+            "--march-stride",
+            &args.march_stride.to_string(),
         ]);
         worker.arg("--assets").arg(&assets);
         // Calibrate on an object the workers will serve (its kernel, on its device), not on

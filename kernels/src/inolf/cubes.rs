@@ -277,7 +277,13 @@ pub struct DensityCubes {
     /// Per coarse cell, the Chebyshev distance in cells to the nearest cell with a cube (0
     /// for those, at most 255): the march jumps over the empty box it guarantees.
     proximity: Vec<u8>,
+    /// Voxels between the march's samples ([`DensityCubes::set_march_stride`]), as a float
+    /// for the loop; 1 unless asked.
+    stride: f32,
 }
+
+/// The largest [`DensityCubes::set_march_stride`].
+pub const MAX_MARCH_STRIDE: u32 = 4;
 
 /// Chebyshev distance (in cells, capped at 255) from every cell of `cubes`' grid to the
 /// nearest cell holding a cube: a breadth-first search from those cells over the 26
@@ -411,7 +417,25 @@ impl DensityCubes {
         let lut = decode_table(cubes.sample_step());
         let occupancy = VoxelOccupancy::of(&cubes);
         let proximity = proximity_of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, proximity })
+        Ok(DensityCubes { cubes, lut, occupancy, proximity, stride: 1.0 })
+    }
+
+    /// Samples the march every `stride` voxels instead of every voxel (each sample's opacity
+    /// over the longer span, `1 - exp(-sigma stride step)`): a speed-for-error knob of the CPU
+    /// kernel. The glass shell, whose rays cross thick semi-transparent matter, marches about
+    /// half the samples at 2 for 0.08 dB against the path tracer (`nephele bench kernel
+    /// --march-stride`, BENCHMARKS.md); the bake always marches every voxel.
+    pub fn set_march_stride(&mut self, stride: u32) -> Result<(), CubeError> {
+        if !(1..=MAX_MARCH_STRIDE).contains(&stride) {
+            return Err(CubeError::BadOptions(format!("march stride {stride} is not in 1..={MAX_MARCH_STRIDE}")));
+        }
+        self.stride = stride as f32;
+        Ok(())
+    }
+
+    /// Voxels between the march's samples (1 unless [`Self::set_march_stride`] said otherwise).
+    pub fn march_stride(&self) -> u32 {
+        self.stride as u32
     }
 
     /// Bytes of the voxel occupancy bits derived at load time (not stored in assets).
@@ -555,7 +579,7 @@ impl DensityCubes {
         let cubes = SparseCubes { min: bounds.min, cell, dims, cube_res: o.cube_res, channels: 1, index, data };
         let occupancy = VoxelOccupancy::of(&cubes);
         let proximity = proximity_of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, proximity })
+        Ok(DensityCubes { cubes, lut, occupancy, proximity, stride: 1.0 })
     }
 
     /// Interpolated density (`sigma`) at `p`; 0 outside the cubes.
@@ -638,6 +662,9 @@ impl DensityCubes {
         }
         let step = cubes.sample_step();
         let inv_step = 1.0 / step;
+        let stride = self.stride;
+        let span = step * stride;
+        let inv_span = 1.0 / span;
         let inv_cell = 1.0 / cubes.cell;
         // Reciprocals once per ray: the loop below only multiplies (a division costs as much
         // as a dozen multiplications in latency, and the DDA's steps depend on each other).
@@ -727,27 +754,28 @@ impl DensityCubes {
             let cell = [c[0] as u32, c[1] as u32, c[2] as u32];
             if let Some(cube) = cubes.cube_at(cell) {
                 // First sample index at or after t_cur.
-                let first = ceil_non_negative(((t_cur - t0) * inv_step - 0.5).max(0.0));
+                let first = ceil_non_negative(((t_cur - t0) * inv_span - 0.5).max(0.0));
                 k = k.max(first);
                 let cell_min = lo + cubes.cell * Vec3::new(cell[0] as f32, cell[1] as f32, cell[2] as f32);
                 // Cube-local sample coordinates of sample k; one sample step along the ray
                 // moves them by `dir` exactly, so they advance by addition (recomputed at
                 // every cell, so rounding cannot build up over more than a cube).
-                let mut g = (origin + dir * (t0 + (k as f32 + 0.5) * step) - cell_min) * inv_step;
+                let mut g = (origin + dir * (t0 + (k as f32 + 0.5) * span) - cell_min) * inv_step;
+                let g_step = dir * stride;
                 loop {
-                    let t = t0 + (k as f32 + 0.5) * step;
+                    let t = t0 + (k as f32 + 0.5) * span;
                     if t >= t_exit {
                         break;
                     }
                     k += 1;
                     let (sigma, decoded) = self.density_at(cube, g);
-                    g += dir;
+                    g += g_step;
                     hit.samples += 1;
                     hit.lookups += u32::from(decoded);
                     if sigma <= 0.0 {
                         continue;
                     }
-                    let alpha = opacity_of_depth(sigma * step);
+                    let alpha = opacity_of_depth(sigma * span);
                     let w = transmittance * alpha;
                     if w > hit.max_weight {
                         hit.max_weight = w;
@@ -849,6 +877,16 @@ mod tests {
         CUBES.get_or_init(|| build(sphere_density))
     }
 
+    /// [`sphere_cubes`] marched every third voxel.
+    fn strided_sphere_cubes() -> &'static DensityCubes {
+        static CUBES: std::sync::OnceLock<DensityCubes> = std::sync::OnceLock::new();
+        CUBES.get_or_init(|| {
+            let mut cubes = build(sphere_density);
+            cubes.set_march_stride(3).expect("a valid stride");
+            cubes
+        })
+    }
+
     /// Two small balls in opposite corners of a 32^3 grid: most cells between them are far
     /// from any cube, so rays cross them in a few jumps.
     fn sparse_cubes() -> &'static DensityCubes {
@@ -874,6 +912,24 @@ mod tests {
     /// of its path inside, and the ray's closest approach to the centre.
     /// The inline series and libm meet at the threshold; both stay within 1e-7 of the exact
     /// `1 - exp(-x)`, from denormals through the 8-bit codes' range to infinity.
+    #[test]
+    fn a_march_stride_samples_the_same_matter_less_often() {
+        let mut strided = build(sphere_density);
+        assert!(strided.set_march_stride(0).is_err());
+        assert!(strided.set_march_stride(MAX_MARCH_STRIDE + 1).is_err());
+        assert_eq!(strided.march_stride(), 1);
+        strided.set_march_stride(2).expect("stride 2");
+        assert_eq!(strided.march_stride(), 2);
+        let step = strided.cubes().sample_step();
+        let o = CENTER - Vec3::new(2.0, 0.013, -0.021);
+        let every = sphere_cubes().march(o, Vec3::X, 0.0, f32::INFINITY);
+        let half = strided.march(o, Vec3::X, 0.0, f32::INFINITY);
+        assert!(every.opacity > 0.99 && half.opacity > 0.99, "{every:?} {half:?}");
+        assert!(half.samples < every.samples, "{every:?} {half:?}");
+        // The solid sphere's surface, found within the longer span.
+        assert!((half.t - every.t).abs() <= 2.0 * step, "{every:?} {half:?}");
+    }
+
     #[test]
     fn opacity_of_depth_is_one_minus_exp_minus_x() {
         let mut xs: Vec<f32> = vec![0.0, 1e-40, 1e-20, 1e-7, 0.124_999_99, 0.125, 0.125_000_01, 50.0, f32::INFINITY];
@@ -1097,7 +1153,7 @@ mod tests {
         if !(t0 < t1) {
             return hit;
         }
-        let step = cubes.cubes().sample_step();
+        let step = cubes.cubes().sample_step() * cubes.march_stride() as f32;
         let mut transmittance = 1.0f32;
         let mut k = 0u32;
         loop {
@@ -1162,6 +1218,7 @@ mod tests {
             check_against_reference(sphere_cubes(), o, d, near)?;
             check_against_reference(box_cubes(), o, d, near)?;
             check_against_reference(sparse_cubes(), o, d, near)?;
+            check_against_reference(strided_sphere_cubes(), o, d, near)?;
         }
 
         #[test]

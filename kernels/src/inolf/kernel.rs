@@ -145,6 +145,11 @@ impl InolfKernel {
         }
     }
 
+    /// Samples the density march every `stride` voxels ([`DensityCubes::set_march_stride`]).
+    pub fn set_march_stride(&mut self, stride: u32) -> Result<(), ModelError> {
+        self.density.set_march_stride(stride).map_err(|e| ModelError::Shape(e.to_string()))
+    }
+
     /// The instruction set in use (every network of the kernel holds the same).
     pub fn simd(&self) -> SimdMode {
         self.specular.simd()
