@@ -662,9 +662,10 @@ impl DensityCubes {
         }
         let step = cubes.sample_step();
         let inv_step = 1.0 / step;
-        let stride = self.stride;
-        let span = step * stride;
+        // Samples `span` apart along the ray: `stride` voxels (1 unless asked).
+        let span = step * self.stride;
         let inv_span = 1.0 / span;
+        let g_step = dir * self.stride;
         let inv_cell = 1.0 / cubes.cell;
         // Reciprocals once per ray: the loop below only multiplies (a division costs as much
         // as a dozen multiplications in latency, and the DDA's steps depend on each other).
@@ -758,10 +759,9 @@ impl DensityCubes {
                 k = k.max(first);
                 let cell_min = lo + cubes.cell * Vec3::new(cell[0] as f32, cell[1] as f32, cell[2] as f32);
                 // Cube-local sample coordinates of sample k; one sample step along the ray
-                // moves them by `dir` exactly, so they advance by addition (recomputed at
+                // moves them by `dir` times the stride exactly, so they advance by addition (recomputed at
                 // every cell, so rounding cannot build up over more than a cube).
                 let mut g = (origin + dir * (t0 + (k as f32 + 0.5) * span) - cell_min) * inv_step;
-                let g_step = dir * stride;
                 loop {
                     let t = t0 + (k as f32 + 0.5) * span;
                     if t >= t_exit {
