@@ -31,7 +31,12 @@
 //! leftovers, so no source travels. The previous render is not always where the next batch
 //! lands: with two frames in flight the next frame's batch often goes to the other worker
 //! while the previous one still renders (live, 43-58 % of the object batches were reused,
-//! BENCHMARKS.md); such a batch is rendered in full, which is what it cost before.
+//! BENCHMARKS.md); such a batch is rendered in full, which is what it cost before. Placing
+//! the batch on the worker that holds the render was tried in the scheduler and did not pay
+//! (the shell's batches without a source stayed the same; holding it back cost latency), and
+//! at the loadgen's orbit (about 2 degrees a frame) the reuse angle, not placement, ends a
+//! slot after two or three frames. What reuse leaves to render are the costly pixels (depth
+//! and semi-transparent edges), so time falls less than rays (BENCHMARKS.md, 2026-12-04).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, PoisonError};
