@@ -68,6 +68,7 @@ pub struct Ray {
 
 impl Ray {
     /// The point at distance `t` along the ray.
+    #[inline]
     pub fn at(&self, t: f32) -> Vec3 {
         self.origin + t * self.direction
     }
@@ -82,6 +83,7 @@ pub const TINY_DIRECTION_COMPONENT: f32 = 1e-20;
 /// when `dir` is not a unit vector within a factor of two in squared length (zero, denormal,
 /// NaN or infinite directions; a march along a tiny direction would take forever, since its
 /// samples are spaced in `t`). Every marcher (CPU and GPU twins) applies this rule.
+#[inline]
 pub fn marchable_direction(dir: Vec3) -> Option<Vec3> {
     let length_squared = dir.length_squared();
     if !(0.5..=2.0).contains(&length_squared) {
@@ -307,6 +309,7 @@ impl Camera {
     }
 
     /// Image width in pixels.
+    #[inline]
     pub fn width(&self) -> u32 {
         self.width
     }
@@ -340,6 +343,7 @@ impl Camera {
     }
 
     /// Camera centre in world space.
+    #[inline]
     pub fn position(&self) -> Vec3 {
         self.camera_to_world.w_axis.truncate()
     }
@@ -372,6 +376,7 @@ impl Camera {
     /// Ray through continuous pixel coordinates (x right, y down, (0,0) top-left corner of the
     /// image). Direction unit length, origin at the camera centre. Coordinates outside the image
     /// are allowed; non-finite coordinates give a non-finite direction.
+    #[inline]
     pub fn ray(&self, x: f32, y: f32) -> Ray {
         let camera_dir = Vec3::new((x - self.cx) / self.fx, -(y - self.cy) / self.fy, -1.0);
         let direction = self.camera_to_world.transform_vector3(camera_dir);
@@ -380,12 +385,14 @@ impl Camera {
     }
 
     /// Ray through the centre `(i + 0.5, j + 0.5)` of pixel `(i, j)`.
+    #[inline]
     pub fn pixel_center_ray(&self, i: u32, j: u32) -> Ray {
         self.ray(i as f32 + 0.5, j as f32 + 0.5)
     }
 
     /// Projects a world point to continuous pixel coordinates; `None` if the point is at or
     /// behind the camera plane (view z >= -1e-6) or non-finite.
+    #[inline]
     pub fn project(&self, p: Vec3) -> Option<Vec2> {
         let q = self.world_to_camera.transform_point3(p);
         if !q.is_finite() || q.z >= NEAR_PLANE_Z {
@@ -397,12 +404,14 @@ impl Camera {
     }
 
     /// View-space depth of a world point (positive in front of the camera).
+    #[inline]
     pub fn view_depth(&self, p: Vec3) -> f32 {
         -self.world_to_camera.transform_point3(p).z
     }
 
     /// Factor turning a distance t along `ray(x,y)` into view depth:
     /// `depth = t * depth_per_distance(&ray)` (= -dot(dir_camera_space, z)).
+    #[inline]
     pub fn depth_per_distance(&self, ray: &Ray) -> f32 {
         -self.world_to_camera.transform_vector3(ray.direction).z
     }
