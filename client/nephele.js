@@ -132,6 +132,7 @@
     xrEyeSize: null, // {width, height} the headset recommends per eye
     xrViews: null, // latest [{view, projection}] from the XR frame loop
     reconnectDelayMs: 1000,
+    reconnecting: false, // the next connection resumes a lost one: keep the camera
     wantConnected: false,
     timers: [],
   };
@@ -254,7 +255,10 @@
     client.sessionId = body.session_id;
     client.token = body.token;
     $('session').textContent = body.session_id;
-    if (body.view) client.camera.reset(body.view);
+    // A reconnection (the composer restarted, the link dropped) keeps the user's camera where it
+    // was; a new connection starts from the scene's suggested view.
+    if (body.view && !client.reconnecting) client.camera.reset(body.view);
+    client.reconnecting = false;
     await pc.setRemoteDescription({ type: 'answer', sdp: body.sdp });
     client.reconnectDelayMs = 1000;
     client.timers.push(setInterval(sendPose, POSE_INTERVAL_MS));
@@ -289,6 +293,7 @@
 
   function disconnect() {
     client.wantConnected = false;
+    client.reconnecting = false;
     teardown(true);
     setState('idle');
     $('connect').disabled = false;
@@ -302,6 +307,7 @@
     const delay = client.reconnectDelayMs;
     client.reconnectDelayMs = Math.min(10000, delay * 2);
     setState(`reconnecting in ${(delay / 1000).toFixed(0)} s (${reason})`);
+    client.reconnecting = true;
     client.timers.push(setTimeout(() => { if (client.wantConnected) connect(); }, delay));
   }
 

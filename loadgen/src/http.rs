@@ -149,7 +149,9 @@ pub fn request_blocking_with(
         builder = builder.header(*k, *v);
     }
     let request = builder.body(body.to_owned()).map_err(|e| LoadError::Http(format!("{what}: {e}")))?;
-    let trusted = trusted()?;
+    // Only an https request settles the process's trusted set: a plain-http one before
+    // `trust_certificates` must not freeze it empty.
+    let trusted = if url.starts_with("https://") { trusted()? } else { Arc::default() };
     let mut tls = ureq::tls::TlsConfig::builder();
     if !trusted.is_empty() {
         tls = tls.root_certs(ureq::tls::RootCerts::Specific(trusted));

@@ -9,11 +9,15 @@
 //! connection with a receive-only video transceiver and an unordered `control` data channel,
 //! ICE gathered before the offer is posted to `POST /v1/sessions` (waiting and retrying on
 //! `503` + `Retry-After`), a binary pose every 20 ms from a scripted orbit camera, a ping
-//! every second, and `DELETE /v1/sessions/{id}` at the end. It does not decode the video: it
-//! parses the RTP/H.264 stream ([`h264`]) to count frames (marker bits), keyframes (IDR
-//! slices), losses and bytes. It reports per user the frame rate, the round-trip time of
-//! pings, and the pose-to-frame latency when the composer names the pose each frame was
-//! rendered for (`{"type": "frame", "seq", "t"}` on the data channel).
+//! every second, and `DELETE /v1/sessions/{id}` at the end. A user whose stream is lost (the
+//! data channel closes, the peer connection fails or stays disconnected for 3 s, as when the
+//! composer restarts) connects again as the browser does (after 1 s, doubling to 10 s) and
+//! goes on with its orbit; the report counts the reconnections and adds up every session.
+//! It does not decode the video: it parses the RTP/H.264 stream ([`h264`]) to count frames
+//! (marker bits), keyframes (IDR slices), losses and bytes. It reports per user the frame
+//! rate, the round-trip time of pings, and the pose-to-frame latency when the composer names
+//! the pose each frame was rendered for (`{"type": "frame", "seq", "t"}` on the data
+//! channel).
 
 pub mod h264;
 pub mod http;
@@ -40,6 +44,7 @@ use webrtc::ice::network_type::NetworkType;
 use webrtc::interceptor::registry::Registry;
 use webrtc::peer_connection::RTCPeerConnection;
 use webrtc::peer_connection::configuration::RTCConfiguration;
+use webrtc::peer_connection::peer_connection_state::RTCPeerConnectionState;
 use webrtc::peer_connection::sdp::session_description::RTCSessionDescription;
 use webrtc::rtp_transceiver::RTCPFeedback;
 use webrtc::rtp_transceiver::RTCRtpTransceiverInit;
@@ -179,6 +184,9 @@ pub struct UserReport {
     /// Why the user did not (fully) run.
     pub error: Option<String>,
     pub busy_retries: u32,
+    /// Sessions opened again after the stream was lost (as the browser client does, for
+    /// example when the composer restarts); the counts below add up every session.
+    pub reconnects: u32,
     /// From posting the offer to the data channel opening.
     pub connect_ms: Option<f64>,
     /// From the data channel opening to the first complete frame.
@@ -308,22 +316,123 @@ async fn run_user(
     live: &Live,
     report: &mut UserReport,
 ) -> Result<(), LoadError> {
-    let pc = Arc::new(api.new_peer_connection(RTCConfiguration::default()).await?);
-    let result = stream_user(config, base, &pc, clock, live, report).await;
-    if tokio::time::timeout(Duration::from_secs(5), pc.close()).await.is_err() {
-        tracing::debug!("the peer connection did not close within 5 s; dropped");
-    }
+    let mut run = UserRun::default();
+    let mut backoff = RECONNECT_FIRST_BACKOFF;
+    let result = loop {
+        let pc = Arc::new(api.new_peer_connection(RTCConfiguration::default()).await?);
+        let outcome = stream_session(config, base, &pc, clock, live, report, &mut run).await;
+        if tokio::time::timeout(Duration::from_secs(5), pc.close()).await.is_err() {
+            tracing::debug!("the peer connection did not close within 5 s; dropped");
+        }
+        let reason = match outcome {
+            Ok(SessionEnd::RunOver) => break Ok(()),
+            Ok(SessionEnd::Lost(reason)) => reason,
+            // A failed attempt to connect again (the master still has no composer, say)
+            // is retried like a lost session while the run lasts; a first connection that
+            // fails is the user's error.
+            Err(e) if run.end.is_some() => e.to_string(),
+            Err(e) => break Err(e),
+        };
+        // As the browser does: connect again with a doubling backoff while the run lasts.
+        let Some(end) = run.end else { break Err(LoadError::Protocol(reason)) };
+        if tokio::time::Instant::now() + backoff >= end {
+            break Ok(());
+        }
+        tracing::info!(user = report.user, "session lost ({reason}); connecting again in {backoff:?}");
+        report.reconnects += 1;
+        tokio::select! {
+            _ = tokio::time::sleep(backoff) => {}
+            _ = live.stop.wait() => break Ok(()),
+        }
+        backoff = (backoff * 2).min(RECONNECT_MAX_BACKOFF);
+    };
+    run.fill(report);
     result
 }
 
-async fn stream_user(
+/// The browser client's reconnection backoff (`client/nephele.js`): 1 s, doubling to 10 s.
+const RECONNECT_FIRST_BACKOFF: Duration = Duration::from_secs(1);
+const RECONNECT_MAX_BACKOFF: Duration = Duration::from_secs(10);
+/// A peer connection "disconnected" this long counts as lost (the browser client's wait).
+const DISCONNECTED_GRACE: Duration = Duration::from_secs(3);
+
+/// How a session ended.
+#[derive(Debug)]
+enum SessionEnd {
+    /// The run's time is up or it was stopped.
+    RunOver,
+    /// The stream went away before (the composer died, the master ended the session).
+    Lost(String),
+}
+
+/// What a user's sessions add up to over the run (a user whose session is lost connects
+/// again and goes on counting).
+#[derive(Default)]
+struct UserRun {
+    /// When the first session's data channel opened, the orbit it started, and the run's end.
+    open: Option<Instant>,
+    orbit: Option<ScriptedOrbit>,
+    end: Option<tokio::time::Instant>,
+    control: Arc<Mutex<ControlStats>>,
+    video: VideoStats,
+    sequence: u32,
+    ping_id: u64,
+}
+
+impl UserRun {
+    /// Adds one session's video counts.
+    fn add_video(&mut self, v: &VideoStats) {
+        let t = &mut self.video;
+        t.frames += v.frames;
+        t.idr += v.idr;
+        t.damaged += v.damaged;
+        t.unfinished += v.unfinished;
+        t.lost += v.lost;
+        t.bytes += v.bytes;
+        t.first = match (t.first, v.first) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+        t.last = t.last.max(v.last);
+    }
+
+    /// The report's counts over every session: the frame rate over the whole run, gaps
+    /// while reconnecting included.
+    fn fill(&self, report: &mut UserReport) {
+        let v = &self.video;
+        report.frames = v.frames;
+        report.idr_frames = v.idr;
+        report.damaged_frames = v.damaged;
+        report.unfinished_frames = v.unfinished;
+        report.lost_packets = v.lost;
+        report.video_bytes = v.bytes;
+        if let (Some(first), Some(last)) = (v.first, v.last) {
+            let span = last.saturating_duration_since(first).as_secs_f64();
+            if v.frames >= 2 && span > 0.0 {
+                report.fps = (v.frames - 1) as f64 / span;
+                report.kbit_per_s = v.bytes as f64 * 8.0 / span / 1e3;
+            }
+        }
+        if let (Some(open), Some(first)) = (self.open, v.first) {
+            report.first_frame_ms = Some(first.saturating_duration_since(open).as_secs_f64() * 1e3);
+        }
+        let c = self.control.lock().unwrap_or_else(|p| p.into_inner());
+        report.rtt_ms = Percentiles::of(&c.rtt_ms);
+        report.pose_to_frame_ms = Percentiles::of(&c.pose_to_frame_ms);
+    }
+}
+
+/// One session: offer, answer, stream until the run's end or until the stream is lost, then
+/// `DELETE` the session as the browser does on leaving.
+async fn stream_session(
     config: &LoadConfig,
     base: &BaseUrl,
     pc: &Arc<RTCPeerConnection>,
     clock: Instant,
     live: &Live,
     report: &mut UserReport,
-) -> Result<(), LoadError> {
+    run: &mut UserRun,
+) -> Result<SessionEnd, LoadError> {
     let init = RTCRtpTransceiverInit { direction: RTCRtpTransceiverDirection::Recvonly, send_encodings: vec![] };
     pc.add_transceiver_from_kind(RTPCodecType::Video, Some(init)).await?;
     let video: Arc<Mutex<VideoStats>> = Arc::default();
@@ -336,11 +445,15 @@ async fn stream_user(
             Box::pin(async {})
         }));
     }
+    let (state_tx, mut state_rx) = tokio::sync::watch::channel(RTCPeerConnectionState::New);
+    pc.on_peer_connection_state_change(Box::new(move |state| {
+        let _ = state_tx.send(state);
+        Box::pin(async {})
+    }));
     let channel_init = RTCDataChannelInit { ordered: Some(false), max_retransmits: Some(0), ..Default::default() };
     let dc = pc.create_data_channel("control", Some(channel_init)).await?;
-    let control: Arc<Mutex<ControlStats>> = Arc::default();
     {
-        let control = Arc::clone(&control);
+        let control = Arc::clone(&run.control);
         dc.on_message(Box::new(move |message: DataChannelMessage| {
             if message.is_string {
                 on_control(&message.data, clock, &control);
@@ -353,6 +466,14 @@ async fn stream_user(
         let opened = Arc::clone(&opened);
         dc.on_open(Box::new(move || {
             opened.notify_one();
+            Box::pin(async {})
+        }));
+    }
+    let closed = Arc::new(Notify::new());
+    {
+        let closed = Arc::clone(&closed);
+        dc.on_close(Box::new(move || {
+            closed.notify_one();
             Box::pin(async {})
         }));
     }
@@ -377,8 +498,8 @@ async fn stream_user(
         let response = http::request(base, "POST", "/v1/sessions", &headers, &body, config.connect_timeout).await?;
         match response.status {
             201 => break response,
-            // 503: the farm is full; 429: this address asked too often. Both say when to
-            // come back.
+            // 503: the farm is full (or has no composer while one restarts); 429: this
+            // address asked too often. Both say when to come back.
             503 | 429 if report.busy_retries < config.max_busy_retries => {
                 report.busy_retries += 1;
                 let wait = response.header("retry-after").and_then(|v| v.parse::<u64>().ok()).unwrap_or(2).clamp(1, 60);
@@ -395,52 +516,68 @@ async fn stream_user(
     };
     let (session, token, sdp) = (field("session_id")?, field("token")?, field("sdp")?);
     report.session_id = Some(session.clone());
-    let orbit = first_view(&answer["view"], config.orbit_speed);
+    // A session after a reconnection goes on with the first one's orbit where it is.
+    let orbit = *run.orbit.get_or_insert_with(|| first_view(&answer["view"], config.orbit_speed));
 
     let result = async {
         pc.set_remote_description(RTCSessionDescription::answer(sdp)?).await?;
         tokio::time::timeout(config.connect_timeout, opened.notified()).await.map_err(|_| LoadError::Timeout("the data channel to open"))?;
-        let open = Instant::now();
-        report.connect_ms = Some(posted.elapsed().as_secs_f64() * 1e3);
+        let now = Instant::now();
+        let open = *run.open.get_or_insert(now);
+        let end = *run.end.get_or_insert_with(|| tokio::time::Instant::now() + config.duration);
+        report.connect_ms.get_or_insert(posted.elapsed().as_secs_f64() * 1e3);
         live.connected.fetch_add(1, Ordering::Relaxed);
 
         let mut poses = tokio::time::interval(config.pose_interval);
         poses.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
         let mut pings = tokio::time::interval(config.ping_interval);
         pings.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-        let (mut sequence, mut ping_id, mut counted_frames) = (0u32, 0u64, 0u64);
-        let end = tokio::time::Instant::now() + config.duration;
-        loop {
+        let mut counted_frames = 0u64;
+        let mut disconnected_since: Option<Instant> = None;
+        let ended = loop {
             tokio::select! {
-                _ = tokio::time::sleep_until(end) => break,
-                _ = live.stop.wait() => break,
+                _ = tokio::time::sleep_until(end) => break SessionEnd::RunOver,
+                _ = live.stop.wait() => break SessionEnd::RunOver,
+                _ = closed.notified() => break SessionEnd::Lost("the data channel closed".into()),
+                changed = state_rx.changed() => {
+                    let state = *state_rx.borrow_and_update();
+                    match state {
+                        _ if changed.is_err() => break SessionEnd::Lost("the peer connection went away".into()),
+                        RTCPeerConnectionState::Failed | RTCPeerConnectionState::Closed => {
+                            break SessionEnd::Lost(format!("the peer connection is {state}"));
+                        }
+                        RTCPeerConnectionState::Disconnected => { disconnected_since.get_or_insert_with(Instant::now); }
+                        _ => disconnected_since = None,
+                    }
+                }
                 _ = poses.tick() => {
+                    if disconnected_since.is_some_and(|since| since.elapsed() >= DISCONNECTED_GRACE) {
+                        break SessionEnd::Lost(format!("the peer connection stayed disconnected for {DISCONNECTED_GRACE:?}"));
+                    }
                     let t = open.elapsed().as_secs_f32();
                     let views = orbit.views_at(t, config.width, config.height, config.display);
                     let message =
-                        pose::encode(sequence, ms_since(clock), config.width, config.height, config.display.mode(), &views);
+                        pose::encode(run.sequence, ms_since(clock), config.width, config.height, config.display.mode(), &views);
                     // A full send buffer drops this pose, like the browser's unreliable channel.
                     // A send that never returns (a broken association) must not outlive the
                     // run: select! polls nothing else while an arm's body waits.
                     if let Ok(Ok(_)) = tokio::time::timeout_at(end, dc.send(&Bytes::from(message))).await {
-                        sequence = sequence.wrapping_add(1);
+                        run.sequence = run.sequence.wrapping_add(1);
                         report.poses_sent += 1;
                         live.poses.fetch_add(1, Ordering::Relaxed);
                     }
                 }
                 _ = pings.tick() => {
-                    ping_id += 1;
-                    let ping = json!({ "type": "ping", "id": ping_id, "t": ms_since(clock) }).to_string();
+                    run.ping_id += 1;
+                    let ping = json!({ "type": "ping", "id": run.ping_id, "t": ms_since(clock) }).to_string();
                     let _ = tokio::time::timeout_at(end, dc.send_text(ping)).await;
                 }
             }
             let frames = frames_live.load(Ordering::Relaxed);
             live.frames.fetch_add(frames - counted_frames, Ordering::Relaxed);
             counted_frames = frames;
-        }
-        let v = video.lock().unwrap_or_else(|p| p.into_inner());
-        report.first_frame_ms = v.first.map(|f| f.saturating_duration_since(open).as_secs_f64() * 1e3);
-        Ok::<_, LoadError>(())
+        };
+        Ok::<_, LoadError>(ended)
     }
     .await;
 
@@ -458,23 +595,7 @@ async fn stream_user(
     {
         tracing::debug!(session, "closing the session: {e}");
     }
-    let v = video.lock().unwrap_or_else(|p| p.into_inner());
-    report.frames = v.frames;
-    report.idr_frames = v.idr;
-    report.damaged_frames = v.damaged;
-    report.unfinished_frames = v.unfinished;
-    report.lost_packets = v.lost;
-    report.video_bytes = v.bytes;
-    if let (Some(first), Some(last)) = (v.first, v.last) {
-        let span = last.saturating_duration_since(first).as_secs_f64();
-        if v.frames >= 2 && span > 0.0 {
-            report.fps = (v.frames - 1) as f64 / span;
-            report.kbit_per_s = v.bytes as f64 * 8.0 / span / 1e3;
-        }
-    }
-    let c = control.lock().unwrap_or_else(|p| p.into_inner());
-    report.rtt_ms = Percentiles::of(&c.rtt_ms);
-    report.pose_to_frame_ms = Percentiles::of(&c.pose_to_frame_ms);
+    run.add_video(&video.lock().unwrap_or_else(|p| p.into_inner()));
     result
 }
 
@@ -532,11 +653,11 @@ async fn receive_video(track: Arc<TrackRemote>, stats: Arc<Mutex<VideoStats>>, f
 pub fn table(reports: &[UserReport]) -> String {
     let fmt = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{v:.1}"));
     let mut out = String::from(
-        "user  session        fps  frames   idr  damaged  lost  kbit/s  connect_ms  rtt_p50  p2f_p50  p2f_p99  error\n",
+        "user  session        fps  frames   idr  damaged  lost  reconn  kbit/s  connect_ms  rtt_p50  p2f_p50  p2f_p99  error\n",
     );
     for r in reports {
         out.push_str(&format!(
-            "{:>4}  {:<12} {:>5.1}  {:>6}  {:>4}  {:>7}  {:>4}  {:>6.0}  {:>10}  {:>7}  {:>7}  {:>7}  {}\n",
+            "{:>4}  {:<12} {:>5.1}  {:>6}  {:>4}  {:>7}  {:>4}  {:>6}  {:>6.0}  {:>10}  {:>7}  {:>7}  {:>7}  {}\n",
             r.user,
             r.session_id.as_deref().unwrap_or("-"),
             r.fps,
@@ -544,6 +665,7 @@ pub fn table(reports: &[UserReport]) -> String {
             r.idr_frames,
             r.damaged_frames + r.unfinished_frames,
             r.lost_packets,
+            r.reconnects,
             r.kbit_per_s,
             fmt(r.connect_ms),
             fmt(r.rtt_ms.p50),

@@ -248,6 +248,28 @@ impl TestFarm {
         log.binary.iter().rev().find_map(|(_, data)| Pose::decode(data).ok())
     }
 
+    /// Ends every open session from the farm's side, as a composer restart does: each peer
+    /// stops its video and closes its connection (the sessions stay listed, as the master
+    /// keeps them until the client's `DELETE`). Returns how many were open.
+    pub async fn drop_sessions(&self) -> usize {
+        let pcs: Vec<Arc<RTCPeerConnection>> = {
+            let state = self.shared.state();
+            state
+                .peers
+                .iter()
+                .filter(|(id, _)| !state.closed.contains(id))
+                .map(|(_, peer)| {
+                    peer.stop.store(true, Ordering::SeqCst);
+                    Arc::clone(&peer.pc)
+                })
+                .collect()
+        };
+        for pc in &pcs {
+            let _ = pc.close().await;
+        }
+        pcs.len()
+    }
+
     pub fn is_connected(&self, session: &str) -> bool {
         self.shared.state().peers.get(session).is_some_and(|p| p.connected.load(Ordering::SeqCst))
     }

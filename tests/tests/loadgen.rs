@@ -59,6 +59,50 @@ fn two_users_stream_and_report_frame_rate_and_pose_to_frame_latency() {
     assert!(live.frames.load(std::sync::atomic::Ordering::Relaxed) >= 40);
 }
 
+/// A user whose session the farm ends mid-run (as a composer restart does) connects again,
+/// as the browser client does, and streams on: two sessions, one reconnection, frames from
+/// both, both closed with `DELETE`.
+#[test]
+fn a_user_whose_session_is_lost_connects_again_and_streams_on() {
+    let rt = runtime();
+    let (farm, url) = farm(&rt);
+    let config = LoadConfig {
+        url,
+        users: 1,
+        duration: Duration::from_secs(4),
+        width: 160,
+        height: 120,
+        ..LoadConfig::default()
+    };
+    let live = Arc::new(Live::default());
+    let run = rt.spawn({
+        let live = Arc::clone(&live);
+        async move { nephele_loadgen::run(&config, live).await }
+    });
+    // Once the first session streams, the farm drops it.
+    let started = std::time::Instant::now();
+    while live.frames.load(std::sync::atomic::Ordering::Relaxed) < 10 {
+        assert!(started.elapsed() < Duration::from_secs(20), "no frames from the first session");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let frames_before = live.frames.load(std::sync::atomic::Ordering::Relaxed);
+    assert_eq!(rt.block_on(farm.drop_sessions()), 1);
+    let reports = rt.block_on(run).expect("the loadgen task").expect("loadgen runs");
+    let table = nephele_loadgen::table(&reports);
+    println!("{table}");
+    let r = &reports[0];
+    assert_eq!(r.error, None, "{table}");
+    assert_eq!(r.reconnects, 1, "{table}");
+    let offers = farm.offers();
+    assert_eq!(offers.len(), 2, "{table}");
+    // The second session is the one reported, it streamed too, and both were closed.
+    assert_eq!(r.session_id.as_deref(), Some(offers[1].session_id.as_str()), "{table}");
+    assert!(farm.frames_sent(&offers[1].session_id) > 0, "{table}");
+    assert!(r.frames > frames_before + 5, "{frames_before} frames before the drop; {table}");
+    let closed = farm.closed();
+    assert!(offers.iter().all(|o| closed.contains(&o.session_id)), "{closed:?}");
+}
+
 #[test]
 fn the_command_prints_a_table_and_writes_json() {
     let rt = runtime();
