@@ -14,10 +14,12 @@ use crate::progress::Progress;
 /// WebRTC offer to the master (retrying while it answers 503 + Retry-After), sends a pose
 /// every 20 ms from a camera orbiting the scene and a ping every second, and parses the
 /// H.264 it receives (frames by RTP marker bit, keyframes by IDR slice, losses by sequence
-/// number). Prints per user: frame rate, frames, keyframes, damaged frames, lost packets,
-/// bitrate, time to connect, ping round trip, and pose-to-frame latency (client time from a
-/// pose to the composer's `frame` note naming it; `-` when the composer sends none).
-/// Ctrl-C or SIGTERM ends the run early with the same reports.
+/// number). A user whose stream is lost (a composer restart) connects again after 1 s,
+/// doubling to 10 s, as the browser does. Prints per user: frame rate, frames, keyframes,
+/// damaged frames, lost packets, reconnections, bitrate, time to connect, ping round trip,
+/// and pose-to-frame latency (client time from a pose to the composer's `frame` note naming
+/// it; `-` when the composer sends none). Ctrl-C or SIGTERM ends the run early with the same
+/// reports.
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The master, as a browser opens it.
