@@ -185,7 +185,8 @@ pub struct UserReport {
     pub error: Option<String>,
     pub busy_retries: u32,
     /// Sessions opened again after the stream was lost (as the browser client does, for
-    /// example when the composer restarts); the counts below add up every session.
+    /// example when the composer restarts; failed attempts are not counted); the counts
+    /// below add up every session.
     pub reconnects: u32,
     /// From posting the offer to the data channel opening.
     pub connect_ms: Option<f64>,
@@ -339,7 +340,6 @@ async fn run_user(
             break Ok(());
         }
         tracing::info!(user = report.user, "session lost ({reason}); connecting again in {backoff:?}");
-        report.reconnects += 1;
         tokio::select! {
             _ = tokio::time::sleep(backoff) => {}
             _ = live.stop.wait() => break Ok(()),
@@ -522,11 +522,14 @@ async fn stream_session(
     let result = async {
         pc.set_remote_description(RTCSessionDescription::answer(sdp)?).await?;
         tokio::time::timeout(config.connect_timeout, opened.notified()).await.map_err(|_| LoadError::Timeout("the data channel to open"))?;
-        let now = Instant::now();
-        let open = *run.open.get_or_insert(now);
+        if run.open.is_some() {
+            report.reconnects += 1;
+        } else {
+            live.connected.fetch_add(1, Ordering::Relaxed);
+        }
+        let open = *run.open.get_or_insert_with(Instant::now);
         let end = *run.end.get_or_insert_with(|| tokio::time::Instant::now() + config.duration);
         report.connect_ms.get_or_insert(posted.elapsed().as_secs_f64() * 1e3);
-        live.connected.fetch_add(1, Ordering::Relaxed);
 
         let mut poses = tokio::time::interval(config.pose_interval);
         poses.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
