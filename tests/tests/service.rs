@@ -3,8 +3,9 @@
 //! (`--bake quick`: small, blurry, seconds each); a WebRTC client that opens its session
 //! through the MASTER's `POST /v1/sessions`, sends poses in the browser client's format and
 //! receives H.264 rendered by the farm from those assets; a worker killed with SIGKILL
-//! mid-stream is started again while the frames keep coming; then DELETE and SIGINT stop
-//! everything with no child left behind.
+//! mid-stream is started again while the frames keep coming; a composer killed while
+//! `nephele loadgen` streams is started again and the user goes on in a new session; then
+//! SIGINT stops everything with no child left behind.
 
 use std::time::{Duration, Instant};
 
@@ -150,6 +151,46 @@ async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_
         .expect("DELETE");
     assert_eq!(status, 204, "{body}");
     client.close().await;
+
+    // A composer killed mid-stream: the master ends its sessions and `nephele up` starts it
+    // again; a viewer (`nephele loadgen`, which connects again as the browser client does)
+    // streams on in a new session.
+    let report_file = assets.path().join("loadgen.json");
+    let loadgen = std::process::Command::new(nephele_tests::nephele_bin())
+        .args(["-q", "loadgen", "--url", &format!("http://{http}/"), "--users", "1", "--size", "64x48"])
+        .args(["--seconds", "25", "--json", report_file.to_str().expect("utf-8 path")])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("nephele loadgen");
+    let started = Instant::now();
+    let first_session = loop {
+        let (_, body) = http_request(http, "GET", "/v1/sessions", &[], "").await.expect("GET /v1/sessions");
+        let listed: serde_json::Value = serde_json::from_str(&body).expect("JSON");
+        if let Some(id) = listed["sessions"][0]["id"].as_str() {
+            break id.to_string();
+        }
+        assert!(started.elapsed() < Duration::from_secs(60), "loadgen opened no session: {body}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let composers = children_in_role(up.pid(), "composer");
+    assert_eq!(composers.len(), 1, "{composers:?}");
+    let killed = std::process::Command::new("kill").args(["-KILL", &composers[0].to_string()]).status().expect("kill");
+    assert!(killed.success());
+    let output = loadgen.wait_with_output().expect("loadgen's output");
+    let table = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "{table}\n{}", String::from_utf8_lossy(&output.stderr));
+    let reports: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report_file).expect("the JSON report")).expect("JSON");
+    let user = &reports[0];
+    assert!(user["error"].is_null() && user["reconnects"] == 1, "{table}");
+    assert!(user["session_id"].as_str().is_some_and(|id| id != first_session), "{table}");
+    assert!(user["frames"].as_u64().is_some_and(|n| n >= 10), "{table}");
+    let restarted = children_in_role(up.pid(), "composer");
+    assert!(restarted.len() == 1 && restarted[0] != composers[0], "{restarted:?}");
+    println!("composer {} killed; loadgen went on in a new session:\n{table}", composers[0]);
+    let children: Vec<u32> = children.into_iter().chain(children_of(up.pid())).collect();
 
     let status = up.interrupt(Duration::from_secs(15)).expect("nephele up stops within 15 s of SIGINT");
     assert!(status.success(), "nephele up exited with {status}");
