@@ -13,7 +13,7 @@ use nephele_geometry::camera::Camera;
 use nephele_kernels::environment::{GiKernel, GiServeSettings};
 use nephele_kernels::gi::{GI_INPUTS, GiModel};
 use nephele_kernels::kernel::{RayKernel, all_pixels};
-use nephele_nn::UNetWorkspace;
+use nephele_nn::{SimdMode, UNetWorkspace};
 use nephele_train::gi::data::read_manifest;
 use nephele_train::gi::stereo::{StereoEvaluation, StereoSample, evaluate_pairs, load_pairs, shade_pairs};
 
@@ -238,22 +238,41 @@ pub fn run(args: GiArgs, _progress: &dyn Progress) -> Result<()> {
     let (left, right, both) =
         (resize(&p.eyes[0], GI_INPUTS), resize(&p.eyes[1], GI_INPUTS), resize(&p.stacked, 2 * GI_INPUTS));
     let mut ws = UNetWorkspace::new();
-    let (mut two_single, mut one_stereo) = (Vec::new(), Vec::new());
+    // The same networks run by the scalar twin of the convolutions, for the SIMD speed-up.
+    let (mut teacher_scalar, mut stereo_scalar) = (teacher.network.clone(), stereo.network.clone());
+    teacher_scalar.set_simd(SimdMode::Off);
+    stereo_scalar.set_simd(SimdMode::Off);
+    let mut times = [(); 4].map(|_| Vec::new());
     for _ in 0..args.repeats.max(1) + 1 {
-        // Alternated, so both see the same machine load; the first round warms up.
-        let t = Instant::now();
-        teacher.network.forward(w, h, &left, &mut ws)?;
-        teacher.network.forward(w, h, &right, &mut ws)?;
-        two_single.push(t.elapsed().as_secs_f64() * 1e3);
-        let t = Instant::now();
-        stereo.network.forward(w, h, &both, &mut ws)?;
-        one_stereo.push(t.elapsed().as_secs_f64() * 1e3);
+        // Alternated, so all see the same machine load; the first round warms up.
+        for (k, (single, pair)) in
+            [(&teacher.network, &stereo.network), (&teacher_scalar, &stereo_scalar)].into_iter().enumerate()
+        {
+            let t = Instant::now();
+            single.forward(w, h, &left, &mut ws)?;
+            single.forward(w, h, &right, &mut ws)?;
+            times[2 * k].push(t.elapsed().as_secs_f64() * 1e3);
+            let t = Instant::now();
+            pair.forward(w, h, &both, &mut ws)?;
+            times[2 * k + 1].push(t.elapsed().as_secs_f64() * 1e3);
+        }
     }
-    let (single_ms, stereo_ms) = (median(&mut two_single), median(&mut one_stereo));
+    let [single_ms, stereo_ms, single_scalar_ms, stereo_scalar_ms] = times.map(|mut t| median(&mut t));
+    let threads = rayon::current_num_threads();
     println!(
-        "CPU, {w}x{h} per eye, {} threads: two single-eye passes {single_ms:.1} ms, one stereo pass {stereo_ms:.1} ms: ratio {:.3} (paper 0.53 on a GPU)",
-        rayon::current_num_threads(),
+        "CPU ({}), {w}x{h} per eye, {threads} threads: two single-eye passes {single_ms:.1} ms, one stereo pass {stereo_ms:.1} ms: ratio {:.3} (paper 0.53 on a GPU)",
+        SimdMode::Auto.describe(),
         stereo_ms / single_ms
+    );
+    let gmacs = |macs: f64, ms: f64| macs * (w * h) as f64 / (ms * 1e6);
+    println!(
+        "CPU scalar twin (--simd off): two single-eye passes {single_scalar_ms:.1} ms, one stereo pass {stereo_scalar_ms:.1} ms: SIMD speed-up {:.2}x / {:.2}x; {:.1} / {:.1} G multiply-adds per second with SIMD, {:.1} / {:.1} scalar",
+        single_scalar_ms / single_ms,
+        stereo_scalar_ms / stereo_ms,
+        gmacs(2.0 * single_macs, single_ms),
+        gmacs(stereo_macs, stereo_ms),
+        gmacs(2.0 * single_macs, single_scalar_ms),
+        gmacs(stereo_macs, stereo_scalar_ms),
     );
     gpu_ratio(&teacher, &stereo, (w, h), (&left, &right, &both), args.repeats)?;
 

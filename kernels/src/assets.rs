@@ -145,7 +145,9 @@ const GI_MAGIC8: [u8; 8] = {
 /// networks run there (the G-buffer is path traced on the CPU either way).
 fn load_gi(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
     let settings = crate::environment::GiServeSettings::default();
-    let kernel = crate::environment::GiKernel::load(path, settings).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    let mut kernel =
+        crate::environment::GiKernel::load(path, settings).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    kernel.set_simd(options.simd);
     let Some(accelerator) = &options.accelerator else {
         return Ok(Arc::new(kernel));
     };

@@ -161,6 +161,14 @@ impl GiKernel {
         GiKernel::new(single, stereo, settings)
     }
 
+    /// Chooses the instruction set of the networks' CPU convolutions (`--simd`).
+    pub fn set_simd(&mut self, simd: nephele_nn::SimdMode) {
+        self.single.network.set_simd(simd);
+        if let Some(stereo) = &mut self.stereo {
+            stereo.network.set_simd(simd);
+        }
+    }
+
     /// Whether a pair of views is shaded in one stereo pass.
     pub fn has_stereo(&self) -> bool {
         self.stereo.is_some()

@@ -32,6 +32,7 @@ use crate::conv::{
     ConvShape, concat, conv_backward, conv_forward, pool_backward, pool_forward, split, upsample_backward,
     upsample_forward,
 };
+use crate::simd::SimdMode;
 use crate::{InitRng, NnError, check_len};
 
 /// The network's shape.
@@ -133,6 +134,8 @@ pub struct UNet {
     params: Vec<f32>,
     /// Start of each layer's parameters.
     offsets: Vec<usize>,
+    /// Instruction set of the forward convolutions ([`UNet::set_simd`]).
+    simd: SimdMode,
 }
 
 /// Activations of one forward pass, kept for the backward pass and reused between calls.
@@ -160,7 +163,7 @@ impl UNet {
             offsets.push(params.len());
             layer.init(&mut rng, &mut params);
         }
-        Ok(UNet { config, params, offsets })
+        Ok(UNet { config, params, offsets, simd: SimdMode::Auto })
     }
 
     /// A network of `config` with the given parameters (a loaded model).
@@ -176,7 +179,7 @@ impl UNet {
             offsets.push(at);
             at += layer.param_count();
         }
-        Ok(UNet { config, params, offsets })
+        Ok(UNet { config, params, offsets, simd: SimdMode::Auto })
     }
 
     /// The stereo student of a single-eye teacher: every layer copied but the first (it sees
@@ -199,6 +202,16 @@ impl UNet {
 
     pub fn config(&self) -> &UNetConfig {
         &self.config
+    }
+
+    /// Chooses the instruction set of the forward pass (default: the best the CPU has;
+    /// [`SimdMode::Off`] runs the same register-blocked loops one lane wide, for the ratio).
+    pub fn set_simd(&mut self, simd: SimdMode) {
+        self.simd = simd;
+    }
+
+    pub fn simd(&self) -> SimdMode {
+        self.simd
     }
 
     pub fn params(&self) -> &[f32] {
@@ -244,9 +257,9 @@ impl UNet {
             let (w, h) = size(level);
             let (a, b) = (2 * level, 2 * level + 1);
             let source: &[f32] = if level == 0 { input } else { &ws.pooled[level - 1] };
-            conv_forward(&layers[a], self.layer_params(a), w, h, source, &mut ws.outputs[a])?;
+            conv_forward(self.simd, &layers[a], self.layer_params(a), w, h, source, &mut ws.outputs[a])?;
             let (before, after) = ws.outputs.split_at_mut(b);
-            conv_forward(&layers[b], self.layer_params(b), w, h, &before[a], &mut after[0])?;
+            conv_forward(self.simd, &layers[b], self.layer_params(b), w, h, &before[a], &mut after[0])?;
             if level + 1 < levels {
                 pool_forward(w, h, c.channels[level], &ws.outputs[b], &mut ws.pooled[level]);
             }
@@ -259,16 +272,16 @@ impl UNet {
             upsample_forward(w / 2, h / 2, c.channels[level + 1], &ws.outputs[below], &mut ws.upsampled[step]);
             let skip = &ws.outputs[2 * level + 1];
             concat(w * h, &ws.upsampled[step], c.channels[level + 1], skip, c.channels[level], &mut ws.joined[step]);
-            conv_forward(&layers[a], self.layer_params(a), w, h, &ws.joined[step], &mut ws.outputs[a])?;
+            conv_forward(self.simd, &layers[a], self.layer_params(a), w, h, &ws.joined[step], &mut ws.outputs[a])?;
             let (before, after) = ws.outputs.split_at_mut(b);
-            conv_forward(&layers[b], self.layer_params(b), w, h, &before[a], &mut after[0])?;
+            conv_forward(self.simd, &layers[b], self.layer_params(b), w, h, &before[a], &mut after[0])?;
             below = b;
         }
         // Heads.
         let first_head = layers.len() - c.eyes;
         for (head, layer) in layers.iter().enumerate().skip(first_head) {
             let (before, after) = ws.outputs.split_at_mut(head);
-            conv_forward(layer, self.layer_params(head), width, height, &before[below], &mut after[0])?;
+            conv_forward(self.simd, layer, self.layer_params(head), width, height, &before[below], &mut after[0])?;
         }
         Ok(ws.outputs[first_head..].iter().map(Vec::as_slice).collect())
     }
