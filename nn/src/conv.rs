@@ -272,8 +272,15 @@ fn forward_rows_plain(
 /// derivative); `d_output` its gradient, overwritten with the gradient before the ReLU.
 /// Adds the parameter gradient into `d_params`; writes the input gradient into `d_input`
 /// when given (the first layer of a network needs none).
+///
+/// The input gradient is itself a convolution, of the output gradient with the taps mirrored
+/// and inputs and outputs swapped, so it runs [`conv_forward`]'s register-blocked loop; the
+/// weight gradient keeps [`TILE_INPUTS`] input channels times [`BLOCK_VECTORS`] vectors of
+/// output channels in registers along each row of pixels. `simd` chooses the instruction set
+/// of both, as for the forward pass.
 #[allow(clippy::too_many_arguments)]
 pub fn conv_backward(
+    simd: SimdMode,
     shape: &ConvShape,
     params: &[f32],
     width: usize,
@@ -292,7 +299,6 @@ pub fn conv_backward(
     check_len("convolution output", pixels * shape.outputs, output.len())?;
     check_len("convolution output gradient", pixels * shape.outputs, d_output.len())?;
     let (ci, co, k) = (shape.inputs, shape.outputs, shape.kernel);
-    let pad = (k / 2) as isize;
     if shape.relu {
         d_output.par_iter_mut().zip(output.par_iter()).for_each(|(d, &o)| {
             if o <= 0.0 {
@@ -302,6 +308,7 @@ pub fn conv_backward(
     }
     let d_output: &[f32] = d_output;
     let weights = &params[..shape.weight_count()];
+    let image = Image { inputs: ci, outputs: co, kernel: k, width, height };
 
     // Parameter gradient: per task of rows, then summed.
     let partial = d_output
@@ -310,35 +317,9 @@ pub fn conv_backward(
         .fold(
             || vec![0.0f32; shape.param_count()],
             |mut acc, (task, rows)| {
-                let (dw, db) = acc.split_at_mut(shape.weight_count());
-                for (r, row) in rows.chunks(width * co).enumerate() {
-                    let y = (task * ROWS_PER_TASK + r) as isize;
-                    for (x, d) in row.chunks_exact(co).enumerate() {
-                        if d.iter().all(|&v| v == 0.0) {
-                            continue;
-                        }
-                        db.iter_mut().zip(d).for_each(|(b, &g)| *b += g);
-                        for ky in 0..k {
-                            let sy = y + ky as isize - pad;
-                            if sy < 0 || sy >= height as isize {
-                                continue;
-                            }
-                            for kx in 0..k {
-                                let sx = x as isize + kx as isize - pad;
-                                if sx < 0 || sx >= width as isize {
-                                    continue;
-                                }
-                                let src = &input[(sy as usize * width + sx as usize) * ci..][..ci];
-                                let w = &mut dw[(ky * k + kx) * ci * co..][..ci * co];
-                                for (&v, wrow) in src.iter().zip(w.chunks_exact_mut(co)) {
-                                    if v != 0.0 {
-                                        wrow.iter_mut().zip(d).for_each(|(w, &g)| *w += v * g);
-                                    }
-                                }
-                            }
-                        }
-                    }
-                }
+                let (d_weights, d_bias) = acc.split_at_mut(shape.weight_count());
+                let first_row = task * ROWS_PER_TASK;
+                simd.arch().dispatch(WeightGradientRows { image, input, first_row, rows, d_weights, d_bias });
                 acc
             },
         )
@@ -351,37 +332,186 @@ pub fn conv_backward(
         );
     d_params.iter_mut().zip(&partial).for_each(|(d, p)| *d += p);
 
-    // Input gradient: d_in[y, x, i] = sum over taps and outputs of d_out[y', x', o] * w.
+    // Input gradient: d_in[y, x, i] = sum over taps and outputs of d_out[y', x', o] * w, the
+    // forward convolution of d_out with w'[ky, kx, o, i] = w[k-1-ky, k-1-kx, i, o] (the same
+    // zero padding: the mirrored tap of an output outside the image reads outside it too).
     if let Some(d_input) = d_input {
         check_len("convolution input gradient", pixels * ci, d_input.len())?;
+        let mut mirrored = vec![0.0f32; weights.len()];
+        for tap in 0..k * k {
+            let source = &weights[(k * k - 1 - tap) * ci * co..][..ci * co];
+            let target = &mut mirrored[tap * co * ci..][..co * ci];
+            for i in 0..ci {
+                for o in 0..co {
+                    target[o * ci + i] = source[i * co + o];
+                }
+            }
+        }
+        let zero_bias = vec![0.0f32; ci];
+        let back = Image { inputs: co, outputs: ci, kernel: k, width, height };
         d_input.par_chunks_mut(width * ci * ROWS_PER_TASK).enumerate().for_each(|(task, rows)| {
-            for (r, row) in rows.chunks_mut(width * ci).enumerate() {
-                let y = (task * ROWS_PER_TASK + r) as isize;
-                for (x, din) in row.chunks_exact_mut(ci).enumerate() {
-                    din.fill(0.0);
-                    for ky in 0..k {
-                        // The output pixel whose tap (ky, kx) reads this input pixel.
-                        let oy = y - ky as isize + pad;
-                        if oy < 0 || oy >= height as isize {
-                            continue;
-                        }
-                        for kx in 0..k {
-                            let ox = x as isize - kx as isize + pad;
-                            if ox < 0 || ox >= width as isize {
-                                continue;
-                            }
-                            let d = &d_output[(oy as usize * width + ox as usize) * co..][..co];
-                            let w = &weights[(ky * k + kx) * ci * co..][..ci * co];
-                            for (g, wrow) in din.iter_mut().zip(w.chunks_exact(co)) {
-                                *g += wrow.iter().zip(d).map(|(w, d)| w * d).sum::<f32>();
-                            }
+            let op = ForwardRows {
+                image: back,
+                weights: &mirrored,
+                bias: &zero_bias,
+                input: d_output,
+                first_row: task * ROWS_PER_TASK,
+                rows,
+                relu: false,
+            };
+            simd.arch().dispatch(op);
+        });
+    }
+    Ok(())
+}
+
+/// Input channels per register tile of the weight gradient.
+pub const TILE_INPUTS: usize = 4;
+
+/// The weight and bias gradient of output rows `first_row..` (`rows` of the output gradient),
+/// added into `d_weights` and `d_bias`, for [`pulp::Arch::dispatch`].
+struct WeightGradientRows<'a> {
+    image: Image,
+    input: &'a [f32],
+    first_row: usize,
+    rows: &'a [f32],
+    d_weights: &'a mut [f32],
+    d_bias: &'a mut [f32],
+}
+
+impl WithSimd for WeightGradientRows<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: Simd>(self, simd: S) {
+        let g = self.image;
+        if !g.outputs.is_multiple_of(BLOCK_VECTORS * S::F32_LANES) {
+            return weight_gradient_rows_plain(g, self.input, self.first_row, self.rows, self.d_weights, self.d_bias);
+        }
+        let (ci, co, k, pad) = (g.inputs, g.outputs, g.kernel, g.kernel / 2);
+        let vectors = co / S::F32_LANES;
+        let d_weights = S::as_mut_simd_f32s(self.d_weights).0;
+        for (r, row) in self.rows.chunks(g.width * co).enumerate() {
+            for d in row.chunks_exact(co) {
+                self.d_bias.iter_mut().zip(d).for_each(|(b, &v)| *b += v);
+            }
+            let row = S::as_simd_f32s(row).0;
+            let y = self.first_row + r;
+            for ky in 0..k {
+                let sy = (y + ky).wrapping_sub(pad);
+                if sy >= g.height {
+                    continue;
+                }
+                for kx in 0..k {
+                    // Output pixels x whose tap (ky, kx) reads inside the row: sx = x + kx - pad.
+                    let x_start = pad.saturating_sub(kx);
+                    let x_end = (g.width + pad).saturating_sub(kx).min(g.width);
+                    if x_start >= x_end {
+                        continue;
+                    }
+                    let taps = &mut d_weights[(ky * k + kx) * ci * vectors..][..ci * vectors];
+                    let source_row = &self.input[(sy * g.width) * ci..][..g.width * ci];
+                    let sx_start = x_start + kx - pad;
+                    let mut i = 0;
+                    while i + TILE_INPUTS <= ci {
+                        weight_gradient_tile::<S, TILE_INPUTS>(
+                            simd, ci, vectors, source_row, sx_start, row, x_start, x_end, i, taps,
+                        );
+                        i += TILE_INPUTS;
+                    }
+                    while i < ci {
+                        weight_gradient_tile::<S, 1>(
+                            simd, ci, vectors, source_row, sx_start, row, x_start, x_end, i, taps,
+                        );
+                        i += 1;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// `d_w[tap, i0 + ii, o] += sum over x of in[sy, x + kx - pad, i0 + ii] * d_out[y, x, o]` for
+/// `I` input channels and every block of output channels, the sums in registers.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn weight_gradient_tile<S: Simd, const I: usize>(
+    simd: S,
+    ci: usize,
+    vectors: usize,
+    source_row: &[f32],
+    sx_start: usize,
+    d_row: &[S::f32s],
+    x_start: usize,
+    x_end: usize,
+    i0: usize,
+    taps: &mut [S::f32s],
+) {
+    let zero = simd.splat_f32s(0.0);
+    let n = x_end - x_start;
+    let source = &source_row[sx_start * ci..][..n * ci];
+    let d_row = &d_row[x_start * vectors..][..n * vectors];
+    for block in (0..vectors).step_by(BLOCK_VECTORS) {
+        let mut acc = [[zero; BLOCK_VECTORS]; I];
+        for (src, d) in source.chunks_exact(ci).zip(d_row.chunks_exact(vectors)) {
+            let d = &d[block..block + BLOCK_VECTORS];
+            for (ii, a) in acc.iter_mut().enumerate() {
+                let v = simd.splat_f32s(src[i0 + ii]);
+                for (a, &d) in a.iter_mut().zip(d) {
+                    *a = simd.mul_add_e_f32s(v, d, *a);
+                }
+            }
+        }
+        for (ii, a) in acc.iter().enumerate() {
+            let out = &mut taps[(i0 + ii) * vectors + block..][..BLOCK_VECTORS];
+            for (o, &a) in out.iter_mut().zip(a) {
+                *o = simd.add_f32s(*o, a);
+            }
+        }
+    }
+}
+
+/// The plain weight and bias gradient of output rows `first_row..`: per pixel with a non-zero
+/// gradient, per tap and input channel, the output channels loaded and stored. For layers the
+/// tiles do not fit, and the reference of the tests.
+fn weight_gradient_rows_plain(
+    g: Image,
+    input: &[f32],
+    first_row: usize,
+    rows: &[f32],
+    d_weights: &mut [f32],
+    d_bias: &mut [f32],
+) {
+    let (ci, co, k) = (g.inputs, g.outputs, g.kernel);
+    let pad = (k / 2) as isize;
+    for (r, row) in rows.chunks(g.width * co).enumerate() {
+        let y = (first_row + r) as isize;
+        for (x, d) in row.chunks_exact(co).enumerate() {
+            if d.iter().all(|&v| v == 0.0) {
+                continue;
+            }
+            d_bias.iter_mut().zip(d).for_each(|(b, &v)| *b += v);
+            for ky in 0..k {
+                let sy = y + ky as isize - pad;
+                if sy < 0 || sy >= g.height as isize {
+                    continue;
+                }
+                for kx in 0..k {
+                    let sx = x as isize + kx as isize - pad;
+                    if sx < 0 || sx >= g.width as isize {
+                        continue;
+                    }
+                    let src = &input[(sy as usize * g.width + sx as usize) * ci..][..ci];
+                    let w = &mut d_weights[(ky * k + kx) * ci * co..][..ci * co];
+                    for (&v, wrow) in src.iter().zip(w.chunks_exact_mut(co)) {
+                        if v != 0.0 {
+                            wrow.iter_mut().zip(d).for_each(|(w, &g)| *w += v * g);
                         }
                     }
                 }
             }
-        });
+        }
     }
-    Ok(())
 }
 
 /// 2x2 average pooling of a `width x height` image (both even) of `channels`.
@@ -511,6 +641,78 @@ mod tests {
         }
     }
 
+    /// The backward pass, vector and scalar, against its definition: the weight gradient by
+    /// the plain loop, the input gradient summed tap by tap.
+    fn check_backward(shape: &ConvShape, params: &[f32], w: usize, h: usize, input: &[f32], seed: u64) {
+        let (ci, co, k) = (shape.inputs, shape.outputs, shape.kernel);
+        let pad = (k / 2) as isize;
+        let output = plain(shape, params, w, h, input);
+        let mut d_output = random(output.len(), seed);
+        if shape.relu {
+            d_output.iter_mut().zip(&output).for_each(|(d, &o)| *d = if o <= 0.0 { 0.0 } else { *d });
+        }
+        let image = Image { inputs: ci, outputs: co, kernel: k, width: w, height: h };
+        let mut want_params = vec![0.0; shape.param_count()];
+        let (dw, db) = want_params.split_at_mut(shape.weight_count());
+        weight_gradient_rows_plain(image, input, 0, &d_output, dw, db);
+        let mut want_input = vec![0.0f32; input.len()];
+        for y in 0..h as isize {
+            for x in 0..w as isize {
+                for ky in 0..k as isize {
+                    for kx in 0..k as isize {
+                        let (sy, sx) = (y + ky - pad, x + kx - pad);
+                        if sy < 0 || sx < 0 || sy >= h as isize || sx >= w as isize {
+                            continue;
+                        }
+                        for i in 0..ci {
+                            for o in 0..co {
+                                want_input[(sy as usize * w + sx as usize) * ci + i] += d_output
+                                    [(y as usize * w + x as usize) * co + o]
+                                    * params[((ky as usize * k + kx as usize) * ci + i) * co + o];
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        let scale =
+            1.0 + (w * h * k * k * ci.max(co)) as f32 * input.iter().chain(params).fold(0f32, |m, v| m.max(v.abs()));
+        for simd in [SimdMode::Auto, SimdMode::Off] {
+            // Start from a non-zero parameter gradient: the pass adds into it.
+            let mut d_params = vec![0.5; shape.param_count()];
+            let mut d_input = vec![f32::NAN; input.len()];
+            let mut d_out = d_output.clone();
+            conv_backward(simd, shape, params, w, h, input, &output, &mut d_out, &mut d_params, Some(&mut d_input))
+                .expect("backward");
+            for (i, (g, e)) in d_params.iter().zip(&want_params).enumerate() {
+                assert!(
+                    (g - 0.5 - e).abs() <= 1e-5 * scale,
+                    "{simd} {shape:?} {w}x{h}: parameter {i} {g} vs {e} + 0.5"
+                );
+            }
+            for (i, (g, e)) in d_input.iter().zip(&want_input).enumerate() {
+                assert!((g - e).abs() <= 1e-5 * scale, "{simd} {shape:?} {w}x{h}: input {i} {g} vs {e}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_register_blocked_backward_agrees_with_its_definition() {
+        let mut seed = 0;
+        for (inputs, outputs) in [(1, 16), (13, 16), (16, 32), (48, 16), (6, 32), (16, 3), (5, 8)] {
+            for kernel in [1, 3] {
+                for (w, h) in [(1, 1), (2, 3), (5, 4), (9, 3)] {
+                    seed += 1;
+                    let shape = ConvShape { inputs, outputs, kernel, relu: seed % 2 == 0 };
+                    let params = random(shape.param_count(), seed);
+                    let mut input = random(w * h * inputs, seed + 1000);
+                    input.iter_mut().step_by(3).for_each(|v| *v = 0.0);
+                    check_backward(&shape, &params, w, h, &input, seed + 2000);
+                }
+            }
+        }
+    }
+
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(48))]
         #[test]
@@ -553,8 +755,19 @@ mod tests {
             let mut d_out = probe.clone();
             let mut d_params = vec![0.0; shape.param_count()];
             let mut d_input = vec![0.0; input.len()];
-            conv_backward(&shape, &params, w, h, &input, &out, &mut d_out, &mut d_params, Some(&mut d_input))
-                .expect("backward");
+            conv_backward(
+                SimdMode::Auto,
+                &shape,
+                &params,
+                w,
+                h,
+                &input,
+                &out,
+                &mut d_out,
+                &mut d_params,
+                Some(&mut d_input),
+            )
+            .expect("backward");
             let eps = 1e-3;
             for i in (0..params.len()).step_by(5) {
                 let (mut plus, mut minus) = (params.clone(), params.clone());

@@ -318,6 +318,7 @@ impl UNet {
             let mut d_in = vec![0.0; d_top.len()];
             let range = d_layer(head);
             conv_backward(
+                self.simd,
                 &layers[head],
                 self.layer_params(head),
                 width,
@@ -342,6 +343,7 @@ impl UNet {
             let mut d_a = vec![0.0; w * h * c.channels[level]];
             let range = d_layer(b);
             conv_backward(
+                self.simd,
                 &layers[b],
                 self.layer_params(b),
                 w,
@@ -355,6 +357,7 @@ impl UNet {
             let mut d_joined = vec![0.0; ws.joined[step].len()];
             let range = d_layer(a);
             conv_backward(
+                self.simd,
                 &layers[a],
                 self.layer_params(a),
                 w,
@@ -385,6 +388,7 @@ impl UNet {
             let mut d_a = vec![0.0; w * h * c.channels[level]];
             let range = d_layer(b);
             conv_backward(
+                self.simd,
                 &layers[b],
                 self.layer_params(b),
                 w,
@@ -399,6 +403,7 @@ impl UNet {
             let range = d_layer(a);
             if level == 0 {
                 conv_backward(
+                    self.simd,
                     &layers[a],
                     self.layer_params(a),
                     w,
@@ -412,6 +417,7 @@ impl UNet {
             } else {
                 let mut d_pooled = vec![0.0; source.len()];
                 conv_backward(
+                    self.simd,
                     &layers[a],
                     self.layer_params(a),
                     w,
