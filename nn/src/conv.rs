@@ -106,14 +106,28 @@ pub fn conv_forward(
     Ok(())
 }
 
-/// Sizes of one convolution over one image.
+/// Sizes of one convolution over one image (a dense layer over `n` rows is a 1x1 convolution
+/// over an image of `n x 1`).
 #[derive(Debug, Clone, Copy)]
-struct Image {
-    inputs: usize,
-    outputs: usize,
-    kernel: usize,
-    width: usize,
-    height: usize,
+pub(crate) struct Image {
+    pub inputs: usize,
+    pub outputs: usize,
+    pub kernel: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+impl Image {
+    /// A dense layer of `inputs -> outputs` over `rows` rows.
+    pub fn dense(inputs: usize, outputs: usize, rows: usize) -> Image {
+        Image { inputs, outputs, kernel: 1, width: rows, height: 1 }
+    }
+
+    /// Whether the register-blocked loops take layers of these output channels with `S`.
+    #[inline(always)]
+    pub fn tiles_outputs<S: Simd>(&self) -> bool {
+        self.outputs.is_multiple_of(BLOCK_VECTORS * S::F32_LANES)
+    }
 }
 
 /// The output rows `first_row..` of a convolution, for [`pulp::Arch::dispatch`].
@@ -132,34 +146,51 @@ impl WithSimd for ForwardRows<'_> {
 
     #[inline(always)]
     fn with_simd<S: Simd>(self, simd: S) {
-        let g = self.image;
-        if !g.outputs.is_multiple_of(BLOCK_VECTORS * S::F32_LANES) {
-            return forward_rows_plain(g, self.weights, self.bias, self.input, self.first_row, self.rows, self.relu);
+        forward_rows(simd, self.image, self.weights, self.bias, self.input, self.first_row, self.rows, self.relu)
+    }
+}
+
+/// Output rows `first_row..` of a convolution (`rows` holds whole rows): the register-blocked
+/// loop where the output channels fill whole blocks, else the plain one. Callable from within
+/// another kernel's dispatch (the MLP's layers).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(crate) fn forward_rows<S: Simd>(
+    simd: S,
+    g: Image,
+    weights: &[f32],
+    bias: &[f32],
+    input: &[f32],
+    first_row: usize,
+    rows: &mut [f32],
+    relu: bool,
+) {
+    if !g.tiles_outputs::<S>() {
+        return forward_rows_plain(g, weights, bias, input, first_row, rows, relu);
+    }
+    // Whole vectors: the weights' rows, the biases and the output rows are multiples of
+    // the output channels, hence of the lanes.
+    let weights = S::as_simd_f32s(weights).0;
+    let bias = S::as_simd_f32s(bias).0;
+    let pad = g.kernel / 2;
+    for (r, row) in rows.chunks_mut(g.width * g.outputs).enumerate() {
+        let row = S::as_mut_simd_f32s(row).0;
+        let y = first_row + r;
+        // Pixels whose taps all fall inside the image take whole tiles; the borders and
+        // what is left of the row one pixel at a time, with bounds checks. (Direct calls,
+        // not closures: a closure may be compiled apart, without the dispatch's AVX2.)
+        let mut x = 0;
+        while x < pad.min(g.width) {
+            forward_tile::<S, 1, true>(simd, g, weights, bias, input, y, x, relu, row);
+            x += 1;
         }
-        // Whole vectors: the weights' rows, the biases and the output rows are multiples of
-        // the output channels, hence of the lanes.
-        let weights = S::as_simd_f32s(self.weights).0;
-        let bias = S::as_simd_f32s(self.bias).0;
-        let pad = g.kernel / 2;
-        for (r, row) in self.rows.chunks_mut(g.width * g.outputs).enumerate() {
-            let row = S::as_mut_simd_f32s(row).0;
-            let (y, input, relu) = (self.first_row + r, self.input, self.relu);
-            // Pixels whose taps all fall inside the image take whole tiles; the borders and
-            // what is left of the row one pixel at a time, with bounds checks. (Direct calls,
-            // not closures: a closure may be compiled apart, without the dispatch's AVX2.)
-            let mut x = 0;
-            while x < pad.min(g.width) {
-                forward_tile::<S, 1, true>(simd, g, weights, bias, input, y, x, relu, row);
-                x += 1;
-            }
-            while x + TILE_PIXELS + pad <= g.width {
-                forward_tile::<S, TILE_PIXELS, false>(simd, g, weights, bias, input, y, x, relu, row);
-                x += TILE_PIXELS;
-            }
-            while x < g.width {
-                forward_tile::<S, 1, true>(simd, g, weights, bias, input, y, x, relu, row);
-                x += 1;
-            }
+        while x + TILE_PIXELS + pad <= g.width {
+            forward_tile::<S, TILE_PIXELS, false>(simd, g, weights, bias, input, y, x, relu, row);
+            x += TILE_PIXELS;
+        }
+        while x < g.width {
+            forward_tile::<S, 1, true>(simd, g, weights, bias, input, y, x, relu, row);
+            x += 1;
         }
     }
 }
@@ -384,47 +415,61 @@ impl WithSimd for WeightGradientRows<'_> {
 
     #[inline(always)]
     fn with_simd<S: Simd>(self, simd: S) {
-        let g = self.image;
-        if !g.outputs.is_multiple_of(BLOCK_VECTORS * S::F32_LANES) {
-            return weight_gradient_rows_plain(g, self.input, self.first_row, self.rows, self.d_weights, self.d_bias);
+        weight_gradient_rows(simd, self.image, self.input, self.first_row, self.rows, self.d_weights, self.d_bias)
+    }
+}
+
+/// Adds the weight and bias gradient of output rows `first_row..` (`rows` of the output
+/// gradient, whole rows) into `d_weights` and `d_bias`: the register-blocked loop where the
+/// output channels fill whole blocks, else the plain one. Callable from within another
+/// kernel's dispatch (the MLP's layers).
+#[inline(always)]
+pub(crate) fn weight_gradient_rows<S: Simd>(
+    simd: S,
+    g: Image,
+    input: &[f32],
+    first_row: usize,
+    rows: &[f32],
+    d_weights: &mut [f32],
+    d_bias: &mut [f32],
+) {
+    if !g.tiles_outputs::<S>() {
+        return weight_gradient_rows_plain(g, input, first_row, rows, d_weights, d_bias);
+    }
+    let (ci, co, k, pad) = (g.inputs, g.outputs, g.kernel, g.kernel / 2);
+    let vectors = co / S::F32_LANES;
+    let d_weights = S::as_mut_simd_f32s(d_weights).0;
+    for (r, row) in rows.chunks(g.width * co).enumerate() {
+        for d in row.chunks_exact(co) {
+            d_bias.iter_mut().zip(d).for_each(|(b, &v)| *b += v);
         }
-        let (ci, co, k, pad) = (g.inputs, g.outputs, g.kernel, g.kernel / 2);
-        let vectors = co / S::F32_LANES;
-        let d_weights = S::as_mut_simd_f32s(self.d_weights).0;
-        for (r, row) in self.rows.chunks(g.width * co).enumerate() {
-            for d in row.chunks_exact(co) {
-                self.d_bias.iter_mut().zip(d).for_each(|(b, &v)| *b += v);
+        let row = S::as_simd_f32s(row).0;
+        let y = first_row + r;
+        for ky in 0..k {
+            let sy = (y + ky).wrapping_sub(pad);
+            if sy >= g.height {
+                continue;
             }
-            let row = S::as_simd_f32s(row).0;
-            let y = self.first_row + r;
-            for ky in 0..k {
-                let sy = (y + ky).wrapping_sub(pad);
-                if sy >= g.height {
+            for kx in 0..k {
+                // Output pixels x whose tap (ky, kx) reads inside the row: sx = x + kx - pad.
+                let x_start = pad.saturating_sub(kx);
+                let x_end = (g.width + pad).saturating_sub(kx).min(g.width);
+                if x_start >= x_end {
                     continue;
                 }
-                for kx in 0..k {
-                    // Output pixels x whose tap (ky, kx) reads inside the row: sx = x + kx - pad.
-                    let x_start = pad.saturating_sub(kx);
-                    let x_end = (g.width + pad).saturating_sub(kx).min(g.width);
-                    if x_start >= x_end {
-                        continue;
-                    }
-                    let taps = &mut d_weights[(ky * k + kx) * ci * vectors..][..ci * vectors];
-                    let source_row = &self.input[(sy * g.width) * ci..][..g.width * ci];
-                    let sx_start = x_start + kx - pad;
-                    let mut i = 0;
-                    while i + TILE_INPUTS <= ci {
-                        weight_gradient_tile::<S, TILE_INPUTS>(
-                            simd, ci, vectors, source_row, sx_start, row, x_start, x_end, i, taps,
-                        );
-                        i += TILE_INPUTS;
-                    }
-                    while i < ci {
-                        weight_gradient_tile::<S, 1>(
-                            simd, ci, vectors, source_row, sx_start, row, x_start, x_end, i, taps,
-                        );
-                        i += 1;
-                    }
+                let taps = &mut d_weights[(ky * k + kx) * ci * vectors..][..ci * vectors];
+                let source_row = &input[(sy * g.width) * ci..][..g.width * ci];
+                let sx_start = x_start + kx - pad;
+                let mut i = 0;
+                while i + TILE_INPUTS <= ci {
+                    weight_gradient_tile::<S, TILE_INPUTS>(
+                        simd, ci, vectors, source_row, sx_start, row, x_start, x_end, i, taps,
+                    );
+                    i += TILE_INPUTS;
+                }
+                while i < ci {
+                    weight_gradient_tile::<S, 1>(simd, ci, vectors, source_row, sx_start, row, x_start, x_end, i, taps);
+                    i += 1;
                 }
             }
         }
