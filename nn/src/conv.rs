@@ -195,6 +195,34 @@ pub(crate) fn forward_rows<S: Simd>(
     }
 }
 
+/// `dx = dy W^T` for a dense layer of `inputs -> outputs` over the rows of `dy` (`W`
+/// input-major, as [`crate::Mlp`] stores it): the forward tiles on the transposed weights.
+/// Returns `false`, leaving `dx` as it was, when the inputs do not fill whole register blocks
+/// (the caller then takes its plain loop).
+#[inline(always)]
+pub(crate) fn dense_input_gradient<S: Simd>(
+    simd: S,
+    inputs: usize,
+    outputs: usize,
+    weights: &[f32],
+    dy: &[f32],
+    dx: &mut [f32],
+) -> bool {
+    let back = Image::dense(outputs, inputs, dy.len() / outputs);
+    if !back.tiles_outputs::<S>() {
+        return false;
+    }
+    let mut transposed = vec![0.0f32; weights.len()];
+    for (k, row) in weights.chunks_exact(outputs).enumerate() {
+        for (o, &v) in row.iter().enumerate() {
+            transposed[o * inputs + k] = v;
+        }
+    }
+    let zero_bias = vec![0.0f32; inputs];
+    forward_rows(simd, back, &transposed, &zero_bias, dy, 0, dx, false);
+    true
+}
+
 /// Output pixels `x0..x0 + P` of row `y`, every block of output channels: the accumulators
 /// stay in registers over all taps and input channels. With `CHECKED` (only for `P = 1`)
 /// taps outside the image are skipped (zero padding); without, the caller guarantees that

@@ -8,7 +8,7 @@
 //! weight gradient is the same axpy transposed, and the input gradient is a dot product of
 //! `W^T[k]` with the output gradient.
 
-use super::conv::{Image, forward_rows, weight_gradient_rows};
+use super::conv::{Image, dense_input_gradient, forward_rows, weight_gradient_rows};
 use super::simd::{Simd, SimdMode, WithSimd, axpy, dot};
 use super::{InitRng, NnError, check_len};
 
@@ -431,18 +431,8 @@ impl Mlp {
             let w = &self.params[layer.weights..layer.weights + layer.input * layer.output];
             delta_prev.clear();
             delta_prev.resize(n * layer.input, 0.0);
-            let back = Image::dense(layer.output, layer.input, n);
-            if back.tiles_outputs::<S>() {
-                // delta_prev = delta W^T: the forward tiles on the transposed weights, then
-                // ReLU's derivative (zero where the activation was not positive).
-                let mut transposed = vec![0.0f32; w.len()];
-                for (k, row) in w.chunks_exact(layer.output).enumerate() {
-                    for (o, &v) in row.iter().enumerate() {
-                        transposed[o * layer.input + k] = v;
-                    }
-                }
-                let zero_bias = vec![0.0f32; layer.input];
-                forward_rows(simd, back, &transposed, &zero_bias, &delta, 0, &mut delta_prev, false);
+            if dense_input_gradient(simd, layer.input, layer.output, w, &delta, &mut delta_prev) {
+                // Then ReLU's derivative: zero where the activation was not positive.
                 if i > 0 {
                     delta_prev.iter_mut().zip(x).for_each(|(d, &xv)| {
                         if !(xv > 0.0) {

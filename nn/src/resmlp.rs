@@ -15,6 +15,7 @@
 //! followed by the bias, all layers in one parameter vector (input layer, blocks in order
 //! with their two layers, output layer).
 
+use super::conv::{Image, dense_input_gradient, forward_rows, weight_gradient_rows};
 use super::simd::{Simd, SimdMode, WithSimd, axpy, dot};
 use super::{Activation, InitRng, NnError, check_len};
 
@@ -115,9 +116,21 @@ impl Dense {
     }
 
     /// `y = x W + b` over all rows (`add` keeps `y` and adds to it: the skip connection).
+    /// Layers whose outputs fill whole register blocks take [`crate::conv`]'s tiles.
     #[inline(always)]
     fn forward<S: Simd>(&self, simd: S, params: &[f32], x: &[f32], y: &mut [f32], add: bool) {
         let (w, b) = (self.weights(params), self.bias(params));
+        let image = Image::dense(self.input, self.output, x.len() / self.input);
+        if image.tiles_outputs::<S>() {
+            if add {
+                let mut sum = vec![0.0f32; y.len()];
+                forward_rows(simd, image, w, b, x, 0, &mut sum, false);
+                y.iter_mut().zip(&sum).for_each(|(y, s)| *y += s);
+            } else {
+                forward_rows(simd, image, w, b, x, 0, y, false);
+            }
+            return;
+        }
         for (xr, yr) in x.chunks_exact(self.input).zip(y.chunks_exact_mut(self.output)) {
             if add {
                 axpy(simd, yr, 1.0, b);
@@ -147,16 +160,30 @@ impl Dense {
         add_dx: bool,
     ) {
         let (gw, gb) = grad[self.weights..self.bias + self.output].split_at_mut(self.input * self.output);
-        for (xr, dr) in x.chunks_exact(self.input).zip(dy.chunks_exact(self.output)) {
-            axpy(simd, gb, 1.0, dr);
-            for (k, &xk) in xr.iter().enumerate() {
-                if xk != 0.0 {
-                    axpy(simd, &mut gw[k * self.output..(k + 1) * self.output], xk, dr);
+        let image = Image::dense(self.input, self.output, x.len() / self.input);
+        if image.tiles_outputs::<S>() {
+            weight_gradient_rows(simd, image, x, 0, dy, gw, gb);
+        } else {
+            for (xr, dr) in x.chunks_exact(self.input).zip(dy.chunks_exact(self.output)) {
+                axpy(simd, gb, 1.0, dr);
+                for (k, &xk) in xr.iter().enumerate() {
+                    if xk != 0.0 {
+                        axpy(simd, &mut gw[k * self.output..(k + 1) * self.output], xk, dr);
+                    }
                 }
             }
         }
         if let Some(dx) = dx {
             let w = self.weights(params);
+            if add_dx {
+                let mut g = vec![0.0f32; dx.len()];
+                if dense_input_gradient(simd, self.input, self.output, w, dy, &mut g) {
+                    dx.iter_mut().zip(&g).for_each(|(d, g)| *d += g);
+                    return;
+                }
+            } else if dense_input_gradient(simd, self.input, self.output, w, dy, dx) {
+                return;
+            }
             for (dxr, dr) in dx.chunks_exact_mut(self.input).zip(dy.chunks_exact(self.output)) {
                 for (k, v) in dxr.iter_mut().enumerate() {
                     let g = dot(simd, &w[k * self.output..(k + 1) * self.output], dr);
