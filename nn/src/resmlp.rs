@@ -473,7 +473,12 @@ mod tests {
     }
 
     fn check_gradients(blocks: usize, act: Activation, simd: SimdMode) {
-        let mut net = ResidualMlp::new(config(blocks, act), 3).expect("net");
+        check_gradients_of(config(blocks, act), simd);
+    }
+
+    fn check_gradients_of(config: ResidualMlpConfig, simd: SimdMode) {
+        let (blocks, act) = (config.blocks, config.output_activation);
+        let mut net = ResidualMlp::new(config, 3).expect("net");
         net.set_simd(simd);
         // Biases away from zero so that the ReLUs are not all at their kink.
         for (i, p) in net.params_mut().iter_mut().enumerate() {
@@ -523,6 +528,10 @@ mod tests {
             }
         }
         check_gradients(2, Activation::Sigmoid, SimdMode::Off);
+        // A width of 16 fills the AVX2 tiles of the hidden layers (and their input gradient).
+        for simd in [SimdMode::Auto, SimdMode::Off] {
+            check_gradients_of(ResidualMlpConfig { width: 16, ..config(2, Activation::Sigmoid) }, simd);
+        }
     }
 
     #[test]
