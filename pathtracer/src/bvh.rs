@@ -91,6 +91,7 @@ pub struct Hit {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct TraversalStats {
     pub rays: u64,
+    /// Nodes of the 4-wide tree visited (four box tests each; binary nodes on the fallback).
     pub node_visits: u64,
     pub triangle_tests: u64,
 }
