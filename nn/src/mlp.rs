@@ -6,7 +6,10 @@
 //! is, per row, `y = b; for k: y += x_k * W^T[k]` (a contiguous axpy the compiler
 //! vectorises, skipped when `x_k` is 0, which ReLU makes true about half of the time), the
 //! weight gradient is the same axpy transposed, and the input gradient is a dot product of
-//! `W^T[k]` with the output gradient.
+//! `W^T[k]` with the output gradient. That row loop now serves only layers whose outputs do
+//! not fill 16-wide register blocks (the small output layers): the others run as 1x1
+//! convolutions through [`crate::conv`]'s tiles (4 rows x 16 outputs in registers, about 4x
+//! the row loop, which loads and stores `y` once per input value).
 
 use super::conv::{Image, dense_input_gradient, forward_rows, weight_gradient_rows};
 use super::simd::{Simd, SimdMode, WithSimd, axpy, dot};
