@@ -197,9 +197,12 @@ impl HashGrid {
         let mut frac = [0f32; 3];
         for d in 0..3 {
             let x = unit(p[d]) * level.scale + 0.5;
-            let f = x.floor();
-            base[d] = f as u32;
-            frac[d] = x - f;
+            // `x` is finite and at least 0.5 (`unit` maps NaN to 0), so the cast is the floor:
+            // one instruction, where `f32::floor` is a libm call on baseline x86-64 (3 % of a
+            // `train ngp` profile).
+            let f = x as u32;
+            base[d] = f;
+            frac[d] = x - f as f32;
         }
         let mut cell = Cell { index: [0; 8], weight: [0.0; 8] };
         for c in 0..8 {
