@@ -191,7 +191,7 @@ impl HashGrid {
     }
 
     /// The 8 corner entries (relative to the level's table) and trilinear weights of `p`.
-    #[inline]
+    #[inline(always)]
     fn cell(level: &Level, p: [f32; 3]) -> Cell {
         let mut base = [0u32; 3];
         let mut frac = [0f32; 3];
@@ -258,6 +258,23 @@ impl HashGrid {
     pub fn encode_batch(&self, points: &[[f32; 3]], out: &mut [f32]) -> Result<(), NnError> {
         let dim = self.output_dim();
         check_len("hash grid batch output", points.len() * dim, out.len())?;
+        // Compiled for AVX2 where present, so that the eight corners' hashes and weights
+        // vectorise (the gathers stay scalar).
+        struct Op<'a>(&'a HashGrid, &'a [[f32; 3]], &'a mut [f32]);
+        impl crate::simd::WithSimd for Op<'_> {
+            type Output = ();
+            #[inline(always)]
+            fn with_simd<S: crate::simd::Simd>(self, _simd: S) {
+                self.0.encode_batch_in(self.1, self.2)
+            }
+        }
+        crate::simd::Arch::new().dispatch(Op(self, points, out));
+        Ok(())
+    }
+
+    #[inline(always)]
+    fn encode_batch_in(&self, points: &[[f32; 3]], out: &mut [f32]) {
+        let dim = self.output_dim();
         for (l, level) in self.levels.iter().enumerate() {
             let table =
                 &self.params[level.offset * FEATURES_PER_LEVEL..(level.offset + level.size) * FEATURES_PER_LEVEL];
@@ -273,7 +290,6 @@ impl HashGrid {
                 row[l * FEATURES_PER_LEVEL + 1] = f1;
             }
         }
-        Ok(())
     }
 
     /// Accumulates into `grad` (`num_params()` values) the gradient of a loss with respect to
