@@ -6,10 +6,11 @@
 //! is, per row, `y = b; for k: y += x_k * W^T[k]` (a contiguous axpy the compiler
 //! vectorises, skipped when `x_k` is 0, which ReLU makes true about half of the time), the
 //! weight gradient is the same axpy transposed, and the input gradient is a dot product of
-//! `W^T[k]` with the output gradient. That row loop now serves only layers whose outputs do
-//! not fill 16-wide register blocks (the small output layers): the others run as 1x1
-//! convolutions through [`crate::conv`]'s tiles (4 rows x 16 outputs in registers, about 4x
-//! the row loop, which loads and stores `y` once per input value).
+//! `W^T[k]` with the output gradient. Those row loops now serve only layers whose outputs do
+//! not fill 16-wide register blocks (the small output layers; their weight gradient takes
+//! [`crate::conv`]'s plain loop): the others run as 1x1 convolutions through
+//! [`crate::conv`]'s tiles (4 rows x 16 outputs in registers, about 4x the row loop, which
+//! loads and stores `y` once per input value).
 
 use super::conv::{Image, dense_input_gradient, forward_rows, weight_gradient_rows};
 use super::simd::{Simd, SimdMode, WithSimd, axpy, dot};
@@ -413,19 +414,8 @@ impl Mlp {
             let layer = &self.layers[i];
             let x: &[f32] = if i == 0 { input } else { &ws.outputs[i - 1] };
             let (gw, gb) = grad[layer.weights..layer.bias + layer.output].split_at_mut(layer.input * layer.output);
-            let image = Image::dense(layer.input, layer.output, n);
-            if image.tiles_outputs::<S>() {
-                weight_gradient_rows(simd, image, x, 0, &delta, gw, gb);
-            } else {
-                for (xr, dr) in x.chunks_exact(layer.input).zip(delta.chunks_exact(layer.output)) {
-                    axpy(simd, gb, 1.0, dr);
-                    for (k, &xk) in xr.iter().enumerate() {
-                        if xk != 0.0 {
-                            axpy(simd, &mut gw[k * layer.output..(k + 1) * layer.output], xk, dr);
-                        }
-                    }
-                }
-            }
+            // Tiles where the outputs fill them, else the plain loop (`crate::conv` chooses).
+            weight_gradient_rows(simd, Image::dense(layer.input, layer.output, n), x, 0, &delta, gw, gb);
             // Propagate to the layer's input unless it is the network input and nobody asked.
             let want_input = i > 0 || d_input.is_some();
             if !want_input {

@@ -160,19 +160,8 @@ impl Dense {
         add_dx: bool,
     ) {
         let (gw, gb) = grad[self.weights..self.bias + self.output].split_at_mut(self.input * self.output);
-        let image = Image::dense(self.input, self.output, x.len() / self.input);
-        if image.tiles_outputs::<S>() {
-            weight_gradient_rows(simd, image, x, 0, dy, gw, gb);
-        } else {
-            for (xr, dr) in x.chunks_exact(self.input).zip(dy.chunks_exact(self.output)) {
-                axpy(simd, gb, 1.0, dr);
-                for (k, &xk) in xr.iter().enumerate() {
-                    if xk != 0.0 {
-                        axpy(simd, &mut gw[k * self.output..(k + 1) * self.output], xk, dr);
-                    }
-                }
-            }
-        }
+        // Tiles where the outputs fill them, else the plain loop (`crate::conv` chooses).
+        weight_gradient_rows(simd, Image::dense(self.input, self.output, x.len() / self.input), x, 0, dy, gw, gb);
         if let Some(dx) = dx {
             let w = self.weights(params);
             if add_dx {

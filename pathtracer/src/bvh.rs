@@ -234,19 +234,9 @@ impl Bvh {
                 continue;
             }
             if count > 0 {
-                let first = child as usize;
-                for k in first..first + count as usize {
-                    stats.triangle_tests += 1;
-                    if let Some((t, u, v)) =
-                        intersect_triangle(&self.triangles[k], ray.origin, ray.direction, t_min, t_max)
-                    {
-                        t_max = t;
-                        best = Some(Hit { t, triangle: self.triangle_ids[k], u, v });
-                        if any_hit {
-                            stats.rays += 1;
-                            return best;
-                        }
-                    }
+                if self.intersect_leaf(child, count, ray, t_min, &mut t_max, any_hit, &mut best, stats) {
+                    stats.rays += 1;
+                    return best;
                 }
                 continue;
             }
@@ -317,18 +307,8 @@ impl Bvh {
             stats.node_visits += 1;
             if node.bounds.hit(origin, inv_dir, t_min, t_max).is_some() {
                 if node.count > 0 {
-                    let first = node.offset as usize;
-                    for k in first..first + node.count as usize {
-                        stats.triangle_tests += 1;
-                        if let Some((t, u, v)) =
-                            intersect_triangle(&self.triangles[k], origin, ray.direction, t_min, t_max)
-                        {
-                            t_max = t;
-                            best = Some(Hit { t, triangle: self.triangle_ids[k], u, v });
-                            if any_hit {
-                                return best;
-                            }
-                        }
+                    if self.intersect_leaf(node.offset, node.count, ray, t_min, &mut t_max, any_hit, &mut best, stats) {
+                        return best;
                     }
                 } else {
                     // Visit the child on the ray's near side first; push the other.
@@ -364,6 +344,36 @@ impl Bvh {
         best
     }
 
+    /// Tests the leaf's triangles `first..first + count` in `(t_min, *t_max)`: each hit lowers
+    /// `*t_max` and becomes `*best`. Returns whether the search is over (a hit, when any hit
+    /// will do).
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn intersect_leaf(
+        &self,
+        first: u32,
+        count: u32,
+        ray: &Ray,
+        t_min: f32,
+        t_max: &mut f32,
+        any_hit: bool,
+        best: &mut Option<Hit>,
+        stats: &mut TraversalStats,
+    ) -> bool {
+        let first = first as usize;
+        for k in first..first + count as usize {
+            stats.triangle_tests += 1;
+            if let Some((t, u, v)) = intersect_triangle(&self.triangles[k], ray.origin, ray.direction, t_min, *t_max) {
+                *t_max = t;
+                *best = Some(Hit { t, triangle: self.triangle_ids[k], u, v });
+                if any_hit {
+                    return true;
+                }
+            }
+        }
+        false
+    }
+
     /// Brute-force subtree walk, used only if the explicit stack overflows.
     fn traverse_from(
         &self,
@@ -380,18 +390,7 @@ impl Bvh {
         if node.count > 0 {
             let mut best: Option<Hit> = None;
             let mut t_max = t_max;
-            let first = node.offset as usize;
-            for k in first..first + node.count as usize {
-                stats.triangle_tests += 1;
-                if let Some((t, u, v)) = intersect_triangle(&self.triangles[k], ray.origin, ray.direction, t_min, t_max)
-                {
-                    t_max = t;
-                    best = Some(Hit { t, triangle: self.triangle_ids[k], u, v });
-                    if any_hit {
-                        break;
-                    }
-                }
-            }
+            self.intersect_leaf(node.offset, node.count, ray, t_min, &mut t_max, any_hit, &mut best, stats);
             return best;
         }
         let left = self.traverse_from(index + 1, ray, t_min, t_max, any_hit, stats);
