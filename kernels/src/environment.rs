@@ -6,7 +6,8 @@
 //! Per batch the kernel
 //! 1. renders the G-buffer a real-time rasteriser would give (first-hit position, normal,
 //!    albedo, view depth) and the direct light (next-event estimation at the first hit plus
-//!    the MIS-weighted light its one bounce finds: the path tracer with `max_bounces = 1`,
+//!    the MIS-weighted light its one bounce finds: the path tracer's direct-light-only mode,
+//!    which casts no shadow rays at the bounce's hit,
 //!    [`GiServeSettings::samples_per_pixel`] samples) for the environment's scene, named in
 //!    the model's header, at [`GiServeSettings::scale`] of the view's resolution and sides
 //!    rounded up to what the U-Net's levels need (the window reaches past the image: the same
@@ -192,6 +193,7 @@ impl GiKernel {
             max_bounces: 1,
             seed: 0,
             background: Background::Environment,
+            direct_only: true,
         };
         let out = self.renderer.render(camera, &options, &|_| {}).map_err(|e| KernelError::Failed(e.to_string()))?;
         let pixels = g_buffer_pixels(&out);

@@ -101,7 +101,12 @@ pub struct PathTracedKernel {
 
 impl PathTracedKernel {
     pub fn new(renderer: Renderer, samples_per_pixel: u32, max_bounces: u32) -> Result<PathTracedKernel, KernelError> {
-        let options = RenderOptions { samples_per_pixel, max_bounces, seed: 0, background: Background::Transparent };
+        let options = RenderOptions {
+            samples_per_pixel,
+            max_bounces,
+            background: Background::Transparent,
+            ..RenderOptions::default()
+        };
         options.validate().map_err(|e| KernelError::Failed(e.to_string()))?;
         let (min, max) = renderer.scene().bounds().ok_or_else(|| KernelError::Failed("empty scene".into()))?;
         Ok(PathTracedKernel { renderer, options, bounds: Bounds { min, max } })

@@ -51,11 +51,25 @@ pub struct RenderOptions {
     pub max_bounces: u32,
     pub seed: u64,
     pub background: Background,
+    /// Trace only what [`RenderOutput::direct`] needs (the G-buffer a rasteriser would give and
+    /// its direct light, as the environment kernel serves): the camera ray, next-event
+    /// estimation at its hit, and the one bounce ray that finds emitters and the environment
+    /// for MIS; no light is gathered at the bounce's hit (that would be indirect light) and
+    /// the path ends there. `color` then equals `direct`. Of up to eight rays per sample at
+    /// `max_bounces = 1` (camera, three shadow rays, bounce, three more shadow rays) the last
+    /// three are never cast; `max_bounces` is ignored.
+    pub direct_only: bool,
 }
 
 impl Default for RenderOptions {
     fn default() -> Self {
-        RenderOptions { samples_per_pixel: 16, max_bounces: 8, seed: 0, background: Background::Transparent }
+        RenderOptions {
+            samples_per_pixel: 16,
+            max_bounces: 8,
+            seed: 0,
+            background: Background::Transparent,
+            direct_only: false,
+        }
     }
 }
 
@@ -322,7 +336,9 @@ impl Renderer {
         // Density with which the previous bounce chose this ray, and the normal there, for
         // MIS when the ray finds a light; `None` after the camera or a delta bounce.
         let mut previous: Option<(f32, Vec3, Vec3)> = None; // (bsdf pdf, position, shading normal)
-        for bounce in 0..=options.max_bounces {
+        // Direct light ends with what the first bounce's ray finds (see `direct_only`).
+        let last_bounce = if options.direct_only { 1 } else { options.max_bounces };
+        for bounce in 0..=last_bounce {
             let is_direct = bounce <= 1;
             let Some(hit) = self.bvh.intersect(&ray, 0.0, f32::INFINITY, &mut stats.traversal) else {
                 if bounce == 0 && options.background == Background::Transparent {
@@ -344,6 +360,10 @@ impl Renderer {
                     normal: surface.shading,
                     albedo: surface.material.albedo(),
                 });
+            }
+            if options.direct_only && bounce >= 1 && !matches!(surface.material, Material::Emissive { .. }) {
+                // Light gathered here, or further along, would be indirect.
+                break;
             }
             match surface.material {
                 Material::Emissive { radiance } => {
@@ -835,6 +855,39 @@ mod tests {
         let other_seed = renderer.render(&cam, &RenderOptions { seed: 43, ..options }, &|_| {}).expect("render");
         assert_ne!(a.color, other_seed.color);
         assert!(a.color.iter().all(|c| c.is_finite()));
+    }
+
+    /// The direct-light-only mode casts fewer rays and, with one sample per pixel (the random
+    /// stream is the same until the path ends), gives exactly the full tracer's direct light;
+    /// its colour is its direct light. Both rooms: the sun and the sky through windows by day,
+    /// area lamps by night.
+    #[test]
+    fn direct_only_traces_exactly_the_direct_light_with_fewer_rays() {
+        for name in ["room-day", "room-night"] {
+            let builtin = crate::scenes::builtin(name).expect("scene");
+            let (eye, target, fov_y) = builtin.default_view();
+            let cam = Camera::look_at(24, 18, fov_y, eye, target, Vec3::Z).expect("camera");
+            let renderer = Renderer::new(builtin.scene).expect("renderer");
+            let full = RenderOptions {
+                samples_per_pixel: 1,
+                max_bounces: 1,
+                seed: 7,
+                background: Background::Environment,
+                direct_only: false,
+            };
+            let direct = RenderOptions { direct_only: true, ..full };
+            let deep = RenderOptions { max_bounces: 6, ..full };
+            let a = renderer.render(&cam, &full, &|_| {}).expect("render");
+            let b = renderer.render(&cam, &direct, &|_| {}).expect("render");
+            let c = renderer.render(&cam, &deep, &|_| {}).expect("render");
+            assert_eq!(a.direct, b.direct, "{name}");
+            assert_eq!(c.direct, b.direct, "{name}");
+            assert_eq!(b.color, b.direct, "{name}");
+            assert_eq!((&a.depth, &a.position, &a.normal, &a.albedo), (&b.depth, &b.position, &b.normal, &b.albedo));
+            assert!(b.direct.iter().any(|d| d.max_element() > 0.0), "{name}: some light");
+            let (rays_full, rays_direct) = (a.stats.traversal.rays, b.stats.traversal.rays);
+            assert!(rays_direct < rays_full, "{name}: {rays_direct} rays against {rays_full}");
+        }
     }
 
     #[test]

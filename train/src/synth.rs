@@ -78,6 +78,7 @@ pub fn render_dataset(
         max_bounces: spec.bounces,
         seed: spec.seed,
         background: scene.default_background(),
+        direct_only: false,
     };
     options.validate()?;
     let renderer = Renderer::new(scene.scene)?;

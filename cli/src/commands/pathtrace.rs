@@ -86,7 +86,13 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
     )
     .context("building the camera")?;
     let background = args.background.map(Background::from).unwrap_or_else(|| builtin.default_background());
-    let options = RenderOptions { samples_per_pixel: args.spp, max_bounces: args.bounces, seed: args.seed, background };
+    let options = RenderOptions {
+        samples_per_pixel: args.spp,
+        max_bounces: args.bounces,
+        seed: args.seed,
+        background,
+        direct_only: false,
+    };
     options.validate()?;
     let renderer = Renderer::new(builtin.scene).context("preparing the scene")?;
     tracing::info!(scene = %args.scene, width, height, spp = args.spp, "path tracing");

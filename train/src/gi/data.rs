@@ -279,6 +279,7 @@ pub fn render_gi_dataset(
             // Every frame its own noise.
             seed: spec.seed.wrapping_mul(0x9E37_79B9).wrapping_add(index as u64),
             background: Background::Environment,
+            direct_only: false,
         };
         let renderer = Renderer::new(scene.scene)?;
         let image = renderer.render(&spec.camera(frame)?, &options, on_rows)?;
