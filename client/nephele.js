@@ -264,6 +264,31 @@
     client.timers.push(setInterval(sendPose, POSE_INTERVAL_MS));
     client.timers.push(setInterval(sendPing, PING_INTERVAL_MS));
     client.timers.push(setInterval(updateStats, 1000));
+    watchSession(body.session_id, body.token);
+  }
+
+  // Long poll on the session (`GET v1/sessions/{id}/watch`): the master answers 410 the moment
+  // the service ends it (its composer died), so the page connects again at once rather than
+  // after ICE's timeout and the grace above; 200 after a while means it lives (ask again).
+  async function watchSession(id, token) {
+    while (client.sessionId === id) {
+      let status = 0;
+      try {
+        const response = await fetch(`v1/sessions/${encodeURIComponent(id)}/watch`, {
+          headers: { authorization: `Bearer ${token}` },
+        });
+        status = response.status;
+        await response.body?.cancel().catch(() => {});
+      } catch (error) {
+        status = 0; // the master is unreachable: the peer connection's own checks decide
+      }
+      if (client.sessionId !== id) return;
+      if (status === 410 || status === 404) {
+        scheduleReconnect('the service ended the session');
+        return;
+      }
+      if (status !== 200) await new Promise((resolve) => setTimeout(resolve, 2000));
+    }
   }
 
   function normaliseIceServer(server) {

@@ -518,6 +518,8 @@ async fn stream_session(
     report.session_id = Some(session.clone());
     // A session after a reconnection goes on with the first one's orbit where it is.
     let orbit = *run.orbit.get_or_insert_with(|| first_view(&answer["view"], config.orbit_speed));
+    let service_ended = Arc::new(Notify::new());
+    let watcher = tokio::spawn(watch_session(base.clone(), session.clone(), token.clone(), Arc::clone(&service_ended)));
 
     let result = async {
         pc.set_remote_description(RTCSessionDescription::answer(sdp)?).await?;
@@ -542,6 +544,7 @@ async fn stream_session(
                 _ = tokio::time::sleep_until(end) => break SessionEnd::RunOver,
                 _ = live.stop.wait() => break SessionEnd::RunOver,
                 _ = closed.notified() => break SessionEnd::Lost("the data channel closed".into()),
+                _ = service_ended.notified() => break SessionEnd::Lost("the service ended the session".into()),
                 changed = state_rx.changed() => {
                     let state = *state_rx.borrow_and_update();
                     match state {
@@ -583,6 +586,7 @@ async fn stream_session(
         Ok::<_, LoadError>(ended)
     }
     .await;
+    watcher.abort();
 
     // Close like the browser does on leaving, even after a failure.
     let auth = format!("Bearer {token}");
@@ -600,6 +604,28 @@ async fn stream_session(
     }
     run.add_video(&video.lock().unwrap_or_else(|p| p.into_inner()));
     result
+}
+
+/// Longest wait for an answer to a watch (the master holds one for 25 s).
+const WATCH_TIMEOUT: Duration = Duration::from_secs(40);
+
+/// Long poll on the session as the browser client does (`GET /v1/sessions/{id}/watch`):
+/// returns, waking `ended`, once the master says the service ended it (410, or 404 once it is
+/// gone), so that the user connects again without waiting for ICE to notice a dead peer.
+async fn watch_session(base: BaseUrl, session: String, token: String, ended: Arc<Notify>) {
+    let auth = format!("Bearer {token}");
+    let path = format!("/v1/sessions/{session}/watch");
+    loop {
+        match http::request(&base, "GET", &path, &[("Authorization", &auth)], "", WATCH_TIMEOUT).await {
+            Ok(r) if r.status == 410 || r.status == 404 => {
+                ended.notify_one();
+                return;
+            }
+            Ok(r) if r.status == 200 => {}
+            // The master stopping (503) or unreachable: the peer connection's checks decide.
+            Ok(_) | Err(_) => tokio::time::sleep(Duration::from_secs(2)).await,
+        }
+    }
 }
 
 /// The scripted camera from the master's suggested first view (or a default one).

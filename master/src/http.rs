@@ -6,6 +6,10 @@
 //! * `POST /v1/sessions`: SDP offer + scene in, SDP answer + session token out; 503 with
 //!   `Retry-After` while the scheduler's admission control refuses new users.
 //! * `DELETE /v1/sessions/{id}` with `Authorization: Bearer TOKEN`.
+//! * `GET /v1/sessions/{id}/watch` with the same token: a long poll that answers `410 Gone` as
+//!   soon as the service ends the session (its composer died, its peer vanished), or `200`
+//!   after [`WATCH_HOLD`] while it lives, so that a client reconnects at once instead of
+//!   waiting for ICE to notice a dead peer.
 //! * `GET /v1/farm`: the scheduler's state.
 //! * `GET /livez`, `GET /readyz`: liveness, and readiness (a composer and a worker joined).
 //! * `GET /metrics`: Prometheus metrics ([`crate::metrics`]).
@@ -32,6 +36,9 @@ use crate::sessions::{AccessError, SessionRequest, SessionTable};
 pub const MAX_BODY_BYTES: usize = 256 * 1024;
 /// Largest SDP accepted.
 pub const MAX_SDP_BYTES: usize = 64 * 1024;
+/// How long `GET /v1/sessions/{id}/watch` holds a request while the session lives (under the
+/// 30 s that proxies commonly allow an idle response).
+pub const WATCH_HOLD: Duration = Duration::from_secs(25);
 
 pub type BoxFuture<T> = Pin<Box<dyn Future<Output = T> + Send>>;
 
@@ -95,6 +102,16 @@ pub struct AppState {
     clock: Box<dyn Fn() -> f64 + Send + Sync>,
     /// Who may open sessions ([`crate::access`]); the default admits everyone.
     pub access: AccessPolicy,
+    /// Bumped whenever sessions leave the table or the server stops: wakes the long polls of
+    /// `GET /v1/sessions/{id}/watch`, which then look at the table.
+    table_changes: tokio::sync::watch::Sender<TableChange>,
+}
+
+/// What the watchers of sessions learn from [`AppState::table_changes`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+struct TableChange {
+    generation: u64,
+    stopping: bool,
 }
 
 /// A client's address, as the HTTP server records it for each connection (plain or TLS):
@@ -155,7 +172,22 @@ impl AppState {
         clock: Box<dyn Fn() -> f64 + Send + Sync>,
         access: AccessPolicy,
     ) -> Arc<AppState> {
-        Arc::new(AppState { sessions: Mutex::new(SessionTable::new()), backend, metrics, clock, access })
+        let (table_changes, _) = tokio::sync::watch::channel(TableChange::default());
+        Arc::new(AppState { sessions: Mutex::new(SessionTable::new()), backend, metrics, clock, access, table_changes })
+    }
+
+    /// The service ended session `id` on its own (its composer or peer is gone): it leaves
+    /// the table, and its watchers hear at once. Returns whether it was there.
+    pub fn end_session(&self, id: &str) -> bool {
+        let removed = self.sessions().drop_session(id).is_some();
+        self.table_changes.send_modify(|c| c.generation += 1);
+        removed
+    }
+
+    /// The server is stopping: pending watches answer now rather than hold its graceful
+    /// shutdown for up to [`WATCH_HOLD`].
+    pub fn stop_watches(&self) {
+        self.table_changes.send_modify(|c| c.stopping = true);
     }
 
     fn sessions(&self) -> std::sync::MutexGuard<'_, SessionTable> {
@@ -172,6 +204,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/config", get(config))
         .route("/v1/sessions", post(open_session).get(list_sessions))
         .route("/v1/sessions/{id}", delete(close_session))
+        .route("/v1/sessions/{id}/watch", get(watch_session))
         .route("/v1/farm", get(farm))
         .route("/livez", get(|| async { "ok" }))
         .route("/readyz", get(readyz))
@@ -360,12 +393,46 @@ async fn close_session(State(state): State<Arc<AppState>>, Path(id): Path<String
     let closed = state.sessions().close(&id, token);
     match closed {
         Ok(session) => {
+            state.table_changes.send_modify(|c| c.generation += 1);
             state.backend.close(session.id.clone()).await;
             tracing::info!(session = %session.id, "session closed by its client");
             StatusCode::NO_CONTENT.into_response()
         }
         Err(e @ AccessError::Unknown(_)) => error(StatusCode::NOT_FOUND, e),
         Err(e @ AccessError::BadToken(_)) => error(StatusCode::UNAUTHORIZED, e),
+    }
+}
+
+/// Long poll on a session (see the module documentation): 410 once the service has ended
+/// it, 200 `{"state":"open"}` after [`WATCH_HOLD`] while it lives, 503 when the server stops.
+async fn watch_session(State(state): State<Arc<AppState>>, Path(id): Path<String>, headers: HeaderMap) -> Response {
+    let token = nephele_telemetry::bearer(&headers).unwrap_or("");
+    // Subscribed before the first look, so that an end in between is not missed.
+    let mut changes = state.table_changes.subscribe();
+    let known = state.sessions().authorize(&id, token).map(|_| ());
+    match known {
+        Ok(()) => {}
+        Err(e @ AccessError::Unknown(_)) => return error(StatusCode::NOT_FOUND, e),
+        Err(e @ AccessError::BadToken(_)) => return error(StatusCode::UNAUTHORIZED, e),
+    }
+    let hold = tokio::time::sleep(WATCH_HOLD);
+    tokio::pin!(hold);
+    loop {
+        tokio::select! {
+            _ = &mut hold => return Json(json!({ "state": "open" })).into_response(),
+            changed = changes.changed() => {
+                if changed.is_err() || changes.borrow_and_update().stopping {
+                    return error(StatusCode::SERVICE_UNAVAILABLE, "the master is stopping");
+                }
+                if state.sessions().get(&id).is_none() {
+                    let body = json!({
+                        "state": "ended",
+                        "error": "the service ended this session (its composer or peer connection was lost); open a new one",
+                    });
+                    return (StatusCode::GONE, Json(body)).into_response();
+                }
+            }
+        }
     }
 }
 
@@ -637,6 +704,54 @@ mod tests {
         assert_eq!(call(&app, del(&token)).await.0, StatusCode::NO_CONTENT);
         assert_eq!(call(&app, del(&token)).await.0, StatusCode::NOT_FOUND);
         assert_eq!((farm.opened.load(Ordering::SeqCst), farm.closed.load(Ordering::SeqCst)), (1, 1));
+    }
+
+    /// A watch answers 410 as soon as the service ends its session, 404 for an unknown one,
+    /// 401 without the token, 503 when the server stops, and holds otherwise.
+    #[tokio::test]
+    async fn a_watch_hears_at_once_that_the_service_ended_its_session() {
+        let (app, _, state) = app();
+        let open = |app: Router| async move {
+            let (status, _, body) = call(&app, post(OFFER)).await;
+            assert_eq!(status, StatusCode::CREATED, "{body}");
+            (body["session_id"].as_str().expect("id").to_owned(), body["token"].as_str().expect("token").to_owned())
+        };
+        let watch = |id: &str, token: &str| {
+            Request::get(format!("/v1/sessions/{id}/watch"))
+                .header("authorization", format!("Bearer {token}"))
+                .body(Body::empty())
+                .expect("request")
+        };
+        let (id, token) = open(app.clone()).await;
+        assert_eq!(call(&app, watch(&id, "wrong")).await.0, StatusCode::UNAUTHORIZED);
+        assert_eq!(call(&app, watch("s99-000000", &token)).await.0, StatusCode::NOT_FOUND);
+        let (other, other_token) = open(app.clone()).await;
+        let pending = tokio::spawn({
+            let app = app.clone();
+            let request = watch(&id, &token);
+            async move { call(&app, request).await }
+        });
+        let unaffected = tokio::spawn({
+            let app = app.clone();
+            let request = watch(&other, &other_token);
+            async move { call(&app, request).await }
+        });
+        // Both hold while their sessions live (the hold is 25 s; nothing answers in 200 ms).
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        assert!(!pending.is_finished() && !unaffected.is_finished());
+        assert!(state.end_session(&id));
+        let (status, _, body) =
+            tokio::time::timeout(Duration::from_secs(10), pending).await.expect("answered").expect("task");
+        assert_eq!((status, body["state"].as_str()), (StatusCode::GONE, Some("ended")), "{body}");
+        // The other session's watch is still holding; the server stopping releases it.
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        assert!(!unaffected.is_finished());
+        state.stop_watches();
+        let (status, _, _) =
+            tokio::time::timeout(Duration::from_secs(10), unaffected).await.expect("answered").expect("task");
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
+        // After its end the session is unknown.
+        assert_eq!(call(&app, watch(&id, &token)).await.0, StatusCode::NOT_FOUND);
     }
 
     #[tokio::test]

@@ -145,7 +145,7 @@ impl Master {
         let table = state.clone();
         let forget = tokio::spawn(async move {
             while let Some(name) = ended.recv().await {
-                if table.sessions.lock().unwrap_or_else(|p| p.into_inner()).drop_session(&name).is_some() {
+                if table.end_session(&name) {
                     tracing::info!(session = %name, "session dropped by the service");
                 }
             }
@@ -160,6 +160,13 @@ impl Master {
         let secret = config.farm_secret.map(Arc::new);
         let listener = tokio::spawn(crate::links::serve(farm_listener, farm.clone(), config.frame, secret));
         tracing::info!(http = %http_addr, farm = %farm_addr, "master serving");
+        // Long polls on sessions answer at once when the server stops, rather than hold the
+        // graceful shutdown.
+        let watched = state.clone();
+        let shutdown = async move {
+            shutdown.await;
+            watched.stop_watches();
+        };
         // With each connection's address, for the per-address rate limit.
         let app = router(state).into_make_service_with_connect_info::<ClientAddr>();
         let served = match config.tls {
