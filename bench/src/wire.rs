@@ -284,15 +284,24 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
     println!("ray batch (master -> worker): {batch_bytes_per_pixel:.2} bytes/px on the wire");
     let frame_figures = compact_frame_figures(&args.frame_scene, args.frame_size, n).context("compact frame")?;
 
-    let bar = progress.bar(2 * args.batches as u64, "loopback", "batches");
+    let bar = progress.bar(3 * args.batches as u64, "loopback", "batches");
     let process = loopback_processes(&args, &bar).context("two-process loopback")?;
-    let tasks = loopback_tokio(&args, &bar).context("tokio loopback")?;
+    let tasks = loopback_tokio(&args, &bar, None).context("tokio loopback")?;
+    // The same inside TLS (`--farm-tls`), with a farm certificate made for the run.
+    let tls_dir = tempfile::tempdir().context("a folder for the farm certificate")?;
+    nephele_transport::FarmTls::generate(tls_dir.path())?;
+    let farm_tls = nephele_transport::FarmTls::load(tls_dir.path())?;
+    let tasks_tls = loopback_tokio(&args, &bar, Some(&farm_tls)).context("tokio loopback over TLS")?;
     bar.finish_and_clear();
     println!(
         "{:<34} {:>10} {:>10} {:>12} {:>12}",
         "loopback TCP, batch results", "batches/s", "GB/s px", "GB/s wire", "Mpixels/s"
     );
-    for (name, r) in [("two processes (blocking I/O)", &process), ("two tokio tasks (worker codec)", &tasks)] {
+    for (name, r) in [
+        ("two processes (blocking I/O)", &process),
+        ("two tokio tasks (worker codec)", &tasks),
+        ("the same inside farm TLS", &tasks_tls),
+    ] {
         println!(
             "{:<34} {:>10.0} {:>10.2} {:>12.2} {:>12.1}",
             name,
@@ -302,6 +311,14 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
             r.batches_per_second * n as f64 / 1e6
         );
     }
+    // What TLS adds per pixel result: the difference of the two tokio rows' times per pixel
+    // (both ends on this machine's cores: encryption and decryption together).
+    let ns_per_pixel = |r: &Loopback| 1e9 / (r.batches_per_second * n as f64);
+    let tls_ns_per_pixel = ns_per_pixel(&tasks_tls) - ns_per_pixel(&tasks);
+    println!(
+        "farm TLS: {tls_ns_per_pixel:.2} ns more per pixel result (f32 results, {:.1} bytes/px on the wire; compact results carry {compact_bytes_per_pixel:.1})",
+        tasks.wire_bytes_per_second / (tasks.batches_per_second * n as f64)
+    );
     // The connection's opening, without and with the farm credential (alternated).
     let (open_us, secret_us) = openings(200).context("connection openings")?;
     println!(
@@ -325,6 +342,8 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
             "compact": { "encode_ns_per_pixel": compact_encode_ns, "decode_ns_per_pixel": compact_decode_ns, "bytes_per_pixel": compact_bytes_per_pixel, "frame": frame_figures },
             "loopback_two_processes": loopback(&process),
             "loopback_tokio_tasks": loopback(&tasks),
+            "loopback_tokio_tasks_farm_tls": loopback(&tasks_tls),
+            "farm_tls_ns_per_pixel": tls_ns_per_pixel,
             "opening_us": { "open_farm": open_us, "with_farm_secret": secret_us },
         });
         std::fs::write(path, serde_json::to_string_pretty(&out)?)
@@ -458,19 +477,25 @@ pub fn sink(args: SinkArgs) -> Result<()> {
 }
 
 /// Both ends as tokio tasks over a loopback socket, with the codec the worker uses.
-fn loopback_tokio(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<Loopback> {
+/// With `tls`, inside TLS with a farm certificate ([`nephele_transport`]).
+fn loopback_tokio(
+    args: &WireArgs,
+    bar: &indicatif::ProgressBar,
+    tls: Option<&nephele_transport::FarmTls>,
+) -> Result<Loopback> {
     use futures_util::{SinkExt, StreamExt};
 
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let batches = args.batches;
     let pixels = args.pixels;
+    let (server_tls, client_tls) = (tls.cloned(), tls.cloned());
     runtime.block_on(async move {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
         let timeout = Duration::from_secs(10);
         let receiver = tokio::spawn(async move {
             let (stream, _) = listener.accept().await?;
-            stream.set_nodelay(true)?;
+            let stream = nephele_transport::accept(stream, server_tls.as_ref(), timeout).await?;
             let mut conn = framed(stream, FrameConfig::default());
             handshake(&mut conn, Role::Composer, &[Role::Tool], None, timeout).await?;
             let mut received = 0u64;
@@ -485,8 +510,7 @@ fn loopback_tokio(args: &WireArgs, bar: &indicatif::ProgressBar) -> Result<Loopb
                 .await?;
             anyhow::Ok(received)
         });
-        let stream = tokio::net::TcpStream::connect(addr).await?;
-        stream.set_nodelay(true)?;
+        let stream = nephele_transport::connect(&addr.to_string(), client_tls.as_ref(), timeout).await?;
         let mut conn = framed(stream, FrameConfig::default());
         handshake(&mut conn, Role::Tool, &[Role::Composer], None, timeout).await?;
         let messages: Vec<Message> = (0..8).map(|i| Message::BatchResult(sample_result(pixels, i))).collect();

@@ -41,6 +41,9 @@ pub struct ComposerConfig {
     /// The farm credential ([`nephele_proto::auth`]): proved to the master and demanded of
     /// every peer of the results listener; `None` is an open farm.
     pub farm_secret: Option<nephele_proto::auth::FarmSecret>,
+    /// TLS with the farm certificate on the results listener (needs its key) and to the
+    /// master ([`nephele_transport`]); `None`: plain TCP.
+    pub farm_tls: Option<nephele_transport::FarmTls>,
     /// Required on the operators' endpoints (`GET /metrics`, `GET /v1/sessions`) when set;
     /// they are open otherwise. Signalling and the probes never ask for it.
     pub operator_token: Option<nephele_telemetry::OperatorToken>,
@@ -62,6 +65,7 @@ impl Default for ComposerConfig {
             master: None,
             name: "composer".into(),
             farm_secret: None,
+            farm_tls: None,
             operator_token: None,
         }
     }

@@ -54,8 +54,9 @@ pub(crate) async fn run(shared: Arc<Shared>, master: String, results: SocketAddr
 }
 
 async fn link(shared: &Arc<Shared>, master: &str, results: SocketAddr, stop: &Shutdown) -> Result<(), String> {
-    let stream = TcpStream::connect(master).await.map_err(|e| format!("connecting: {e}"))?;
-    let _ = stream.set_nodelay(true);
+    let stream = nephele_transport::connect(master, shared.config.farm_tls.as_ref(), HANDSHAKE_TIMEOUT)
+        .await
+        .map_err(|e| format!("connecting: {e}"))?;
     let mut conn = framed(stream, FrameConfig::default());
     handshake(&mut conn, Role::Composer, &[Role::Master], shared.config.farm_secret.as_ref(), HANDSHAKE_TIMEOUT)
         .await
@@ -252,7 +253,14 @@ pub(crate) async fn accept_results(shared: Arc<Shared>, listener: TcpListener, s
 /// is a tool (no master: tests, benchmarks, a farm of one's own) may also send the
 /// `FramePlan`s that the master would.
 pub(crate) async fn read_results(shared: Arc<Shared>, stream: TcpStream, peer: SocketAddr, stop: Shutdown) {
-    let _ = stream.set_nodelay(true);
+    let stream = match nephele_transport::accept(stream, shared.config.farm_tls.as_ref(), HANDSHAKE_TIMEOUT).await {
+        Ok(stream) => stream,
+        Err(e) => {
+            shared.metrics.wire_errors.inc();
+            tracing::warn!(%peer, "results connection refused at the TLS handshake: {e}");
+            return;
+        }
+    };
     let mut conn = framed(stream, FrameConfig::default());
     let accept = [Role::Worker, Role::Tool];
     let secret = shared.config.farm_secret.as_ref();

@@ -19,6 +19,7 @@ use nephele_proto::stream::{Connection, framed, handshake, recv};
 use nephele_proto::{
     ErrorCode, ErrorMessage, FrameConfig, Goodbye, Message, ProtoError, Registered, Role, clip_text, error_message,
 };
+use nephele_transport::{FarmStream, FarmTls};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{mpsc, oneshot};
 
@@ -29,16 +30,23 @@ pub const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 /// Time one write may take before the peer is presumed stuck.
 pub const WRITE_TIMEOUT: Duration = Duration::from_secs(10);
 
-type Conn = Connection<TcpStream>;
+type Conn = Connection<FarmStream>;
 
 /// Accepts connections until the task is aborted. With a `secret`, every peer must prove it
-/// in the handshake ([`nephele_proto::auth`]).
-pub async fn serve(listener: TcpListener, farm: Farm, frame: FrameConfig, secret: Option<Arc<FarmSecret>>) {
+/// in the handshake ([`nephele_proto::auth`]); with `tls`, every connection is TLS with the
+/// farm certificate ([`nephele_transport`]).
+pub async fn serve(
+    listener: TcpListener,
+    farm: Farm,
+    frame: FrameConfig,
+    secret: Option<Arc<FarmSecret>>,
+    tls: Option<Arc<FarmTls>>,
+) {
     loop {
         match listener.accept().await {
             Ok((stream, peer)) => {
                 tracing::debug!(%peer, "farm connection accepted");
-                tokio::spawn(connection(stream, peer, farm.clone(), frame, secret.clone()));
+                tokio::spawn(connection(stream, peer, farm.clone(), frame, secret.clone(), tls.clone()));
             }
             Err(e) => {
                 // Out of file descriptors and the like: back off instead of spinning.
@@ -55,10 +63,16 @@ async fn connection(
     farm: Farm,
     frame: FrameConfig,
     secret: Option<Arc<FarmSecret>>,
+    tls: Option<Arc<FarmTls>>,
 ) {
-    if let Err(e) = stream.set_nodelay(true) {
-        tracing::debug!(%peer, "set_nodelay: {e}");
-    }
+    let stream = match nephele_transport::accept(stream, tls.as_deref(), HANDSHAKE_TIMEOUT).await {
+        Ok(stream) => stream,
+        Err(e) => {
+            farm.metrics().links.handshakes_failed.inc();
+            tracing::warn!(%peer, "farm connection refused at the TLS handshake: {e}");
+            return;
+        }
+    };
     let mut conn = framed(stream, frame);
     let accept = [Role::Worker, Role::Composer];
     let hello = match handshake(&mut conn, Role::Master, &accept, secret.as_deref(), HANDSHAKE_TIMEOUT).await {

@@ -40,6 +40,9 @@ pub struct MasterConfig {
     /// The farm credential every worker and composer must prove ([`nephele_proto::auth`]);
     /// `None` is an open farm (anything that reaches `farm` may join).
     pub farm_secret: Option<FarmSecret>,
+    /// TLS on the farm port with the farm certificate (needs its key), for farms that cross
+    /// machines ([`nephele_transport`]).
+    pub farm_tls: Option<nephele_transport::FarmTls>,
     /// HTTPS for the page and the API ([`crate::tls`]); `None`: plain http.
     pub tls: Option<ServerTls>,
     /// Invitations required to open a session, signed with this key ([`crate::access`]).
@@ -59,6 +62,7 @@ impl Default for MasterConfig {
             farm_config: FarmConfig::default(),
             frame: FrameConfig::default(),
             farm_secret: None,
+            farm_tls: None,
             tls: None,
             viewer_key: None,
             session_rate: DEFAULT_SESSION_RATE,
@@ -158,7 +162,8 @@ impl Master {
             );
         }
         let secret = config.farm_secret.map(Arc::new);
-        let listener = tokio::spawn(crate::links::serve(farm_listener, farm.clone(), config.frame, secret));
+        let farm_tls = config.farm_tls.map(Arc::new);
+        let listener = tokio::spawn(crate::links::serve(farm_listener, farm.clone(), config.frame, secret, farm_tls));
         tracing::info!(http = %http_addr, farm = %farm_addr, "master serving");
         // Long polls on sessions answer at once when the server stops, rather than hold the
         // graceful shutdown.

@@ -981,6 +981,71 @@ fn the_farm_admits_only_peers_that_prove_its_secret() {
     );
 }
 
+/// TLS between the farm's processes (issue 15): a master, a composer and a worker given the
+/// farm TLS folder (the worker only its certificate) join over TLS; a peer speaking plain
+/// TCP at the farm port or the results port gets no handshake and is counted, and a TLS peer
+/// that trusts another farm's certificate gets nowhere.
+#[test]
+fn the_farm_speaks_tls_with_its_certificate_only() {
+    use nephele_transport::{CERT_FILE, FarmTls};
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (farm_dir, worker_dir, stranger_dir) =
+        (dir.path().join("tls"), dir.path().join("cert"), dir.path().join("other"));
+    FarmTls::generate(&farm_dir).expect("farm certificate");
+    FarmTls::generate(&stranger_dir).expect("another farm's certificate");
+    std::fs::create_dir(&worker_dir).expect("dir");
+    std::fs::copy(farm_dir.join(CERT_FILE), worker_dir.join(CERT_FILE)).expect("copy");
+    let assets = dir.path().join("assets");
+    std::fs::create_dir(&assets).expect("assets");
+    let farm_env = [("NEPHELE_FARM_TLS_DIR", farm_dir.to_str().expect("utf-8"))];
+    let master = MasterProcess::start_with(&[], &farm_env);
+    let (_composer, composer_http, results) = start_composer(&master, &farm_env, &[]);
+    let worker_env = [("NEPHELE_FARM_TLS_DIR", worker_dir.to_str().expect("utf-8"))];
+    let _worker = start_worker_with(master.farm, &assets, "tls", &dir.path().join("tls.log"), &worker_env);
+    wait_for_farm(&master, "the composer and the worker over TLS", |s| {
+        !s["composer"].is_null() && s["workers"].as_array().is_some_and(|w| w.len() == 1)
+    });
+
+    // Plain TCP speaking the protocol at either port: no answer the protocol understands.
+    let plain = |addr: SocketAddr, accept: Role| {
+        let stream = TcpStream::connect(addr).expect("connect");
+        stream.set_read_timeout(Some(Duration::from_secs(20))).expect("timeout");
+        let mut reader = FrameReader::new(stream.try_clone().expect("clone"), FrameConfig::default());
+        let mut writer = FrameWriter::new(stream, FrameConfig::default());
+        nephele_proto::frame::handshake(&mut reader, &mut writer, Role::Tool, &[accept], None)
+    };
+    assert!(plain(master.farm, Role::Master).is_err(), "the master's farm port spoke plain TCP");
+    assert!(plain(results, Role::Composer).is_err(), "the composer's results port spoke plain TCP");
+    // TLS: the farm's certificate is trusted, another farm's is not.
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().expect("runtime");
+    let tls_handshake = |folder: &Path| {
+        let tls = FarmTls::load(folder).expect("tls settings");
+        rt.block_on(async {
+            let stream = nephele_transport::connect(&results.to_string(), Some(&tls), WAIT).await?;
+            let mut conn = nephele_proto::stream::framed(stream, FrameConfig::default());
+            nephele_proto::stream::handshake(&mut conn, Role::Tool, &[Role::Composer], None, WAIT).await?;
+            Ok::<(), Box<dyn std::error::Error>>(())
+        })
+    };
+    tls_handshake(&worker_dir).expect("a tool holding the farm certificate is admitted");
+    assert!(tls_handshake(&stranger_dir).is_err(), "a client trusting another farm's certificate got in");
+
+    let scrape = |addr: SocketAddr| {
+        let url = format!("http://{addr}/metrics");
+        nephele_loadgen::http::request_blocking(&url, "GET", &[], "", WAIT).expect("metrics").body
+    };
+    let value = |text: &str, series: &str| -> Option<f64> {
+        text.lines().find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.trim().parse().ok())
+    };
+    let master_metrics = scrape(master.http);
+    assert_eq!(value(&master_metrics, "nephele_master_farm_handshakes_failed_total"), Some(1.0), "{master_metrics}");
+    let composer_metrics = scrape(composer_http);
+    assert!(
+        value(&composer_metrics, "nephele_composer_wire_errors_total").is_some_and(|n| n >= 1.0),
+        "{composer_metrics}"
+    );
+}
+
 /// The operators' token (issue 15) across processes: a master, a composer and a worker
 /// started with it (flag or `$NEPHELE_OPERATOR_TOKEN_FILE`) answer `nephele probe` of their
 /// operators' endpoints with 401 unless the probe holds the token (flag or variable); the

@@ -13,10 +13,10 @@ use futures_util::{FutureExt, SinkExt, StreamExt};
 use nephele_proto::auth::FarmSecret;
 use nephele_proto::stream::{Connection, framed, handshake};
 use nephele_proto::{FrameConfig, Message, ProtoError, Role};
-use tokio::net::TcpStream;
+use nephele_transport::{FarmStream, FarmTls};
 use tokio::sync::Mutex;
 
-type Link = Connection<TcpStream>;
+type Link = Connection<FarmStream>;
 
 /// The cache of composer links.
 #[derive(Debug)]
@@ -26,11 +26,17 @@ pub struct ComposerLinks {
     timeout: Duration,
     max_links: usize,
     secret: Option<FarmSecret>,
+    tls: Option<FarmTls>,
 }
 
 impl ComposerLinks {
-    pub fn new(frame: FrameConfig, timeout: Duration, secret: Option<FarmSecret>) -> ComposerLinks {
-        ComposerLinks { links: Mutex::new(HashMap::new()), frame, timeout, max_links: 64, secret }
+    pub fn new(
+        frame: FrameConfig,
+        timeout: Duration,
+        secret: Option<FarmSecret>,
+        tls: Option<FarmTls>,
+    ) -> ComposerLinks {
+        ComposerLinks { links: Mutex::new(HashMap::new()), frame, timeout, max_links: 64, secret, tls }
     }
 
     /// Sends `message` to the composer at `addr`, connecting (or reconnecting once) as
@@ -72,10 +78,7 @@ impl ComposerLinks {
     }
 
     async fn connect(&self, addr: &str) -> Result<Link, ProtoError> {
-        let stream = tokio::time::timeout(self.timeout, TcpStream::connect(addr))
-            .await
-            .map_err(|_| ProtoError::Timeout("connecting to the composer"))??;
-        stream.set_nodelay(true)?;
+        let stream = nephele_transport::connect(addr, self.tls.as_ref(), self.timeout).await?;
         let mut conn = framed(stream, self.frame);
         handshake(&mut conn, Role::Worker, &[Role::Composer, Role::Tool], self.secret.as_ref(), self.timeout).await?;
         tracing::debug!(composer = addr, "connected to composer");

@@ -23,8 +23,8 @@ use nephele_proto::{
     KernelStats, LoadReport, Message, ProtoError, RayBatch, Register, Registered, ResultEncoding, Role, clip_text,
     error_message, validate,
 };
+use nephele_transport::FarmStream;
 use thiserror::Error;
-use tokio::net::TcpStream;
 use tokio::sync::mpsc;
 
 use crate::assets::AssetLoader;
@@ -74,6 +74,9 @@ pub struct WorkerConfig {
     /// The farm credential ([`nephele_proto::auth`]) proved to the master and the composers,
     /// and demanded of them; `None` joins only an open farm.
     pub farm_secret: Option<nephele_proto::auth::FarmSecret>,
+    /// TLS to the master and the composers, trusting the farm certificate
+    /// ([`nephele_transport`]); `None`: plain TCP.
+    pub farm_tls: Option<nephele_transport::FarmTls>,
 }
 
 impl WorkerConfig {
@@ -94,6 +97,7 @@ impl WorkerConfig {
             result_encoding: ResultEncoding::Compact,
             metrics: Arc::new(WorkerMetrics::new()),
             farm_secret: None,
+            farm_tls: None,
         }
     }
 }
@@ -143,7 +147,12 @@ pub async fn run<F: Future<Output = ()>>(
         previous: PreviousRenders::new(PREVIOUS_RENDER_PIXELS),
         pool: Arc::new(pool),
         loader,
-        composers: ComposerLinks::new(config.frame, config.io_timeout, config.farm_secret.clone()),
+        composers: ComposerLinks::new(
+            config.frame,
+            config.io_timeout,
+            config.farm_secret.clone(),
+            config.farm_tls.clone(),
+        ),
         worker_id: AtomicU64::new(0),
         result_encoding: config.result_encoding,
         metrics: config.metrics.clone(),
@@ -240,11 +249,8 @@ async fn calibrate(shared: &Arc<Shared>, config: &WorkerConfig) -> Result<f64, W
 async fn connect_and_register(
     config: &WorkerConfig,
     register: &Register,
-) -> Result<(Connection<TcpStream>, Registered), ProtoError> {
-    let stream = tokio::time::timeout(config.io_timeout, TcpStream::connect(&config.master))
-        .await
-        .map_err(|_| ProtoError::Timeout("connecting to the master"))??;
-    stream.set_nodelay(true)?;
+) -> Result<(Connection<FarmStream>, Registered), ProtoError> {
+    let stream = nephele_transport::connect(&config.master, config.farm_tls.as_ref(), config.io_timeout).await?;
     let mut conn = framed(stream, config.frame);
     handshake(&mut conn, Role::Worker, &[Role::Master], config.farm_secret.as_ref(), config.io_timeout).await?;
     conn.send(&Message::Register(register.clone())).await?;
@@ -313,7 +319,7 @@ impl<'a> Session<'a> {
 
     async fn run<F: Future<Output = ()>>(
         mut self,
-        mut conn: Connection<TcpStream>,
+        mut conn: Connection<FarmStream>,
         mut shutdown: Pin<&mut F>,
     ) -> SessionEnd {
         // The load report's totals are the metrics' counters: they survive reconnections.
@@ -511,7 +517,7 @@ impl<'a> Session<'a> {
         self.fail(ids, ErrorCode::ShuttingDown, "the worker is shutting down".into());
     }
 
-    async fn say_goodbye(mut self, mut conn: Connection<TcpStream>, reason: &str) -> SessionEnd {
+    async fn say_goodbye(mut self, mut conn: Connection<FarmStream>, reason: &str) -> SessionEnd {
         self.returned.truncate(validate::MAX_RETURNED_BATCHES);
         self.outbox.push(Message::Goodbye(Goodbye {
             reason: reason.into(),
@@ -527,7 +533,7 @@ impl<'a> Session<'a> {
     }
 }
 
-async fn flush(conn: &mut Connection<TcpStream>, outbox: &mut Vec<Message>) -> Result<(), ProtoError> {
+async fn flush(conn: &mut Connection<FarmStream>, outbox: &mut Vec<Message>) -> Result<(), ProtoError> {
     if outbox.is_empty() {
         return Ok(());
     }

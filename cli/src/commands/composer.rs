@@ -123,6 +123,7 @@ pub fn run(args: Args) -> Result<()> {
         master: args.master,
         name: args.name,
         farm_secret: args.farm_secret.resolve()?,
+        farm_tls: args.farm_secret.resolve_tls(true)?,
         operator_token: args.operator_token.resolve()?.map(|(_, kept)| kept),
     };
     let runtime =

@@ -158,6 +158,7 @@ pub fn run(args: Args) -> Result<()> {
         },
         frame: FrameConfig { max_frame: args.max_frame_mib.saturating_mul(1 << 20) },
         farm_secret: args.farm_secret.resolve()?,
+        farm_tls: args.farm_secret.resolve_tls(true)?,
         tls: args.tls.resolve()?,
         viewer_key: args.viewer_key.resolve()?,
         session_rate: (args.session_burst, args.sessions_per_minute),

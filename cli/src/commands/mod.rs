@@ -20,7 +20,7 @@ pub mod train_gi;
 pub mod up;
 pub mod worker;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use glam::Vec3;
 
 pub use nephele_geometry::camera::parse_size;
@@ -100,7 +100,18 @@ pub struct FarmSecretArgs {
     /// reaches the farm port may join). Never on the command line, where `ps` would show it.
     #[arg(long, value_name = "FILE")]
     pub farm_secret_file: Option<std::path::PathBuf>,
+    /// TLS between the farm's processes, for farms that cross machines: a folder holding the
+    /// farm certificate `farm.crt` and, for the master and the composer (which listen), its
+    /// key `farm.key` (`nephele up --farm-tls DIR` makes both when the folder has none;
+    /// workers need only `farm.crt`). Every farm connection is then TLS and trusts that
+    /// certificate alone; the farm secret is still proved inside. Without it (or
+    /// $NEPHELE_FARM_TLS_DIR) the farm's links are plain TCP.
+    #[arg(long, value_name = "DIR")]
+    pub farm_tls: Option<std::path::PathBuf>,
 }
+
+/// The environment variable naming the farm TLS folder (`--farm-tls`).
+pub const FARM_TLS_ENV: &str = "NEPHELE_FARM_TLS_DIR";
 
 /// A file named by a flag, else by an environment variable (the secrets' files: farm secret,
 /// viewer key, operator token).
@@ -109,6 +120,27 @@ fn flag_or_env_file(flag: &Option<std::path::PathBuf>, env: &str) -> Option<std:
 }
 
 impl FarmSecretArgs {
+    /// The farm TLS folder, from the flag, then the environment.
+    pub fn tls_dir(&self) -> Option<std::path::PathBuf> {
+        flag_or_env_file(&self.farm_tls, FARM_TLS_ENV)
+    }
+
+    /// The farm TLS settings (`None`: plain TCP); `listens`: this process serves a farm port
+    /// and needs the key.
+    pub fn resolve_tls(&self, listens: bool) -> Result<Option<nephele_transport::FarmTls>> {
+        let Some(dir) = self.tls_dir() else { return Ok(None) };
+        let tls = nephele_transport::FarmTls::load(&dir)
+            .with_context(|| format!("the farm TLS folder {} (--farm-tls)", dir.display()))?;
+        if listens && !tls.can_accept() {
+            anyhow::bail!(
+                "the farm TLS folder {} has no {}: the master and the composer listen and need the key",
+                dir.display(),
+                nephele_transport::KEY_FILE
+            );
+        }
+        Ok(Some(tls))
+    }
+
     /// The secret, from the flag, then the environment; `None`: an open farm.
     pub fn resolve(&self) -> Result<Option<nephele_proto::auth::FarmSecret>> {
         use nephele_proto::auth::{FarmSecret, SECRET_ENV, SECRET_FILE_ENV};

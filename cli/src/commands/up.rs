@@ -239,11 +239,29 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
         Some(secret) => secret,
         None => nephele_proto::auth::FarmSecret::generate()?,
     };
+    // TLS between the processes when asked: the folder's certificate, made there when it has
+    // none (workers on other machines joining this farm need a copy of its `farm.crt`).
+    let farm_tls = match args.farm_secret.tls_dir() {
+        Some(dir) => {
+            if !dir.join(nephele_transport::CERT_FILE).exists() {
+                nephele_transport::FarmTls::generate(&dir)
+                    .with_context(|| format!("making the farm certificate in {}", dir.display()))?;
+                tracing::info!(dir = %dir.display(), "made a farm certificate for TLS between the farm's processes");
+            }
+            args.farm_secret.resolve_tls(true)?;
+            Some(std::path::absolute(&dir).with_context(|| format!("the farm TLS folder {}", dir.display()))?)
+        }
+        None => None,
+    };
     // `nephele ROLE --log-format F ...`: every process logs in the format asked of `nephele up`.
     let nephele = |role: &str| {
         let mut command = Command::new(&exe);
         command.args([role, "--log-format", &log_format.to_string()]);
         command.env_remove(nephele_proto::auth::SECRET_FILE_ENV).env(nephele_proto::auth::SECRET_ENV, secret.expose());
+        match &farm_tls {
+            Some(dir) => command.env(super::FARM_TLS_ENV, dir),
+            None => command.env_remove(super::FARM_TLS_ENV),
+        };
         command
     };
     let mut master = nephele("master");

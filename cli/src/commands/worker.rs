@@ -138,6 +138,7 @@ pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
     config.calibration_asset = args.calibration_asset;
     config.device = device;
     config.farm_secret = args.farm_secret.resolve()?;
+    config.farm_tls = args.farm_secret.resolve_tls(false)?;
     // Read before the runtime starts, so that a bad file stops the worker at once.
     let operator_token = args.operator_token.resolve()?.map(|(_, kept)| kept);
 
