@@ -42,6 +42,10 @@ pub struct GiArgs {
     /// Samples per pixel of the served G-buffer and direct light (the farm kernel's default).
     #[arg(long, default_value_t = 2)]
     served_spp: u32,
+    /// Skip the GPU backend's row (the WGSL U-Net). Where the only Vulkan adapter is a
+    /// software one (llvmpipe), that row takes minutes at 512x512 and is not a GPU figure.
+    #[arg(long)]
+    no_gpu: bool,
 }
 
 /// The models as the farm serves them ([`GiKernel`]: the G-buffer and direct light rendered
@@ -274,7 +278,11 @@ pub fn run(args: GiArgs, _progress: &dyn Progress) -> Result<()> {
         gmacs(2.0 * single_macs, single_scalar_ms),
         gmacs(stereo_macs, stereo_scalar_ms),
     );
-    gpu_ratio(&teacher, &stereo, (w, h), (&left, &right, &both), args.repeats)?;
+    if args.no_gpu {
+        println!("GPU backend: skipped (--no-gpu)");
+    } else {
+        gpu_ratio(&teacher, &stereo, (w, h), (&left, &right, &both), args.repeats)?;
+    }
 
     // Quality on the evaluation pairs.
     let row = |name: &str, e: &StereoEvaluation| {
