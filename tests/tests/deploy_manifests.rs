@@ -224,7 +224,9 @@ fn kubernetes_manifests_are_complete_and_every_reference_resolves() {
         .lines()
         .find(|l| l.contains("kubectl -n nephele create secret generic nephele-secrets"))
         .expect("deploy/README.md says how to create the Secret nephele-secrets");
-    for key in ["--from-file=farm=", "--from-file=operator="] {
+    // Farm TLS: the folder is the Secret's mount, holding farm.crt and farm.key.
+    assert_eq!(config.get("NEPHELE_FARM_TLS_DIR").map(String::as_str), Some("/var/lib/nephele/secrets"));
+    for key in ["--from-file=farm=", "--from-file=operator=", "--from-file=farm.crt=", "--from-file=farm.key="] {
         assert!(creates_secret.contains(key), "the Secret's creation in deploy/README.md lacks {key}");
     }
     for name in ["nephele-master", "nephele-composer", "nephele-worker-cpu", "nephele-worker-gpu"] {
@@ -369,4 +371,19 @@ fn the_compose_file_runs_real_commands_on_a_private_network() {
         })
         .unwrap_or_else(|| panic!("no one-shot service writes {token}"));
     assert_eq!(services["master"]["depends_on"][writer]["condition"], "service_completed_successfully");
+    // The farm's links are TLS: every farm process reads the farm certificate folder that a
+    // one-shot job writes there, and waits for it.
+    let (tls_writer, tls_service) = services
+        .iter()
+        .find(|(_, s)| items(s, "/command").iter().any(|a| a.as_str() == Some("--farm-tls")))
+        .expect("a one-shot service writes the farm certificate");
+    let command: Vec<&str> = items(tls_service, "/command").iter().filter_map(|a| a.as_str()).collect();
+    let out = command.iter().position(|a| *a == "--out").map(|i| command[i + 1]).expect("--out");
+    for role in ["master", "composer", "worker"] {
+        assert_eq!(services[role]["environment"]["NEPHELE_FARM_TLS_DIR"], out, "{role}: farm TLS folder");
+        assert_eq!(
+            services[role]["depends_on"][tls_writer]["condition"], "service_completed_successfully",
+            "{role} waits for the farm certificate"
+        );
+    }
 }
