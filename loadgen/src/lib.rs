@@ -188,6 +188,9 @@ pub struct UserReport {
     /// example when the composer restarts; failed attempts are not counted); the counts
     /// below add up every session.
     pub reconnects: u32,
+    /// Why each lost session was lost ("the service ended the session": the master said so
+    /// through the session's watch; otherwise what the peer connection showed).
+    pub lost: Vec<String>,
     /// From posting the offer to the data channel opening.
     pub connect_ms: Option<f64>,
     /// From the data channel opening to the first complete frame.
@@ -340,6 +343,7 @@ async fn run_user(
             break Ok(());
         }
         tracing::info!(user = report.user, "session lost ({reason}); connecting again in {backoff:?}");
+        report.lost.push(reason);
         tokio::select! {
             _ = tokio::time::sleep(backoff) => {}
             _ = live.stop.wait() => break Ok(()),

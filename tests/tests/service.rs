@@ -185,6 +185,8 @@ async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_
         serde_json::from_str(&std::fs::read_to_string(&report_file).expect("the JSON report")).expect("JSON");
     let user = &reports[0];
     assert!(user["error"].is_null() && user["reconnects"] == 1, "{table}");
+    // Told by the master's watch the moment the composer's link closed, not by ICE seconds later.
+    assert_eq!(user["lost"], serde_json::json!(["the service ended the session"]), "{reports}");
     assert!(user["session_id"].as_str().is_some_and(|id| id != first_session), "{table}");
     assert!(user["frames"].as_u64().is_some_and(|n| n >= 10), "{table}");
     let restarted = children_in_role(up.pid(), "composer");
