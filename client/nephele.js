@@ -267,27 +267,28 @@
     watchSession(body.session_id, body.token);
   }
 
-  // Long poll on the session (`GET v1/sessions/{id}/watch`): the master answers 410 the moment
-  // the service ends it (its composer died), so the page connects again at once rather than
-  // after ICE's timeout and the grace above; 200 after a while means it lives (ask again).
+  // Long poll on the session (`GET v1/sessions/{id}/watch`): the master answers
+  // {"state": "ended"} the moment the service ends it (its composer died), so the page connects
+  // again at once rather than after ICE's timeout and the grace above; {"state": "open"} after
+  // a while means it lives (ask again).
   async function watchSession(id, token) {
     while (client.sessionId === id) {
-      let status = 0;
+      let state = null;
       try {
         const response = await fetch(`v1/sessions/${encodeURIComponent(id)}/watch`, {
           headers: { authorization: `Bearer ${token}` },
         });
-        status = response.status;
-        await response.body?.cancel().catch(() => {});
+        if (response.ok) state = (await response.json()).state;
+        else await response.body?.cancel().catch(() => {});
       } catch (error) {
-        status = 0; // the master is unreachable: the peer connection's own checks decide
+        state = null; // the master is unreachable: the peer connection's own checks decide
       }
       if (client.sessionId !== id) return;
-      if (status === 410 || status === 404) {
+      if (state === 'ended') {
         scheduleReconnect('the service ended the session');
         return;
       }
-      if (status !== 200) await new Promise((resolve) => setTimeout(resolve, 2000));
+      if (state !== 'open') await new Promise((resolve) => setTimeout(resolve, 2000));
     }
   }
 

@@ -614,18 +614,24 @@ async fn stream_session(
 const WATCH_TIMEOUT: Duration = Duration::from_secs(40);
 
 /// Long poll on the session as the browser client does (`GET /v1/sessions/{id}/watch`):
-/// returns, waking `ended`, once the master says the service ended it (410, or 404 once it is
-/// gone), so that the user connects again without waiting for ICE to notice a dead peer.
+/// returns, waking `ended`, once the master says it is not open (`{"state": "ended"}`), so
+/// that the user connects again without waiting for ICE to notice a dead peer.
 async fn watch_session(base: BaseUrl, session: String, token: String, ended: Arc<Notify>) {
     let auth = format!("Bearer {token}");
     let path = format!("/v1/sessions/{session}/watch");
     loop {
         match http::request(&base, "GET", &path, &[("Authorization", &auth)], "", WATCH_TIMEOUT).await {
-            Ok(r) if r.status == 410 || r.status == 404 => {
-                ended.notify_one();
-                return;
+            Ok(r) if r.status == 200 => {
+                let state = serde_json::from_str::<serde_json::Value>(&r.body).ok();
+                match state.as_ref().and_then(|s| s["state"].as_str()) {
+                    Some("ended") => {
+                        ended.notify_one();
+                        return;
+                    }
+                    Some("open") => {}
+                    _ => tokio::time::sleep(Duration::from_secs(2)).await,
+                }
             }
-            Ok(r) if r.status == 200 => {}
             // The master stopping (503) or unreachable: the peer connection's checks decide.
             Ok(_) | Err(_) => tokio::time::sleep(Duration::from_secs(2)).await,
         }

@@ -6,10 +6,12 @@
 //! * `POST /v1/sessions`: SDP offer + scene in, SDP answer + session token out; 503 with
 //!   `Retry-After` while the scheduler's admission control refuses new users.
 //! * `DELETE /v1/sessions/{id}` with `Authorization: Bearer TOKEN`.
-//! * `GET /v1/sessions/{id}/watch` with the same token: a long poll that answers `410 Gone` as
-//!   soon as the service ends the session (its composer died, its peer vanished), or `200`
-//!   after [`WATCH_HOLD`] while it lives, so that a client reconnects at once instead of
-//!   waiting for ICE to notice a dead peer.
+//! * `GET /v1/sessions/{id}/watch` with the same token: a long poll that answers
+//!   `{"state": "ended"}` as soon as the session is not open (the service ended it: its
+//!   composer died, its peer vanished; or it is unknown), or `{"state": "open"}` after
+//!   [`WATCH_HOLD`] while it lives, so that a client reconnects at once instead of waiting
+//!   for ICE to notice a dead peer. Both are `200`: a page's console logs every 4xx as an
+//!   error, and an ended session is news, not a failure.
 //! * `GET /v1/farm`: the scheduler's state.
 //! * `GET /livez`, `GET /readyz`: liveness, and readiness (a composer and a worker joined).
 //! * `GET /metrics`: Prometheus metrics ([`crate::metrics`]).
@@ -403,16 +405,24 @@ async fn close_session(State(state): State<Arc<AppState>>, Path(id): Path<String
     }
 }
 
-/// Long poll on a session (see the module documentation): 410 once the service has ended
-/// it, 200 `{"state":"open"}` after [`WATCH_HOLD`] while it lives, 503 when the server stops.
+/// Long poll on a session (see the module documentation): `{"state":"ended"}` once it is not
+/// open, `{"state":"open"}` after [`WATCH_HOLD`] while it lives (both 200), 401 for a wrong
+/// token, 503 when the server stops.
 async fn watch_session(State(state): State<Arc<AppState>>, Path(id): Path<String>, headers: HeaderMap) -> Response {
     let token = nephele_telemetry::bearer(&headers).unwrap_or("");
     // Subscribed before the first look, so that an end in between is not missed.
     let mut changes = state.table_changes.subscribe();
+    let ended = || {
+        let body = json!({
+            "state": "ended",
+            "error": "this session is not open (the service ended it: its composer or peer connection was lost); open a new one",
+        });
+        Json(body).into_response()
+    };
     let known = state.sessions().authorize(&id, token).map(|_| ());
     match known {
         Ok(()) => {}
-        Err(e @ AccessError::Unknown(_)) => return error(StatusCode::NOT_FOUND, e),
+        Err(AccessError::Unknown(_)) => return ended(),
         Err(e @ AccessError::BadToken(_)) => return error(StatusCode::UNAUTHORIZED, e),
     }
     let hold = tokio::time::sleep(WATCH_HOLD);
@@ -425,11 +435,7 @@ async fn watch_session(State(state): State<Arc<AppState>>, Path(id): Path<String
                     return error(StatusCode::SERVICE_UNAVAILABLE, "the master is stopping");
                 }
                 if state.sessions().get(&id).is_none() {
-                    let body = json!({
-                        "state": "ended",
-                        "error": "the service ended this session (its composer or peer connection was lost); open a new one",
-                    });
-                    return (StatusCode::GONE, Json(body)).into_response();
+                    return ended();
                 }
             }
         }
@@ -706,8 +712,8 @@ mod tests {
         assert_eq!((farm.opened.load(Ordering::SeqCst), farm.closed.load(Ordering::SeqCst)), (1, 1));
     }
 
-    /// A watch answers 410 as soon as the service ends its session, 404 for an unknown one,
-    /// 401 without the token, 503 when the server stops, and holds otherwise.
+    /// A watch answers "ended" as soon as the service ends its session (and for an unknown
+    /// one), 401 without the token, 503 when the server stops, and holds otherwise.
     #[tokio::test]
     async fn a_watch_hears_at_once_that_the_service_ended_its_session() {
         let (app, _, state) = app();
@@ -724,7 +730,8 @@ mod tests {
         };
         let (id, token) = open(app.clone()).await;
         assert_eq!(call(&app, watch(&id, "wrong")).await.0, StatusCode::UNAUTHORIZED);
-        assert_eq!(call(&app, watch("s99-000000", &token)).await.0, StatusCode::NOT_FOUND);
+        let (status, _, body) = call(&app, watch("s99-000000", &token)).await;
+        assert_eq!((status, body["state"].as_str()), (StatusCode::OK, Some("ended")), "{body}");
         let (other, other_token) = open(app.clone()).await;
         let pending = tokio::spawn({
             let app = app.clone();
@@ -742,7 +749,7 @@ mod tests {
         assert!(state.end_session(&id));
         let (status, _, body) =
             tokio::time::timeout(Duration::from_secs(10), pending).await.expect("answered").expect("task");
-        assert_eq!((status, body["state"].as_str()), (StatusCode::GONE, Some("ended")), "{body}");
+        assert_eq!((status, body["state"].as_str()), (StatusCode::OK, Some("ended")), "{body}");
         // The other session's watch is still holding; the server stopping releases it.
         tokio::time::sleep(Duration::from_millis(100)).await;
         assert!(!unaffected.is_finished());
@@ -750,8 +757,9 @@ mod tests {
         let (status, _, _) =
             tokio::time::timeout(Duration::from_secs(10), unaffected).await.expect("answered").expect("task");
         assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
-        // After its end the session is unknown.
-        assert_eq!(call(&app, watch(&id, &token)).await.0, StatusCode::NOT_FOUND);
+        // After its end the session is unknown: ended at once.
+        let (status, _, body) = call(&app, watch(&id, &token)).await;
+        assert_eq!((status, body["state"].as_str()), (StatusCode::OK, Some("ended")), "{body}");
     }
 
     #[tokio::test]
