@@ -182,8 +182,13 @@ impl AppState {
     /// the table, and its watchers hear at once. Returns whether it was there.
     pub fn end_session(&self, id: &str) -> bool {
         let removed = self.sessions().drop_session(id).is_some();
-        self.table_changes.send_modify(|c| c.generation += 1);
+        self.sessions_left();
         removed
+    }
+
+    /// Wakes the watches: some session left the table.
+    fn sessions_left(&self) {
+        self.table_changes.send_modify(|c| c.generation += 1);
     }
 
     /// The server is stopping: pending watches answer now rather than hold its graceful
@@ -395,7 +400,7 @@ async fn close_session(State(state): State<Arc<AppState>>, Path(id): Path<String
     let closed = state.sessions().close(&id, token);
     match closed {
         Ok(session) => {
-            state.table_changes.send_modify(|c| c.generation += 1);
+            state.sessions_left();
             state.backend.close(session.id.clone()).await;
             tracing::info!(session = %session.id, "session closed by its client");
             StatusCode::NO_CONTENT.into_response()
@@ -424,6 +429,9 @@ async fn watch_session(State(state): State<Arc<AppState>>, Path(id): Path<String
         Ok(()) => {}
         Err(AccessError::Unknown(_)) => return ended(),
         Err(e @ AccessError::BadToken(_)) => return error(StatusCode::UNAUTHORIZED, e),
+    }
+    if changes.borrow_and_update().stopping {
+        return error(StatusCode::SERVICE_UNAVAILABLE, "the master is stopping");
     }
     let hold = tokio::time::sleep(WATCH_HOLD);
     tokio::pin!(hold);
@@ -756,6 +764,9 @@ mod tests {
         state.stop_watches();
         let (status, _, _) =
             tokio::time::timeout(Duration::from_secs(10), unaffected).await.expect("answered").expect("task");
+        assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
+        // A watch asked while the server stops is answered at once.
+        let (status, _, _) = call(&app, watch(&other, &other_token)).await;
         assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
         // After its end the session is unknown: ended at once.
         let (status, _, body) = call(&app, watch(&id, &token)).await;
