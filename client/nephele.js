@@ -285,7 +285,7 @@
       }
       if (client.sessionId !== id) return;
       if (state === 'ended') {
-        scheduleReconnect('the service ended the session');
+        scheduleReconnect('the service ended the session', true);
         return;
       }
       if (state !== 'open') await new Promise((resolve) => setTimeout(resolve, 2000));
@@ -327,9 +327,10 @@
     $('session').textContent = '-';
   }
 
-  function scheduleReconnect(reason) {
+  // `gone`: the master already ended the session (nothing to DELETE).
+  function scheduleReconnect(reason, gone = false) {
     if (!client.wantConnected) return;
-    teardown(true);
+    teardown(!gone);
     const delay = client.reconnectDelayMs;
     client.reconnectDelayMs = Math.min(10000, delay * 2);
     setState(`reconnecting in ${(delay / 1000).toFixed(0)} s (${reason})`);

@@ -103,6 +103,8 @@ struct Shared {
     refuse_next: AtomicUsize,
     refused: AtomicUsize,
     stream_video: bool,
+    /// The master shells serving this farm (for ending sessions as the service does).
+    masters: Mutex<Vec<Arc<AppState>>>,
 }
 
 impl Shared {
@@ -143,6 +145,7 @@ impl TestFarm {
                 refuse_next: AtomicUsize::new(0),
                 refused: AtomicUsize::new(0),
                 stream_video,
+                masters: Mutex::default(),
             }),
         })
     }
@@ -183,6 +186,7 @@ impl TestFarm {
             Box::new(move || start.elapsed().as_secs_f64()),
             access,
         );
+        self.shared.masters.lock().unwrap_or_else(|p| p.into_inner()).push(Arc::clone(&state));
         let listener = tokio::net::TcpListener::bind((ip, 0)).await?;
         let addr = listener.local_addr()?;
         let app = nephele_master::http::router(state);
@@ -251,6 +255,14 @@ impl TestFarm {
     /// Ends every open session from the farm's side, as a composer restart does: each peer
     /// stops its video and closes its connection (the sessions stay listed, as the master
     /// keeps them until the client's `DELETE`). Returns how many were open.
+    /// Ends `session` in the master shells as the service does when its composer dies
+    /// (`AppState::end_session`), leaving its peer connection up: only the session's watch
+    /// can tell the client. Returns whether a master held it.
+    pub fn end_session(&self, session: &str) -> bool {
+        let masters = self.shared.masters.lock().unwrap_or_else(|p| p.into_inner()).clone();
+        masters.iter().fold(false, |ended, m| m.end_session(session) || ended)
+    }
+
     pub async fn drop_sessions(&self) -> usize {
         let pcs: Vec<Arc<RTCPeerConnection>> = {
             let state = self.shared.state();

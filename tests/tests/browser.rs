@@ -211,6 +211,19 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
     std::thread::sleep(Duration::from_millis(300));
     assert!(farm.binary_since(&first, after).len() >= 5, "the first tab still sends poses");
     assert_eq!(client::state(&browser).expect("state"), "streaming");
+
+    // The service ends the first session (as when its composer dies) while its peer
+    // connection stays up: only the session's watch can tell the page, which opens a new
+    // session and streams on.
+    assert!(farm.end_session(&first), "the master held the session");
+    let third = wait_for("a new session after the service ended the first", Duration::from_secs(15), || {
+        farm.offers().get(2).map(|o| o.session_id.clone())
+    });
+    wait_for("the page on its new session", Duration::from_secs(15), || {
+        (client::session_id(&browser).ok().flatten().as_deref() == Some(third.as_str())).then_some(())
+    });
+    client::wait_streaming(&browser, Duration::from_secs(15)).expect("streaming again");
+    wait_for("poses on the new session", Duration::from_secs(5), || farm.latest_pose(&third));
     let errors = browser.console_log().expect("console log");
     assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
 }
