@@ -260,7 +260,11 @@ impl TestFarm {
     /// can tell the client. Returns whether a master held it.
     pub fn end_session(&self, session: &str) -> bool {
         let masters = self.shared.masters.lock().unwrap_or_else(|p| p.into_inner()).clone();
-        masters.iter().fold(false, |ended, m| m.end_session(session) || ended)
+        let mut ended = false;
+        for master in &masters {
+            ended |= master.end_session(session);
+        }
+        ended
     }
 
     pub async fn drop_sessions(&self) -> usize {
