@@ -899,6 +899,17 @@ fn start_composer(
     (Process { child: composer, name: "composer".into() }, http, results)
 }
 
+/// A process's Prometheus text (`GET /metrics`, no token).
+fn scrape_metrics(addr: SocketAddr) -> String {
+    let url = format!("http://{addr}/metrics");
+    nephele_loadgen::http::request_blocking(&url, "GET", &[], "", WAIT).expect("metrics").body
+}
+
+/// The value of an unlabelled series in Prometheus text.
+fn metric_value(text: &str, series: &str) -> Option<f64> {
+    text.lines().find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.trim().parse().ok())
+}
+
 /// The farm credential (issue 15): a master and a composer holding a secret admit the
 /// processes that prove it, refuse (and count) every peer that does not, and a result sent
 /// to the composer by a peer without the secret never gets in.
@@ -960,22 +971,15 @@ fn the_farm_admits_only_peers_that_prove_its_secret() {
     try_join(results, Role::Tool, Role::Composer, Some(SECRET)).expect("a tool with the secret is admitted");
 
     // Counted: three strangers and the misconfigured worker at the master, two at the composer.
-    let scrape = |addr: SocketAddr| {
-        let url = format!("http://{addr}/metrics");
-        nephele_loadgen::http::request_blocking(&url, "GET", &[], "", WAIT).expect("metrics").body
-    };
-    let value = |text: &str, series: &str| -> Option<f64> {
-        text.lines().find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.trim().parse().ok())
-    };
-    let master_metrics = scrape(master.http);
+    let master_metrics = scrape_metrics(master.http);
     assert_eq!(
-        value(&master_metrics, "nephele_master_farm_peers_unauthenticated_total"),
+        metric_value(&master_metrics, "nephele_master_farm_peers_unauthenticated_total"),
         Some(4.0),
         "{master_metrics}"
     );
-    let composer_metrics = scrape(composer_http);
+    let composer_metrics = scrape_metrics(composer_http);
     assert_eq!(
-        value(&composer_metrics, "nephele_composer_peers_unauthenticated_total"),
+        metric_value(&composer_metrics, "nephele_composer_peers_unauthenticated_total"),
         Some(2.0),
         "{composer_metrics}"
     );
@@ -1030,18 +1034,15 @@ fn the_farm_speaks_tls_with_its_certificate_only() {
     tls_handshake(&worker_dir).expect("a tool holding the farm certificate is admitted");
     assert!(tls_handshake(&stranger_dir).is_err(), "a client trusting another farm's certificate got in");
 
-    let scrape = |addr: SocketAddr| {
-        let url = format!("http://{addr}/metrics");
-        nephele_loadgen::http::request_blocking(&url, "GET", &[], "", WAIT).expect("metrics").body
-    };
-    let value = |text: &str, series: &str| -> Option<f64> {
-        text.lines().find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.trim().parse().ok())
-    };
-    let master_metrics = scrape(master.http);
-    assert_eq!(value(&master_metrics, "nephele_master_farm_handshakes_failed_total"), Some(1.0), "{master_metrics}");
-    let composer_metrics = scrape(composer_http);
+    let master_metrics = scrape_metrics(master.http);
+    assert_eq!(
+        metric_value(&master_metrics, "nephele_master_farm_handshakes_failed_total"),
+        Some(1.0),
+        "{master_metrics}"
+    );
+    let composer_metrics = scrape_metrics(composer_http);
     assert!(
-        value(&composer_metrics, "nephele_composer_wire_errors_total").is_some_and(|n| n >= 1.0),
+        metric_value(&composer_metrics, "nephele_composer_wire_errors_total").is_some_and(|n| n >= 1.0),
         "{composer_metrics}"
     );
 }
