@@ -995,7 +995,21 @@ fn the_farm_speaks_tls_with_its_certificate_only() {
     let dir = tempfile::tempdir().expect("temp dir");
     let (farm_dir, worker_dir, stranger_dir) =
         (dir.path().join("tls"), dir.path().join("cert"), dir.path().join("other"));
-    FarmTls::generate(&farm_dir).expect("farm certificate");
+    // The farm's folder as an operator makes it: `nephele secret --farm-tls`, which refuses to
+    // replace it and keeps it with `--if-missing`.
+    let make = |extra: &[&str]| {
+        Command::new(nephele_bin())
+            .args(["secret", "--farm-tls", "--out"])
+            .arg(&farm_dir)
+            .args(extra)
+            .output()
+            .expect("nephele secret --farm-tls")
+    };
+    assert!(make(&[]).status.success());
+    let again = make(&[]);
+    let stderr = String::from_utf8_lossy(&again.stderr);
+    assert!(!again.status.success() && stderr.contains(CERT_FILE), "{stderr}");
+    assert!(make(&["--if-missing"]).status.success());
     FarmTls::generate(&stranger_dir).expect("another farm's certificate");
     std::fs::create_dir(&worker_dir).expect("dir");
     std::fs::copy(farm_dir.join(CERT_FILE), worker_dir.join(CERT_FILE)).expect("copy");
