@@ -144,7 +144,7 @@ impl Collector for FarmCollector {
         gauge(e, "workers", "Workers in the farm", published.worker_names.len() as f64)?;
         let Some(snapshot) = &published.snapshot else { return Ok(()) };
         let s = &snapshot.stats;
-        let counts: [(&str, &str, u64); 21] = [
+        let counts = [
             ("scheduler_rounds", "Scheduling rounds", s.rounds),
             ("scheduler_starved_rounds", "Rounds in which at least one user was starved", s.starved_rounds),
             ("sessions_opened", "Sessions the scheduler admitted", s.sessions_opened),
@@ -177,6 +177,11 @@ impl Collector for FarmCollector {
                 s.batches_reissued,
             ),
             ("batches_timed_out", "Batches that missed their deadline", s.batches_timed_out),
+            (
+                "deadlines_stretched",
+                "Missed deadlines extended instead of re-issued (no other worker idle)",
+                s.deadlines_stretched,
+            ),
             ("batches_failed", "Batches a worker reported as failed", s.batches_failed),
         ];
         for (name, help, value) in counts {

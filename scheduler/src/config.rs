@@ -167,6 +167,10 @@ pub struct SchedulerConfig {
     pub straggler_factor: f64,
     /// ...and never sooner than this after dispatch.
     pub min_batch_timeout: Duration,
+    /// Under uniform overload (no other worker idle) a missed deadline is extended this many
+    /// times before the batch is re-issued: a copy would only queue behind another busy
+    /// worker's backlog while the first copy keeps running, work wasted on both.
+    pub max_deadline_stretches: u32,
     /// A worker silent (no heartbeat, no result) for this long is declared lost; `None` leaves
     /// detection to the caller ([`crate::Scheduler::remove_worker`]).
     pub heartbeat_timeout: Option<Duration>,
@@ -209,6 +213,7 @@ impl SchedulerConfig {
             smoothing: 0.2,
             straggler_factor: 3.0,
             min_batch_timeout: Duration::from_millis(8),
+            max_deadline_stretches: 2,
             heartbeat_timeout: Some(Duration::from_secs(1)),
             max_attempts: 4,
             object_switch_cost: Duration::from_micros(500),

@@ -35,7 +35,9 @@
 //! * **Resiliency**: a batch whose worker is removed or falls silent, or that misses its
 //!   deadline (`straggler_factor` x its expected completion), is put back at the head of the
 //!   queue and sent to another worker; the slow copy is cancelled, and whichever copy answers
-//!   first counts. A frame completes only when every batch of every task it needs is in.
+//!   first counts. Under uniform overload (no other worker idle) a missed deadline of the
+//!   batch its holder is rendering is extended instead, `max_deadline_stretches` times: a
+//!   copy would only wait behind another worker's backlog. A frame completes only when every batch of every task it needs is in.
 //!   A newer frame completing first supersedes older ones (they are dropped, not shown late).
 //!
 //! # What the composer is told
@@ -323,6 +325,8 @@ struct Batch {
     state: BatchState,
     failures: u32,
     dispatches: u32,
+    /// Missed deadlines of its current dispatch that were extended.
+    stretches: u32,
     /// Workers that held it before (excluded when re-issuing; their late answer still counts).
     previous: Vec<WorkerId>,
     /// Views derived from its pixels; each finishes with it.
@@ -805,14 +809,32 @@ impl Scheduler {
             }
             self.deadlines.pop_first();
             let Some(b) = self.batches.get(&batch) else { continue };
-            let BatchState::InFlight { worker, deadline: d, .. } = b.state else { continue };
+            let BatchState::InFlight { worker, deadline: d, dispatched, est_s } = b.state else { continue };
             if d != deadline {
                 continue;
             }
             self.stats.batches_timed_out += 1;
+            // The holder was slower than estimated: trust its throughput less until its
+            // results say otherwise.
             if let Some(w) = self.workers.get_mut(&worker) {
-                // A straggler: trust its throughput less until its results say otherwise.
                 w.measured = (0.5 * w.measured).max(w.declared * 1e-3);
+            }
+            let rendering = self.workers.get(&worker).is_some_and(|w| w.in_flight.first() == Some(&batch));
+            if rendering && b.stretches < self.config.max_deadline_stretches && !self.has_idle_worker_for(batch, worker)
+            {
+                // The holder is rendering it (its oldest batch; a queued one is better moved)
+                // and every other worker is busy: a copy would wait behind another backlog
+                // while this one keeps rendering. Wait once more as long as it was given, so a
+                // stuck batch still moves after (1 + max_deadline_stretches) times that.
+                let first_wait = deadline.since(dispatched) / (b.stretches + 1);
+                let deadline = now + first_wait.max(self.config.min_batch_timeout);
+                if let Some(b) = self.batches.get_mut(&batch) {
+                    b.stretches += 1;
+                    b.state = BatchState::InFlight { worker, dispatched, deadline, est_s };
+                }
+                self.deadlines.insert((deadline, batch));
+                self.stats.deadlines_stretched += 1;
+                continue;
             }
             self.outbox.push(Action::Cancel { worker, batch });
             self.stats.batches_cancelled += 1;
@@ -821,6 +843,15 @@ impl Scheduler {
             }
             self.reissue(batch, true);
         }
+    }
+
+    /// Whether a worker other than `holder` that never held `batch` has nothing in flight
+    /// (a re-issued copy would start at once there).
+    fn has_idle_worker_for(&self, batch: BatchId, holder: WorkerId) -> bool {
+        let previous = self.batches.get(&batch).map_or(&[][..], |b| &b.previous[..]);
+        self.workers
+            .iter()
+            .any(|(id, w)| *id != holder && !w.draining && w.in_flight.is_empty() && !previous.contains(id))
     }
 
     /// Puts an in-flight batch back in the queue (head: its id is old). `failure` counts
@@ -1303,6 +1334,7 @@ impl Scheduler {
                 rays,
                 state: BatchState::Pending,
                 failures: 0,
+                stretches: 0,
                 dispatches: 0,
                 previous: Vec::new(),
                 riders: Vec::new(),
@@ -1841,6 +1873,7 @@ impl Scheduler {
         let deadline = now + wait;
         b.state = BatchState::InFlight { worker, dispatched: now, deadline, est_s };
         b.dispatches += 1;
+        b.stretches = 0;
         t.pending.remove(&batch);
         t.in_flight += 1;
         self.pending_all.remove(&batch);

@@ -290,6 +290,46 @@ fn a_missed_deadline_reissues_the_batch_and_the_first_answer_wins() {
 }
 
 #[test]
+fn missed_deadlines_wait_longer_while_every_other_worker_is_busy() {
+    let mut cfg = config(Policy::Nephele);
+    cfg.heartbeat_timeout = None;
+    cfg.max_deadline_stretches = 2;
+    let mut s = scheduler(cfg);
+    // Slow workers: the view's task is heavy and split between both.
+    s.add_worker(WorkerId(1), 1e4, ms(0)).expect("worker");
+    s.add_worker(WorkerId(2), 1e4, ms(0)).expect("worker");
+    open(&mut s, 30.0, &[camera_at(0.0)], ms(0));
+    let sent = dispatches(&s.tick(ms(0)));
+    let on = |w: WorkerId| sent.iter().filter(|(x, _)| *x == w).count();
+    assert!(on(WorkerId(1)) > 0 && on(WorkerId(2)) > 0, "{:?}", (on(WorkerId(1)), on(WorkerId(2))));
+    let held: Vec<BatchId> = sent.iter().map(|(_, b)| b.id).collect();
+    // Nobody answers. Each miss while the other worker is busy extends the deadline (twice at
+    // most): nothing is cancelled or sent again.
+    let mut now = ms(0);
+    for round in 1..=2u64 {
+        let next = s.next_wakeup().expect("deadlines pending");
+        now = next + Duration::from_millis(1);
+        let actions = s.tick(now);
+        assert!(!actions.iter().any(|a| matches!(a, Action::Cancel { .. })), "round {round}: {actions:?}");
+        assert!(dispatches(&actions).iter().all(|(_, b)| !held.contains(&b.id)), "round {round}");
+        assert_eq!(s.stats().batches_reissued, 0);
+    }
+    assert!(s.stats().deadlines_stretched >= 2 * held.len() as u64 - 1, "{:?}", s.stats());
+    // Past the stretches, a batch that misses again is taken back and sent elsewhere.
+    let mut reissued = false;
+    for _ in 0..8 {
+        now = s.next_wakeup().expect("deadlines pending").max(now) + Duration::from_millis(1);
+        let actions = s.tick(now);
+        if actions.iter().any(|a| matches!(a, Action::Cancel { batch, .. } if held.contains(batch))) {
+            reissued = true;
+            break;
+        }
+    }
+    assert!(reissued && s.stats().batches_reissued > 0, "{:?}", s.stats());
+    assert_eq!(s.stats().batches_timed_out, s.stats().deadlines_stretched + s.stats().batches_reissued);
+}
+
+#[test]
 fn silent_workers_are_declared_lost() {
     let mut cfg = config(Policy::Fifo);
     cfg.heartbeat_timeout = Some(Duration::from_millis(100));
@@ -565,7 +605,9 @@ fn a_heavy_batch_that_timed_out_on_every_worker_is_still_reissued() {
     // Two workers, heavy tasks in one batch each; nobody answers. Once a batch has timed out
     // on every worker that may take it, it must go back to one of them, not wait forever for
     // another: the live farm froze a user's stream this way when a loaded machine made both
-    // path tracers miss their deadlines.
+    // path tracers miss their deadlines. (Each worker renders its own batch, so the deadlines
+    // are first stretched, `max_deadline_stretches` times, and each miss halves the holder's
+    // trusted throughput: the second dispatch comes after tens of seconds, the third later.)
     let mut cfg = config(Policy::Nephele);
     cfg.heartbeat_timeout = None;
     cfg.max_batch_rays = 1 << 20;
@@ -582,7 +624,7 @@ fn a_heavy_batch_that_timed_out_on_every_worker_is_still_reissued() {
     let (batch, class) = (first[0].1.id, first[0].1.class);
     assert_eq!(class, TaskClass::Heavy);
     let mut workers = vec![first[0].0];
-    for t in (100..60_000).step_by(100) {
+    for t in (100..600_000).step_by(100) {
         for (w, b) in dispatches(&s.tick(ms(t))) {
             if b.id == batch {
                 workers.push(w);

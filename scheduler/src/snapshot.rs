@@ -53,6 +53,8 @@ pub struct Stats {
     /// Batches sent again after a worker was lost, failed or missed its deadline.
     pub batches_reissued: u64,
     pub batches_timed_out: u64,
+    /// Missed deadlines extended instead of re-issued: no other worker was idle.
+    pub deadlines_stretched: u64,
     pub batches_failed: u64,
     /// Cancel actions sent (frames superseded or sessions closed while work was in flight).
     pub batches_cancelled: u64,
