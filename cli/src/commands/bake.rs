@@ -69,6 +69,10 @@ pub struct Args {
     /// Samples per cube side (density and diffuse cubes).
     #[arg(long, default_value_t = BakeRecipe::default().cube_res)]
     cube_res: u32,
+    /// Probes per cell side when finding the cells that hold matter (cube-res - 1 probes
+    /// every sample point: no thin matter between probes is missed).
+    #[arg(long, default_value_t = BakeRecipe::default().cube_probe)]
+    cube_probe: u32,
     /// Side of the PSH lattice over the object's box (NEPHELE: 128, 256 or 512).
     #[arg(long, default_value_t = BakeRecipe::default().psh_res)]
     psh_res: u32,
@@ -111,6 +115,7 @@ impl Args {
             batch: self.batch,
             cubes: self.cubes,
             cube_res: self.cube_res,
+            cube_probe: self.cube_probe,
             psh_res: self.psh_res,
             psh_features: self.psh_features,
             density_threshold: self.density_threshold,

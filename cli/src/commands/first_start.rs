@@ -87,8 +87,12 @@ impl BakeQuality {
                     field_samples: 1 << 15,
                     head_steps: 1200,
                     batch: 4096,
-                    cubes: 48,
-                    cube_res: 5,
+                    // 16 cells of 12 voxels (a 192^3 sample lattice, the same as 48 cells
+                    // of 4 before 2026-12-05): a ray crosses half the cells, and the DDA over
+                    // cells, not the samples, was the glass shell's cost (BENCHMARKS.md).
+                    cubes: 16,
+                    cube_res: 13,
+                    cube_probe: 12,
                     psh_res: 128,
                     ..BakeRecipe::default()
                 },
@@ -121,7 +125,7 @@ impl BakeQuality {
     /// mix. Bump the suffix when a recipe or the asset format changes.
     pub fn folder(self) -> &'static str {
         match self {
-            BakeQuality::Standard => "standard-v3",
+            BakeQuality::Standard => "standard-v4",
             BakeQuality::Quick => "quick-v2",
             BakeQuality::Off => "path-traced",
         }
@@ -423,7 +427,9 @@ mod tests {
             assert!(r.size >= 16 && r.views > 0 && r.test_views > 0 && r.bake.field_steps > 0 && r.bake.head_steps > 0);
             let spec = r.dataset_spec();
             assert_eq!((spec.views, spec.test_views, spec.width, spec.height), (r.views, r.test_views, r.size, r.size));
-            assert_eq!((r.bake.cube_res, r.bake.seed, r.bake.psh_features), (5, 1, 8));
+            assert_eq!((r.bake.seed, r.bake.psh_features), (1, 8));
+            // Probes at every sample point of a cell: no thin matter between probes is lost.
+            assert_eq!(r.bake.cube_probe, r.bake.cube_res - 1, "{:?}", r.bake);
         }
         assert!(BakeQuality::Off.recipe().is_none());
         assert_ne!(BakeQuality::Standard.folder(), BakeQuality::Quick.folder());

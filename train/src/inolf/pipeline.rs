@@ -52,6 +52,9 @@ pub struct BakeRecipe {
     pub cubes: u32,
     /// Samples per cube side (density and diffuse cubes).
     pub cube_res: u32,
+    /// Probes per cell side when finding the cells with matter (`cube_res - 1`: every
+    /// sample point).
+    pub cube_probe: u32,
     /// Side of the PSH lattice over the object's box (NEPHELE: 128, 256 or 512).
     pub psh_res: u32,
     /// Learned features per PSH slot.
@@ -82,6 +85,7 @@ impl Default for BakeRecipe {
             batch: 4096,
             cubes: 64,
             cube_res: 8,
+            cube_probe: 4,
             psh_res: 256,
             psh_features: 8,
             density_threshold: 1.0,
@@ -217,7 +221,12 @@ pub fn bake(
 
     // 2. Density cubes.
     let t = Instant::now();
-    let cube_options = CubeOptions { resolution: recipe.cubes, cube_res: recipe.cube_res, ..CubeOptions::default() };
+    let cube_options = CubeOptions {
+        resolution: recipe.cubes,
+        cube_res: recipe.cube_res,
+        probe: recipe.cube_probe,
+        ..CubeOptions::default()
+    };
     progress.stage("density cubes", 1, "cells");
     let density = field_density_for_cubes(&field, recipe.density_threshold);
     let cubes = {
@@ -314,7 +323,7 @@ pub fn bake(
     let description = json!({
         "dataset": source, "views": data.views.len(), "size": [w, h],
         "field_steps": if field_trained { recipe.field_steps } else { 0 }, "steps": recipe.head_steps,
-        "loss": report.smoothed_loss, "pseudo_views": recipe.pseudo_views, "psh_decay": recipe.psh_decay, "grid_decay": recipe.grid_decay, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "psh_res": recipe.psh_res,
+        "loss": report.smoothed_loss, "pseudo_views": recipe.pseudo_views, "psh_decay": recipe.psh_decay, "grid_decay": recipe.grid_decay, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "cube_probe": recipe.cube_probe, "psh_res": recipe.psh_res,
     });
     let asset = to_asset(&model, cubes, Some(diffuse), recipe.keep_diffuse_network, description)?;
     Ok(Baked { asset, field })
