@@ -28,6 +28,7 @@ pub struct ComposerMetrics {
     pub(crate) worker_connections: Counter,
     pub(crate) peers_unauthenticated: Counter,
     pub(crate) sessions: Gauge,
+    pub(crate) peer_connections: Gauge,
     pub(crate) master_linked: Gauge,
     pub(crate) results_after_release: Counter,
     pub(crate) held_tasks: Gauge,
@@ -59,6 +60,12 @@ impl ComposerMetrics {
             "Results connections refused for not proving the farm secret (their results never reach a frame)",
         );
         let sessions = register(&mut registry, "sessions", "Viewer sessions", Gauge::default());
+        let peer_connections = register(
+            &mut registry,
+            "peer_connections",
+            "WebRTC peer connections not yet freed (above `sessions` for long after viewers leave: a leak)",
+            Gauge::default(),
+        );
         let master_linked = register(
             &mut registry,
             "master_linked",
@@ -95,6 +102,7 @@ impl ComposerMetrics {
             worker_connections,
             peers_unauthenticated,
             sessions,
+            peer_connections,
             master_linked,
             results_after_release,
             held_tasks,

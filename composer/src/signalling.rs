@@ -37,6 +37,7 @@ async fn metrics(State(shared): State<Arc<Shared>>, headers: HeaderMap) -> Respo
     if let Some(refusal) = nephele_telemetry::operator_refusal(shared.config.operator_token.as_ref(), &headers) {
         return refusal;
     }
+    shared.metrics.peer_connections.set(shared.rtc.peer_connections_alive() as i64);
     nephele_telemetry::metrics_response(&shared.metrics.registry)
 }
 

@@ -21,7 +21,7 @@
 //! [`MdnsMode::Query`] the composer also resolves `.local` names on the local link.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex as StdMutex};
+use std::sync::{Arc, Mutex as StdMutex, Weak};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
@@ -226,6 +226,9 @@ pub fn build_api(config: &RtcConfig) -> Result<API, RtcError> {
 pub struct RtcStack {
     api: API,
     config: RtcConfig,
+    /// Every peer connection made, weakly: how many are still alive (not freed) is the
+    /// `peer_connections` gauge, the check that ended sessions release theirs.
+    made: StdMutex<Vec<Weak<RTCPeerConnection>>>,
 }
 
 impl std::fmt::Debug for RtcStack {
@@ -236,7 +239,15 @@ impl std::fmt::Debug for RtcStack {
 
 impl RtcStack {
     pub fn new(config: RtcConfig) -> Result<Self, RtcError> {
-        Ok(RtcStack { api: build_api(&config)?, config })
+        Ok(RtcStack { api: build_api(&config)?, config, made: StdMutex::default() })
+    }
+
+    /// Peer connections made and not yet freed (closed ones included until their last
+    /// reference is dropped).
+    pub fn peer_connections_alive(&self) -> usize {
+        let mut made = self.made.lock().unwrap_or_else(|p| p.into_inner());
+        made.retain(|pc| pc.strong_count() > 0);
+        made.len()
     }
 
     pub fn rtc_configuration(&self) -> RTCConfiguration {
@@ -267,6 +278,11 @@ impl RtcStack {
         check_offer(&offer_sdp)?;
         let offer = RTCSessionDescription::offer(offer_sdp).map_err(|e| RtcError::BadOffer(e.to_string()))?;
         let pc = Arc::new(self.api.new_peer_connection(self.rtc_configuration()).await?);
+        {
+            let mut made = self.made.lock().unwrap_or_else(|p| p.into_inner());
+            made.retain(|pc| pc.strong_count() > 0);
+            made.push(Arc::downgrade(&pc));
+        }
         match self.wire_up(session, &pc, offer, events).await {
             Ok(ok) => Ok(ok),
             Err(e) => {

@@ -151,6 +151,21 @@ async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_
         .expect("DELETE");
     assert_eq!(status, 204, "{body}");
     client.close().await;
+    // The ended session's peer connection is freed, not only closed (webrtc-rs handlers that
+    // hold their connection would keep it, and its buffers, for the composer's life).
+    let started = std::time::Instant::now();
+    let peer_connections = loop {
+        let (_, text) = http_request(composer, "GET", "/metrics", &[], "").await.expect("composer GET /metrics");
+        let count = text
+            .lines()
+            .find_map(|l| l.strip_prefix("nephele_composer_peer_connections "))
+            .and_then(|v| v.trim().parse::<f64>().ok());
+        if count == Some(0.0) || started.elapsed() > Duration::from_secs(20) {
+            break count;
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    };
+    assert_eq!(peer_connections, Some(0.0), "peer connections still alive 20 s after the only session ended");
 
     // A composer killed mid-stream: the master ends its sessions and `nephele up` starts it
     // again; a viewer (`nephele loadgen`, which connects again as the browser client does)
