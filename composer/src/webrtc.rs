@@ -245,9 +245,14 @@ impl RtcStack {
     /// Peer connections made and not yet freed (closed ones included until their last
     /// reference is dropped).
     pub fn peer_connections_alive(&self) -> usize {
+        self.alive().len()
+    }
+
+    /// The weak references of the connections still alive (the freed ones forgotten).
+    fn alive(&self) -> std::sync::MutexGuard<'_, Vec<Weak<RTCPeerConnection>>> {
         let mut made = self.made.lock().unwrap_or_else(|p| p.into_inner());
         made.retain(|pc| pc.strong_count() > 0);
-        made.len()
+        made
     }
 
     pub fn rtc_configuration(&self) -> RTCConfiguration {
@@ -278,11 +283,7 @@ impl RtcStack {
         check_offer(&offer_sdp)?;
         let offer = RTCSessionDescription::offer(offer_sdp).map_err(|e| RtcError::BadOffer(e.to_string()))?;
         let pc = Arc::new(self.api.new_peer_connection(self.rtc_configuration()).await?);
-        {
-            let mut made = self.made.lock().unwrap_or_else(|p| p.into_inner());
-            made.retain(|pc| pc.strong_count() > 0);
-            made.push(Arc::downgrade(&pc));
-        }
+        self.alive().push(Arc::downgrade(&pc));
         match self.wire_up(session, &pc, offer, events).await {
             Ok(ok) => Ok(ok),
             Err(e) => {

@@ -37,8 +37,9 @@
 //!   queue and sent to another worker; the slow copy is cancelled, and whichever copy answers
 //!   first counts. Under uniform overload (no other worker idle) a missed deadline of the
 //!   batch its holder is rendering is extended instead, `max_deadline_stretches` times: a
-//!   copy would only wait behind another worker's backlog. A frame completes only when every batch of every task it needs is in.
-//!   A newer frame completing first supersedes older ones (they are dropped, not shown late).
+//!   copy would only wait behind another worker's backlog. A frame completes only when every
+//!   batch of every task it needs is in. A newer frame completing first supersedes older ones
+//!   (they are dropped, not shown late).
 //!
 //! # What the composer is told
 //!
