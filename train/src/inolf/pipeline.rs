@@ -85,7 +85,7 @@ impl Default for BakeRecipe {
             batch: 4096,
             cubes: 64,
             cube_res: 8,
-            cube_probe: 4,
+            cube_probe: CubeOptions::default().probe,
             psh_res: 256,
             psh_features: 8,
             density_threshold: 1.0,
