@@ -1,34 +1,30 @@
-//! The stream through a constrained, lossy link (issue 15): `nephele up` runs in a network
-//! namespace of its own, joined to this one by a veth pair; the namespace's end of the pair
-//! is shaped with `tc` (a token bucket: the link's rate), this end drops 2 % of the
-//! composer's packets at random (`iptables`, a rule on this veth only, removed at the end),
-//! and a `loadgen` viewer streams from here through it. Phases:
+//! The stream through a constrained, lossy, delayed link (issue 15): `nephele up` runs in a
+//! network namespace of its own, joined to this one by a link that this test emulates in
+//! userspace: two TUN devices (one here, one moved into the namespace) and, between them,
+//! threads that carry every IP packet with a rate (a token bucket with a 200-ms queue, drop
+//! tail), a random loss and a delay, the way `tc netem` would (this kernel has no `netem`
+//! qdisc). A `loadgen` viewer streams from here through it. Phases, each with 50 ms of delay
+//! from the service to the viewer:
 //!
 //! 1. 5 Mbit/s with 2 % loss (more than this stream needs): the rate holds, frames keep coming;
 //! 2. 32 kbit/s, no loss (less than any 640x480 picture of path-traced noise needs): the
 //!    composer must cut its bitrate on the receiver's loss reports within a few seconds;
 //! 3. 20 Mbit/s: it must climb back, and frames keep coming.
 //!
-//! This kernel has no `netem` qdisc, so there is no added delay (the issue's 50 ms). Needs
-//! root (or CAP_NET_ADMIN), `ip netns`, `tc`'s `tbf` and iptables' `statistic` match; without
-//! any of them the test says which and passes without running.
+//! Needs root (or CAP_NET_ADMIN), `ip netns` and `/dev/net/tun`; without any of them the test
+//! says which and passes without running.
 
 use std::net::SocketAddr;
 use std::process::Command;
-use std::sync::Arc;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use nephele_geometry::SplitMix64;
 use nephele_loadgen::{Live, LoadConfig};
 use nephele_tests::service::UpService;
-
-/// A namespace and its veth pair, removed when dropped.
-struct Link {
-    ns: String,
-    inside: String,
-    outside: String,
-    inside_ip: String,
-}
+use tun_rs::{DeviceBuilder, SyncDevice};
 
 fn run(args: &[&str]) -> Result<(), String> {
     let out = Command::new(args[0]).args(&args[1..]).output().map_err(|e| format!("{}: {e}", args.join(" ")))?;
@@ -39,27 +35,168 @@ fn run(args: &[&str]) -> Result<(), String> {
     }
 }
 
+/// What the emulated link does to the packets leaving the namespace (the composer's media,
+/// the master's HTTP answers); changed between phases.
+#[derive(Debug, Clone, Copy)]
+struct Shape {
+    bits_per_s: f64,
+    loss: f64,
+    delay: Duration,
+}
+
+/// Packets the link carried or dropped, from the namespace towards here.
+#[derive(Debug, Default)]
+struct LinkCounters {
+    delivered: AtomicU64,
+    lost: AtomicU64,
+    queue_full: AtomicU64,
+}
+
+/// The longest queue of the rate limiter before it drops (as `tbf ... latency 200ms`).
+const QUEUE: Duration = Duration::from_millis(200);
+
+/// What the link does with one packet.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Fate {
+    /// It reaches the other end at this instant.
+    Arrives(Instant),
+    Lost,
+    QueueFull,
+}
+
+/// A packet of `len` bytes offered to the link at `now`; `busy_until` is when the link
+/// finishes sending what it already holds.
+fn schedule(shape: &Shape, len: usize, now: Instant, busy_until: &mut Instant, rng: &mut SplitMix64) -> Fate {
+    if rng.next_f64() < shape.loss {
+        return Fate::Lost;
+    }
+    let start = (*busy_until).max(now);
+    if start.duration_since(now) > QUEUE {
+        return Fate::QueueFull;
+    }
+    let sent = start + Duration::from_secs_f64(len as f64 * 8.0 / shape.bits_per_s);
+    *busy_until = sent;
+    Fate::Arrives(sent + shape.delay)
+}
+
+/// The emulator itself (no privileges needed): serialisation at the rate, the delay on top,
+/// drop tail past the queue's 200 ms, and the loss.
+#[test]
+fn the_emulated_link_delays_queues_and_drops_like_a_wire() {
+    let mut rng = SplitMix64::new(7);
+    let shape = Shape { bits_per_s: 80_000.0, loss: 0.0, delay: Duration::from_millis(50) };
+    let t0 = Instant::now();
+    let mut busy = t0;
+    // 1000 bytes at 80 kbit/s: 100 ms on the wire, then 50 ms of delay.
+    let ms = |m: u64| Duration::from_millis(m);
+    assert_eq!(schedule(&shape, 1000, t0, &mut busy, &mut rng), Fate::Arrives(t0 + ms(150)));
+    // Offered at once: they queue behind it, 100 ms each.
+    assert_eq!(schedule(&shape, 1000, t0, &mut busy, &mut rng), Fate::Arrives(t0 + ms(250)));
+    assert_eq!(schedule(&shape, 1000, t0, &mut busy, &mut rng), Fate::Arrives(t0 + ms(350)));
+    // The queue now holds 300 ms, past the 200-ms limit: dropped, and the link stays as it was.
+    assert_eq!(schedule(&shape, 1000, t0, &mut busy, &mut rng), Fate::QueueFull);
+    assert_eq!(busy, t0 + ms(300));
+    // Once it drains, a packet goes at once again.
+    assert_eq!(schedule(&shape, 1000, t0 + ms(400), &mut busy, &mut rng), Fate::Arrives(t0 + ms(550)));
+    // The loss is random at the given rate.
+    let lossy = Shape { loss: 0.02, ..shape };
+    let mut busy = t0;
+    let lost = (0..100_000u64)
+        .filter(|&i| {
+            let now = t0 + Duration::from_secs(i);
+            schedule(&lossy, 100, now, &mut busy, &mut rng) == Fate::Lost
+        })
+        .count();
+    assert!((1_800..2_200).contains(&lost), "{lost} of 100,000 lost at 2 %");
+}
+
+/// One direction of the link: a thread that reads packets from `from` and stamps their
+/// arrival time, and one that writes them to `to` when due (in order: the delay is constant
+/// and the queue first in, first out). `shape: None` carries packets at once, untouched.
+fn carry(
+    from: Arc<SyncDevice>,
+    to: Arc<SyncDevice>,
+    shape: Option<Arc<Mutex<Shape>>>,
+    counters: Arc<LinkCounters>,
+    seed: u64,
+) {
+    let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>();
+    let drops = counters.clone();
+    std::thread::spawn(move || {
+        let mut rng = SplitMix64::new(seed);
+        let mut busy_until = Instant::now();
+        let mut buf = vec![0u8; 65_536];
+        // Ends when the device goes away (the namespace deleted) or the writer stops.
+        while let Ok(n) = from.recv(&mut buf) {
+            let now = Instant::now();
+            let fate = match &shape {
+                None => Fate::Arrives(now),
+                Some(shape) => {
+                    let shape = *shape.lock().expect("link shape");
+                    schedule(&shape, n, now, &mut busy_until, &mut rng)
+                }
+            };
+            match fate {
+                Fate::Arrives(due) => {
+                    if tx.send((due, buf[..n].to_vec())).is_err() {
+                        break;
+                    }
+                }
+                Fate::Lost => _ = drops.lost.fetch_add(1, Ordering::Relaxed),
+                Fate::QueueFull => _ = drops.queue_full.fetch_add(1, Ordering::Relaxed),
+            }
+        }
+    });
+    std::thread::spawn(move || {
+        for (due, packet) in rx {
+            let now = Instant::now();
+            if due > now {
+                std::thread::sleep(due - now);
+            }
+            if to.send(&packet).is_err() {
+                break;
+            }
+            counters.delivered.fetch_add(1, Ordering::Relaxed);
+        }
+    });
+}
+
+/// A namespace joined to this one by the emulated link; the namespace (and with it its TUN
+/// device) is removed when dropped.
+struct Link {
+    ns: String,
+    inside_ip: String,
+    shape: Arc<Mutex<Shape>>,
+    counters: Arc<LinkCounters>,
+}
+
 impl Link {
-    fn create() -> Result<Link, String> {
+    fn create(shape: Shape) -> Result<Link, String> {
         let pid = std::process::id();
         let subnet = 20 + pid % 200;
-        let link = Link {
-            ns: format!("nlossy{pid}"),
-            inside: format!("nln{pid}"),
-            outside: format!("nlh{pid}"),
-            inside_ip: format!("10.213.{subnet}.2"),
+        let (ns, inside, outside) = (format!("nlossy{pid}"), format!("nln{pid}"), format!("nlh{pid}"));
+        let (inside_ip, outside_ip) = (format!("10.213.{subnet}.2"), format!("10.213.{subnet}.1"));
+        let device = |name: &str| {
+            DeviceBuilder::new()
+                .name(name)
+                .packet_information(false)
+                .build_sync()
+                .map(Arc::new)
+                .map_err(|e| format!("a TUN device {name} (/dev/net/tun): {e}"))
         };
-        run(&["ip", "netns", "add", &link.ns])?;
-        let (ns, inside, outside) = (link.ns.as_str(), link.inside.as_str(), link.outside.as_str());
-        run(&["ip", "link", "add", outside, "type", "veth", "peer", "name", inside])?;
-        run(&["ip", "link", "set", inside, "netns", ns])?;
-        run(&["ip", "addr", "add", &format!("10.213.{subnet}.1/24"), "dev", outside])?;
-        run(&["ip", "link", "set", outside, "up"])?;
-        link.exec(&["ip", "addr", "add", &format!("{}/24", link.inside_ip), "dev", inside])?;
-        link.exec(&["ip", "link", "set", inside, "up"])?;
+        let here = device(&outside)?;
+        let there = device(&inside)?;
+        run(&["ip", "netns", "add", &ns])?;
+        let link = Link { ns, inside_ip, shape: Arc::new(Mutex::new(shape)), counters: Arc::default() };
+        // The device keeps working for this process after it moves into the namespace.
+        run(&["ip", "link", "set", &inside, "netns", &link.ns])?;
+        run(&["ip", "addr", "add", &outside_ip, "peer", &link.inside_ip, "dev", &outside])?;
+        run(&["ip", "link", "set", &outside, "up"])?;
+        link.exec(&["ip", "addr", "add", &link.inside_ip, "peer", &outside_ip, "dev", &inside])?;
+        link.exec(&["ip", "link", "set", &inside, "up"])?;
         link.exec(&["ip", "link", "set", "lo", "up"])?;
-        link.rate("5mbit")?;
-        link.loss(true)?;
+        carry(there.clone(), here.clone(), Some(link.shape.clone()), link.counters.clone(), u64::from(pid));
+        carry(here, there, None, Arc::new(LinkCounters::default()), 0);
         Ok(link)
     }
 
@@ -69,34 +206,15 @@ impl Link {
         run(&all)
     }
 
-    /// The rate of the namespace's sending end (the composer's packets to the viewer): a
-    /// token bucket with a queue of 200 ms.
-    fn rate(&self, rate: &str) -> Result<(), String> {
-        let shape = ["tc", "qdisc", "replace", "dev", &self.inside, "root", "tbf", "rate", rate];
-        let mut args = shape.to_vec();
-        args.extend_from_slice(&["burst", "16kb", "latency", "200ms"]);
-        self.exec(&args)
-    }
-
-    /// 2 % of the composer's UDP packets dropped at random as they arrive here, or none.
-    /// (Dropped here, not as they leave the namespace: a drop in the sender's own OUTPUT
-    /// chain fails its `send` with EPERM, which a wire never does.)
-    fn loss(&self, on: bool) -> Result<(), String> {
-        let action = if on { "-A" } else { "-D" };
-        let rule = ["-i", &self.outside, "-p", "udp", "-m", "statistic", "--mode", "random", "--probability", "0.02"];
-        let mut args = vec!["iptables", action, "INPUT"];
-        args.extend_from_slice(&rule);
-        args.extend_from_slice(&["-j", "DROP"]);
-        run(&args)
+    fn set(&self, shape: Shape) {
+        *self.shape.lock().expect("link shape") = shape;
     }
 }
 
 impl Drop for Link {
     fn drop(&mut self) {
-        let _ = self.loss(false);
-        // Deleting the namespace deletes its end of the pair, and with it the other end.
+        // Deleting the namespace deletes its TUN device; this side's goes with the process.
         let _ = run(&["ip", "netns", "delete", &self.ns]);
-        let _ = run(&["ip", "link", "delete", &self.outside]);
     }
 }
 
@@ -111,10 +229,17 @@ fn targets(log: &str) -> Vec<u64> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
-    let link = match Link::create() {
+    let delay = Duration::from_millis(50);
+    let mbit = |m: f64| m * 1e6;
+    let phases: [(&str, Shape, Duration); 3] = [
+        ("5 Mbit/s, 2 % loss", Shape { bits_per_s: mbit(5.0), loss: 0.02, delay }, Duration::from_secs(12)),
+        ("32 kbit/s", Shape { bits_per_s: mbit(0.032), loss: 0.0, delay }, Duration::from_secs(15)),
+        ("20 Mbit/s", Shape { bits_per_s: mbit(20.0), loss: 0.0, delay }, Duration::from_secs(18)),
+    ];
+    let link = match Link::create(phases[0].1) {
         Ok(link) => link,
         Err(why) => {
-            eprintln!("skipped: this test needs network namespaces, tc tbf and iptables (root): {why}");
+            eprintln!("skipped: this test needs network namespaces and TUN devices (root): {why}");
             return;
         }
     };
@@ -125,9 +250,7 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
     // Objects path traced at 1 sample: noisy pictures, which need more than 32 kbit/s.
     let mut up = UpService::start_in(&prefix, http, 1, &["--bake", "off", "--assets", dir], Duration::from_secs(90));
 
-    let phases: [(&str, Duration); 3] =
-        [("5mbit", Duration::from_secs(12)), ("32kbit", Duration::from_secs(15)), ("20mbit", Duration::from_secs(18))];
-    let total: Duration = phases.iter().map(|p| p.1).sum();
+    let total: Duration = phases.iter().map(|p| p.2).sum();
     let config = LoadConfig {
         url: format!("http://{http}/"),
         width: 640,
@@ -149,12 +272,12 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
     }
     let ceiling = 640 * 480 * 30 / 10; // `EncoderSettings::low_latency`: 0.1 bit per pixel at 30 fps
     let mut report = Vec::new();
-    for (i, (rate, length)) in phases.iter().enumerate() {
-        if i == 1 {
-            link.loss(false).expect("removing the loss");
-        }
-        link.rate(rate).expect("shaping the link");
+    let counters = &link.counters;
+    let dropped = || (counters.lost.load(Ordering::Relaxed), counters.queue_full.load(Ordering::Relaxed));
+    for (name, shape, length) in &phases {
+        link.set(*shape);
         let (frames_before, changes_before) = (live.frames.load(Ordering::Relaxed), targets(&up.log_text()).len());
+        let (lost_before, full_before) = dropped();
         let start = Instant::now();
         let mut first_change = None;
         while start.elapsed() < *length {
@@ -166,10 +289,14 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
         let all = targets(&up.log_text());
         let target = all.last().copied().unwrap_or(ceiling);
         let frames = live.frames.load(Ordering::Relaxed) - frames_before;
+        let (lost, full) = dropped();
         let line = format!(
-            "{rate}{}: {frames} frames in {:.0} s, {} bitrate changes, first after {}, target at the end {} kbit/s",
-            if i == 0 { " 2 % loss" } else { "" },
+            "{name}, {} ms delay: {frames} frames in {:.0} s, packets lost {} and dropped by the full queue {}, \
+             {} bitrate changes, first after {}, target at the end {} kbit/s",
+            shape.delay.as_millis(),
             length.as_secs_f64(),
+            lost - lost_before,
+            full - full_before,
             all.len() - changes_before,
             first_change.map_or("-".into(), |s| format!("{s:.1} s")),
             target / 1000
@@ -200,6 +327,7 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
         changes.iter().any(|&t| t > report[1].1),
         "phase 3 (20 Mbit/s): no increase: {changes:?}, ended at {target}"
     );
+    println!("packets delivered to the viewer's side: {}", counters.delivered.load(Ordering::Relaxed));
     up.interrupt(Duration::from_secs(20));
     drop(link);
 }
