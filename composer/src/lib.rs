@@ -26,6 +26,7 @@ pub mod latency;
 mod media;
 pub mod metrics;
 pub mod pose;
+pub mod retransmit;
 pub mod service;
 mod sessions;
 mod signalling;

@@ -29,6 +29,8 @@ pub struct ComposerMetrics {
     pub(crate) peers_unauthenticated: Counter,
     pub(crate) sessions: Gauge,
     pub(crate) peer_connections: Gauge,
+    pub(crate) nack_resent: Counter,
+    pub(crate) nack_refused: Counter,
     pub(crate) master_linked: Gauge,
     pub(crate) results_after_release: Counter,
     pub(crate) held_tasks: Gauge,
@@ -65,6 +67,12 @@ impl ComposerMetrics {
             "peer_connections",
             "WebRTC peer connections not yet freed (above `sessions` for long after viewers leave: a leak)",
             Gauge::default(),
+        );
+        let nack_resent = counter(&mut registry, "nack_resent", "Packets resent on a viewer's NACK");
+        let nack_refused = counter(
+            &mut registry,
+            "nack_refused",
+            "NACKed packets not resent: older than 400 ms, resent already, unknown, or past the budget (a quarter of the stream)",
         );
         let master_linked = register(
             &mut registry,
@@ -103,6 +111,8 @@ impl ComposerMetrics {
             peers_unauthenticated,
             sessions,
             peer_connections,
+            nack_resent,
+            nack_refused,
             master_linked,
             results_after_release,
             held_tasks,

@@ -38,6 +38,11 @@ async fn metrics(State(shared): State<Arc<Shared>>, headers: HeaderMap) -> Respo
         return refusal;
     }
     shared.metrics.peer_connections.set(shared.rtc.peer_connections_alive() as i64);
+    // Counted by the responders; brought up to date at each scrape.
+    let (resent, refused) = shared.rtc.retransmits();
+    let m = &shared.metrics;
+    m.nack_resent.inc_by(resent.saturating_sub(m.nack_resent.get()));
+    m.nack_refused.inc_by(refused.saturating_sub(m.nack_refused.get()));
     nephele_telemetry::metrics_response(&shared.metrics.registry)
 }
 

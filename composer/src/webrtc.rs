@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use thiserror::Error;
 use tokio::sync::{Mutex, mpsc};
-use webrtc::api::interceptor_registry::register_default_interceptors;
+use webrtc::api::interceptor_registry::{configure_rtcp_reports, configure_twcc_receiver_only};
 use webrtc::api::media_engine::{MIME_TYPE_H264, MediaEngine};
 use webrtc::api::setting_engine::SettingEngine;
 use webrtc::api::{API, APIBuilder};
@@ -56,6 +56,7 @@ use webrtc::track::track_local::track_local_static_sample::TrackLocalStaticSampl
 
 use crate::encode::EncodedFrame;
 use crate::fusion::SessionId;
+use crate::retransmit::{BoundedResponderBuilder, RetransmitCounters};
 
 /// The H.264 format we send and negotiate: constrained baseline level 3.1, packetization
 /// mode 1 (FU-A fragmentation), and the level may differ between directions (we send level
@@ -196,9 +197,19 @@ pub fn h264_codec() -> RTCRtpCodecParameters {
 
 /// Builds a webrtc-rs API object for H.264 video and data channels under `config`.
 pub fn build_api(config: &RtcConfig) -> Result<API, RtcError> {
+    build_api_counting(config, Arc::default())
+}
+
+/// [`build_api`], its NACK responder counting into `retransmits`.
+fn build_api_counting(config: &RtcConfig, retransmits: Arc<RetransmitCounters>) -> Result<API, RtcError> {
     let mut media = MediaEngine::default();
     media.register_codec(h264_codec(), RTPCodecType::Video)?;
-    let registry = register_default_interceptors(Registry::new(), &mut media)?;
+    // webrtc-rs's default interceptors but for its NACK responder, replaced by one with a
+    // budget (`retransmit`); the NACK generator is for received media, which has none here.
+    let mut registry = Registry::new();
+    registry.add(Box::new(BoundedResponderBuilder { counters: retransmits }));
+    let registry = configure_rtcp_reports(registry);
+    let registry = configure_twcc_receiver_only(registry, &mut media)?;
     let mut settings = SettingEngine::default();
     settings.set_include_loopback_candidate(config.include_loopback);
     let failed = config.failed_timeout.max(Duration::from_secs(1));
@@ -229,6 +240,8 @@ pub struct RtcStack {
     /// Every peer connection made, weakly: how many are still alive (not freed) is the
     /// `peer_connections` gauge, the check that ended sessions release theirs.
     made: StdMutex<Vec<Weak<RTCPeerConnection>>>,
+    /// NACKed packets resent and refused by every connection's responder.
+    retransmits: Arc<RetransmitCounters>,
 }
 
 impl std::fmt::Debug for RtcStack {
@@ -239,7 +252,18 @@ impl std::fmt::Debug for RtcStack {
 
 impl RtcStack {
     pub fn new(config: RtcConfig) -> Result<Self, RtcError> {
-        Ok(RtcStack { api: build_api(&config)?, config, made: StdMutex::default() })
+        let retransmits = Arc::<RetransmitCounters>::default();
+        Ok(RtcStack {
+            api: build_api_counting(&config, Arc::clone(&retransmits))?,
+            config,
+            made: StdMutex::default(),
+            retransmits,
+        })
+    }
+
+    /// NACKed packets resent and refused so far, over every connection.
+    pub fn retransmits(&self) -> (u64, u64) {
+        (self.retransmits.resent.load(Ordering::Relaxed), self.retransmits.refused.load(Ordering::Relaxed))
     }
 
     /// Peer connections made and not yet freed (closed ones included until their last
