@@ -206,13 +206,12 @@ impl Link {
         run(&all)
     }
 
-    /// A counter of a `/metrics` page served inside the namespace (0 if absent).
-    fn counter(&self, url: &str, name: &str) -> u64 {
-        let out = Command::new("ip").args(["netns", "exec", &self.ns, "curl", "-s", url]).output();
-        let text = out.map(|o| String::from_utf8_lossy(&o.stdout).into_owned()).unwrap_or_default();
-        text.lines()
-            .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse::<f64>().ok())
-            .map_or(0, |v| v as u64)
+    /// A counter of a `/metrics` page served inside the namespace, read with `curl` there;
+    /// `None` without `curl` or without the counter.
+    fn counter(&self, url: &str, name: &str) -> Option<u64> {
+        let out = Command::new("ip").args(["netns", "exec", &self.ns, "curl", "-s", url]).output().ok()?;
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        text.lines().find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse::<f64>().ok()).map(|v| v as u64)
     }
 
     fn set(&self, shape: Shape) {
@@ -286,7 +285,7 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
     let composer_metrics = format!("http://{}/metrics", up.composer_http.expect("the composer's address"));
     let nacks = || {
         let count = |name| link.counter(&composer_metrics, name);
-        (count("nephele_composer_nack_resent_total"), count("nephele_composer_nack_refused_total"))
+        Some((count("nephele_composer_nack_resent_total")?, count("nephele_composer_nack_refused_total")?))
     };
     let mut nacks_per_phase = Vec::new();
     let mut link_drops = Vec::new();
@@ -294,7 +293,7 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
         link.set(*shape);
         let (frames_before, changes_before) = (live.frames.load(Ordering::Relaxed), targets(&up.log_text()).len());
         let (lost_before, full_before) = dropped();
-        let (resent_before, refused_before) = nacks();
+        let nacks_before = nacks();
         let start = Instant::now();
         let mut first_change = None;
         while start.elapsed() < *length {
@@ -307,8 +306,9 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
         let target = all.last().copied().unwrap_or(ceiling);
         let frames = live.frames.load(Ordering::Relaxed) - frames_before;
         let (lost, full) = dropped();
-        let (resent, refused) = nacks();
-        nacks_per_phase.push((resent - resent_before, refused - refused_before));
+        let phase_nacks = nacks_before.zip(nacks()).map(|(before, after)| (after.0 - before.0, after.1 - before.1));
+        nacks_per_phase.push(phase_nacks);
+        let (resent, refused) = phase_nacks.map_or(("?".into(), "?".into()), |(a, b)| (a.to_string(), b.to_string()));
         let line = format!(
             "{name}, {} ms delay: {frames} frames in {:.0} s, packets lost {} and dropped by the full queue {}, \
              NACKed packets resent {} and refused {}, {} bitrate changes, first after {}, target at the end {} kbit/s",
@@ -316,8 +316,8 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
             length.as_secs_f64(),
             lost - lost_before,
             full - full_before,
-            resent - resent_before,
-            refused - refused_before,
+            resent,
+            refused,
             all.len() - changes_before,
             first_change.map_or("-".into(), |s| format!("{s:.1} s")),
             target / 1000
@@ -339,7 +339,10 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
     // NACKs do not turn into a storm: the queue of phase 2 drops at most what the stream
     // itself offers (about 8 s of 30 fps at the floor is some 1,500 packets; the unbounded
     // responder had some 30,000 dropped here).
-    assert!(nacks_per_phase[0].0 > 0, "phase 1: no NACKed packet resent: {nacks_per_phase:?}");
+    match nacks_per_phase[0] {
+        Some((resent, _)) => assert!(resent > 0, "phase 1: no NACKed packet resent: {nacks_per_phase:?}"),
+        None => eprintln!("the composer's NACK counters were not read (no curl in the namespace?): not checked"),
+    }
     let full_in_phase_2 = link_drops[1];
     assert!(full_in_phase_2 < 5_000, "phase 2: {full_in_phase_2} packets dropped by the full queue");
     // 1: the link is wider than the stream; 2 % loss neither stops frames nor halves the rate.
