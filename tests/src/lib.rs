@@ -85,6 +85,12 @@ pub fn nephele_err(args: &[&str]) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
+/// The value of an unlabelled series (`name` or `name_total`, written out) in a process's
+/// Prometheus text (`GET /metrics`).
+pub fn metric_value(text: &str, series: &str) -> Option<f64> {
+    text.lines().find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.trim().parse().ok())
+}
+
 /// The shared data folder beside the checkout (`../shared/data`).
 pub fn shared_data() -> PathBuf {
     PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"))

@@ -147,9 +147,7 @@ impl Cluster {
 
     fn metric(&self, series: &str) -> f64 {
         let text = self.operator_get("/metrics").body;
-        text.lines()
-            .find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.parse().ok())
-            .unwrap_or_else(|| panic!("{series} not in the metrics:\n{text}"))
+        nephele_tests::metric_value(&text, series).unwrap_or_else(|| panic!("{series} not in the metrics:\n{text}"))
     }
 
     fn wait_for(&self, what: &str, limit: Duration, mut ok: impl FnMut() -> bool) {

@@ -210,8 +210,7 @@ impl Link {
     /// `None` without `curl` or without the counter.
     fn counter(&self, url: &str, name: &str) -> Option<u64> {
         let out = Command::new("ip").args(["netns", "exec", &self.ns, "curl", "-s", url]).output().ok()?;
-        let text = String::from_utf8_lossy(&out.stdout).into_owned();
-        text.lines().find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse::<f64>().ok()).map(|v| v as u64)
+        nephele_tests::metric_value(&String::from_utf8_lossy(&out.stdout), name).map(|v| v as u64)
     }
 
     fn set(&self, shape: Shape) {

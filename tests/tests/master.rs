@@ -31,7 +31,7 @@ use nephele_proto::{
     BatchResult, ClientPose, ComposerRegister, ErrorCode, FrameConfig, FramePlan, FrameReader, FrameWriter, Message,
     ResultEncoding, Role, StreamOpened, ViewProjection,
 };
-use nephele_tests::nephele_bin;
+use nephele_tests::{metric_value, nephele_bin};
 use serde_json::{Value, json};
 
 const WAIT: Duration = Duration::from_secs(30);
@@ -903,11 +903,6 @@ fn start_composer(
 fn scrape_metrics(addr: SocketAddr) -> String {
     let url = format!("http://{addr}/metrics");
     nephele_loadgen::http::request_blocking(&url, "GET", &[], "", WAIT).expect("metrics").body
-}
-
-/// The value of an unlabelled series in Prometheus text.
-fn metric_value(text: &str, series: &str) -> Option<f64> {
-    text.lines().find_map(|l| l.strip_prefix(series)?.strip_prefix(' ')?.trim().parse().ok())
 }
 
 /// The farm credential (issue 15): a master and a composer holding a secret admit the

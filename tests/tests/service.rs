@@ -156,10 +156,7 @@ async fn nephele_up_bakes_the_default_scene_streams_frames_rendered_by_the_farm_
     let started = std::time::Instant::now();
     let peer_connections = loop {
         let (_, text) = http_request(composer, "GET", "/metrics", &[], "").await.expect("composer GET /metrics");
-        let count = text
-            .lines()
-            .find_map(|l| l.strip_prefix("nephele_composer_peer_connections "))
-            .and_then(|v| v.trim().parse::<f64>().ok());
+        let count = nephele_tests::metric_value(&text, "nephele_composer_peer_connections");
         if count == Some(0.0) || started.elapsed() > Duration::from_secs(20) {
             break count;
         }
