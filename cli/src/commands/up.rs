@@ -101,9 +101,15 @@ pub struct Args {
     farm_secret: crate::commands::FarmSecretArgs,
 }
 
-fn free_port() -> Result<SocketAddr> {
-    let listener = TcpListener::bind("127.0.0.1:0").context("finding a free port")?;
-    listener.local_addr().context("finding a free port")
+/// `N` distinct free loopback ports. Each listener is held until all are found: released one
+/// by one, the kernel could hand the same port out twice (CI saw the master's farm port and
+/// the composer's HTTP port collide).
+fn free_ports<const N: usize>() -> Result<[SocketAddr; N]> {
+    let listeners =
+        (0..N).map(|_| TcpListener::bind("127.0.0.1:0").context("finding a free port")).collect::<Result<Vec<_>>>()?;
+    let addresses =
+        listeners.iter().map(|l| l.local_addr().context("finding a free port")).collect::<Result<Vec<_>>>()?;
+    addresses.try_into().map_err(|_| anyhow::anyhow!("finding {N} free ports"))
 }
 
 /// A blocking `GET` of one of the master's JSON endpoints (the workspace's one HTTP client).
@@ -229,8 +235,7 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     };
     let stop = Shutdown::on_signals().context("installing the Ctrl-C and SIGTERM handlers")?;
     let exe = std::env::current_exe().context("locating the nephele executable")?;
-    let farm = free_port()?;
-    let (composer_http, composer_results) = (free_port()?, free_port()?);
+    let [farm, composer_http, composer_results] = free_ports()?;
     let mut supervisor = Supervisor::new();
     // The farm credential: the one given (so that workers on other machines holding the
     // same file can join this farm), else a fresh one for this run. The children get it in
