@@ -125,8 +125,8 @@ impl GpuInolfKernel {
 
         let c = density.cubes();
         let mut a = Words::default();
-        a.f32s([RAY_NEAR, HIT_OPACITY]);
-        a.u32s([0, 0]);
+        a.f32s([RAY_NEAR, HIT_OPACITY, density.march_stride() as f32]);
+        a.u32s([0]);
         a.vec4([c.min().x, c.min().y, c.min().z, c.cell()]);
         let (voxel_words, _) = density.voxel_bits();
         a.uvec4([c.dims()[0], c.dims()[1], c.dims()[2], c.cube_res()]);

@@ -17,7 +17,7 @@ struct Params {
     camera: Camera,
     ray_near: f32,
     hit_opacity: f32,
-    pad0: u32,
+    d_stride: f32,       // voxels between the march's samples (`DensityCubes::set_march_stride`)
     pad1: u32,
 
     // Density cubes.
@@ -127,7 +127,8 @@ struct March {
 };
 
 // `DensityCubes::march` over [t_near, infinity): DDA over coarse cells, the empty box around
-// a cell far from every cube crossed in one step, samples at t0 + (k + 1/2) step; returns the coarse opacity and the distance
+// a cell far from every cube crossed in one step, samples at t0 + (k + 1/2) span (span: the
+// sample step times the march stride); returns the coarse opacity and the distance
 // of the sample of largest blending weight.
 fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
     var hit = March(0.0, 0.0);
@@ -159,6 +160,8 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
     }
     let step = params.d_step;
     let inv_step = 1.0 / step;
+    let span = step * params.d_stride;
+    let g_step = dir * params.d_stride;
     let entry = origin + dir * t0;
     let f = (entry - lo) / cell_size;
     var c = vec3<i32>(0);
@@ -245,22 +248,22 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
         let t_exit = min(t_next[axis], t1);
         let cube = cube_at(c);
         if cube != EMPTY_CELL {
-            let first = u32(ceil(max((t_cur - t0) / step - 0.5, 0.0)));
+            let first = u32(ceil(max((t_cur - t0) / span - 0.5, 0.0)));
             k = max(k, first);
             let cell_min = lo + cell_size * vec3<f32>(c);
-            var g = (origin + dir * (t0 + (f32(k) + 0.5) * step) - cell_min) * inv_step;
+            var g = (origin + dir * (t0 + (f32(k) + 0.5) * span) - cell_min) * inv_step;
             loop {
-                let t = t0 + (f32(k) + 0.5) * step;
+                let t = t0 + (f32(k) + 0.5) * span;
                 if t >= t_exit {
                     break;
                 }
                 k += 1u;
                 let sigma = density_at(cube, g);
-                g += dir;
+                g += g_step;
                 if sigma <= 0.0 {
                     continue;
                 }
-                let alpha = 1.0 - exp(-sigma * step);
+                let alpha = 1.0 - exp(-sigma * span);
                 let w = transmittance * alpha;
                 if w > max_weight {
                     max_weight = w;

@@ -85,6 +85,29 @@ pub(crate) fn check_sane(out: &PixelResults) -> Result<(), TestCaseError> {
 
 #[test]
 fn whole_frames_agree_with_the_cpu_kernel() {
+    let f = fixture();
+    whole_frames_agree(&f.cpu, &f.gpu);
+}
+
+/// At a coarser march stride (the speed-for-error knob a bake may choose) the twin samples
+/// where the CPU does: they agree as closely, and the frames differ from every voxel's.
+#[test]
+fn strided_marches_agree_with_the_cpu_kernel() {
+    let f = fixture();
+    let camera = Camera::look_at(33, 25, 0.9, Vec3::new(2.5, -1.5, 1.0), Vec3::ZERO, Vec3::Z).expect("camera");
+    let (every_voxel, _) = f.gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
+    for stride in [2, 3] {
+        let mut cpu = f.cpu.clone();
+        cpu.set_march_stride(stride).expect("stride");
+        let gpu = GpuInolfKernel::new(context(), &cpu).expect("gpu kernel");
+        whole_frames_agree(&cpu, &gpu);
+        let (strided, _) = gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
+        let changed = (0..strided.len()).filter(|&i| strided.depth[i] != every_voxel.depth[i]).count();
+        assert!(changed > 20, "stride {stride}: only {changed} depths moved");
+    }
+}
+
+fn whole_frames_agree(cpu_kernel: &InolfKernel, gpu_kernel: &GpuInolfKernel) {
     let views = [
         // Around the object.
         (Vec3::new(2.5, -1.5, 1.0), Vec3::ZERO),
@@ -104,7 +127,9 @@ fn whole_frames_agree_with_the_cpu_kernel() {
         let up = if (target - eye).normalize().z.abs() > 0.9 { Vec3::Y } else { Vec3::Z };
         let camera = Camera::look_at(33, 25, 0.9, eye, target, up).expect("camera");
         let pixels = all_pixels(&camera);
-        let (cpu, gpu) = render_both(&camera, &pixels);
+        let (cpu, cpu_stats) = cpu_kernel.render_pixels(&camera, &pixels).expect("cpu");
+        let (gpu, gpu_stats) = gpu_kernel.render_pixels(&camera, &pixels).expect("gpu");
+        assert_eq!(gpu_stats.rays, cpu_stats.rays);
         let a = Agreement::of(&cpu, &gpu);
         check_sane(&gpu).unwrap_or_else(|e| panic!("view from {eye}: {e}"));
         check_agreement(&a).unwrap_or_else(|e| panic!("view from {eye}: {e}"));

@@ -43,15 +43,21 @@ pub struct LoadOptions {
     pub simd: SimdMode,
     /// Where kernels with a GPU twin run (`--device`); `None`: the CPU.
     pub accelerator: Option<Arc<dyn Accelerator>>,
-    /// Voxels between the i-NOLF march's samples (`--march-stride`; 1: every voxel). The CPU
-    /// kernel's speed-for-error knob; the GPU twin marches every voxel, so a stride above 1
-    /// with an accelerator is refused.
-    pub march_stride: u32,
+    /// Voxels between the i-NOLF march's samples (`--march-stride`; 1: every voxel); `None`:
+    /// the stride each asset's bake chose ([`crate::inolf::heads::InolfMeta::march_stride`]).
+    /// The speed-for-error knob of the march, on the CPU and on the GPU twin alike.
+    pub march_stride: Option<u32>,
 }
 
 impl Default for LoadOptions {
     fn default() -> LoadOptions {
-        LoadOptions { pathtrace_spp: 4, pathtrace_bounces: 4, simd: SimdMode::Auto, accelerator: None, march_stride: 1 }
+        LoadOptions {
+            pathtrace_spp: 4,
+            pathtrace_bounces: 4,
+            simd: SimdMode::Auto,
+            accelerator: None,
+            march_stride: None,
+        }
     }
 }
 
@@ -95,23 +101,14 @@ pub const FORMATS: &[AssetFormat] = &[
 fn load_inolf(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
     let mut kernel = InolfKernel::load(path).map_err(|e| LoadError::Invalid(e.to_string()))?;
     kernel.set_simd(options.simd);
-    kernel.set_march_stride(options.march_stride).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    if let Some(stride) = options.march_stride {
+        kernel.set_march_stride(stride).map_err(|e| LoadError::Invalid(e.to_string()))?;
+    }
     match &options.accelerator {
-        Some(device) => inolf_on(device.as_ref(), &kernel),
+        // The twin marches at the kernel's stride.
+        Some(device) => device.inolf(&kernel).map_err(LoadError::Invalid),
         None => Ok(Arc::new(kernel)),
     }
-}
-
-/// The device's twin of `kernel`; the twin marches every voxel, so a kernel set to a coarser
-/// march is refused rather than silently rendered otherwise.
-fn inolf_on(device: &dyn Accelerator, kernel: &InolfKernel) -> Result<Arc<dyn RayKernel>, LoadError> {
-    let stride = kernel.density().march_stride();
-    if stride != 1 {
-        return Err(LoadError::Invalid(format!(
-            "march stride {stride} asked, but the GPU kernel marches every voxel: use the CPU (--device cpu) or stride 1"
-        )));
-    }
-    device.inolf(kernel).map_err(LoadError::Invalid)
 }
 
 fn load_ngp(path: &Path, options: &LoadOptions) -> Result<Arc<dyn RayKernel>, LoadError> {
@@ -229,8 +226,8 @@ mod tests {
     struct NoTwins;
 
     impl Accelerator for NoTwins {
-        fn inolf(&self, _: &InolfKernel) -> Result<Arc<dyn RayKernel>, String> {
-            Err("no i-NOLF twin".into())
+        fn inolf(&self, kernel: &InolfKernel) -> Result<Arc<dyn RayKernel>, String> {
+            Err(format!("no i-NOLF twin at stride {}", kernel.density().march_stride()))
         }
         fn ngp(&self, _: &NgpKernel) -> Result<Arc<dyn RayKernel>, String> {
             Err("no i-NGP twin".into())
@@ -244,13 +241,32 @@ mod tests {
     }
 
     #[test]
-    fn a_coarser_march_is_refused_on_a_device_whose_twin_marches_every_voxel() {
-        let mut kernel = crate::inolf::synthetic::synthetic_object(1.0).expect("object").kernel;
-        let reached = inolf_on(&NoTwins, &kernel).expect_err("no twin");
-        assert!(reached.to_string().contains("no i-NOLF twin"), "{reached}");
-        kernel.set_march_stride(2).expect("stride 2");
-        let refused = inolf_on(&NoTwins, &kernel).expect_err("refused");
-        assert!(refused.to_string().contains("--device cpu"), "{refused}");
+    fn the_device_twin_is_asked_for_at_the_kernels_march_stride() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("object.nolf");
+        let object = crate::inolf::synthetic::synthetic_object(1.0).expect("object");
+        let mut asset = object.asset().expect("asset");
+        asset.save(&path).expect("save");
+        for (asked, marched) in [(None, 1), (Some(3), 3)] {
+            let options =
+                LoadOptions { accelerator: Some(Arc::new(NoTwins)), march_stride: asked, ..LoadOptions::default() };
+            let refused = load_inolf(&path, &options).expect_err("no twin");
+            assert!(refused.to_string().contains(&format!("no i-NOLF twin at stride {marched}")), "{refused}");
+        }
+        let bad = LoadOptions { march_stride: Some(0), ..LoadOptions::default() };
+        assert!(load_inolf(&path, &bad).is_err());
+        // The bake's choice travels in the asset; the renderer's option still overrides it.
+        crate::inolf::heads::set_asset_march_stride(&mut asset, 2).expect("stride 2");
+        assert!(crate::inolf::heads::set_asset_march_stride(&mut asset, 0).is_err());
+        asset.save(&path).expect("save");
+        for (asked, marched) in [(None, 2), (Some(1), 1)] {
+            let options =
+                LoadOptions { accelerator: Some(Arc::new(NoTwins)), march_stride: asked, ..LoadOptions::default() };
+            let refused = load_inolf(&path, &options).expect_err("no twin");
+            assert!(refused.to_string().contains(&format!("no i-NOLF twin at stride {marched}")), "{refused}");
+        }
+        let cpu = load_inolf(&path, &LoadOptions::default()).expect("the CPU kernel");
+        assert_eq!(cpu.kind(), "inolf");
     }
 
     #[test]

@@ -125,8 +125,8 @@ impl BakeQuality {
     /// mix. Bump the suffix when a recipe or the asset format changes.
     pub fn folder(self) -> &'static str {
         match self {
-            BakeQuality::Standard => "standard-v4",
-            BakeQuality::Quick => "quick-v2",
+            BakeQuality::Standard => "standard-v5",
+            BakeQuality::Quick => "quick-v3",
             BakeQuality::Off => "path-traced",
         }
     }
@@ -154,8 +154,11 @@ pub fn cache_root() -> PathBuf {
 pub struct BakedObject {
     pub name: String,
     pub path: PathBuf,
-    /// Mean PSNR of the asset on the held-out views, when it was baked by this call.
+    /// Mean PSNR of the asset on the held-out views (at the march stride it is served with),
+    /// when it was baked by this call.
     pub psnr_db: Option<f64>,
+    /// The march stride the bake chose ([`choose_march_stride`]), when it was baked by this call.
+    pub march_stride: Option<u32>,
     pub seconds: f64,
 }
 
@@ -234,7 +237,7 @@ pub fn ensure_environment(
     let Some(recipe) = quality.gi_recipe() else { return Ok(None) };
     let path = dir.join(format!("{name}.ngi"));
     if environment_loads(&path) {
-        return Ok(Some(BakedObject { name: name.into(), path, psnr_db: None, seconds: 0.0 }));
+        return Ok(Some(BakedObject { name: name.into(), path, psnr_db: None, march_stride: None, seconds: 0.0 }));
     }
     println!(
         "first start: training the global-illumination model of '{name}' into {} (recipe {}; later starts reuse it)",
@@ -308,7 +311,13 @@ pub fn ensure_environment(
         std::fs::rename(&part, &target).with_context(|| format!("moving the model to {}", target.display()))?;
     }
     println!("'{name}': {psnr:.2} dB PSNR on {} held-out frames (GI model against the path tracer)", held_out.len());
-    Ok(Some(BakedObject { name: name.into(), path, psnr_db: Some(psnr), seconds: start.elapsed().as_secs_f64() }))
+    Ok(Some(BakedObject {
+        name: name.into(),
+        path,
+        psnr_db: Some(psnr),
+        march_stride: None,
+        seconds: start.elapsed().as_secs_f64(),
+    }))
 }
 
 fn loads(path: &Path) -> bool {
@@ -332,7 +341,7 @@ pub fn ensure_baked(
     for name in names {
         let path = dir.join(format!("{name}.nolf"));
         if !missing.contains(&name) {
-            done.push(BakedObject { name: name.clone(), path, psnr_db: None, seconds: 0.0 });
+            done.push(BakedObject { name: name.clone(), path, psnr_db: None, march_stride: None, seconds: 0.0 });
             continue;
         }
         index += 1;
@@ -397,28 +406,77 @@ fn bake_object(dir: &Path, name: &str, recipe: &Recipe, progress: &Progress) -> 
     let baked = bake(&views, &data.display().to_string(), &recipe.bake, None, &mut Bars::new(progress))?;
     baked.asset.save(&part).with_context(|| format!("writing {}", part.display()))?;
 
-    let psnr = score(&part, &data).context("scoring the asset on the held-out views")?;
+    let mut asset = baked.asset;
+    let scores = score_strides(&part, &data).context("scoring the asset on the held-out views")?;
+    let stride = choose_march_stride(&scores, MARCH_STRIDE_BUDGET_DB);
+    let psnr = scores[stride as usize - 1];
     println!(
-        "'{name}': {psnr:.2} dB PSNR on {} held-out views of {1}x{1} (i-NOLF against the path tracer)",
-        recipe.test_views, recipe.size
+        "'{name}': {psnr:.2} dB PSNR on {} held-out views of {1}x{1} (i-NOLF against the path tracer) at march stride {stride}; every voxel {2:.2} dB, strides 1-{3}: {4}",
+        recipe.test_views,
+        recipe.size,
+        scores[0],
+        scores.len(),
+        scores.iter().map(|p| format!("{p:.3}")).collect::<Vec<_>>().join(" / ")
     );
+    nephele_kernels::inolf::heads::set_asset_march_stride(&mut asset, stride)?;
+    asset.save(&part).with_context(|| format!("writing {}", part.display()))?;
     let path = dir.join(format!("{name}.nolf"));
     std::fs::rename(&part, &path).with_context(|| format!("moving the asset to {}", path.display()))?;
-    Ok(BakedObject { name: name.into(), path, psnr_db: Some(psnr), seconds: start.elapsed().as_secs_f64() })
+    Ok(BakedObject {
+        name: name.into(),
+        path,
+        psnr_db: Some(psnr),
+        march_stride: Some(stride),
+        seconds: start.elapsed().as_secs_f64(),
+    })
 }
 
-/// Mean PSNR (over white) of the asset on the dataset's test views.
-fn score(asset: &Path, dataset: &Path) -> Result<f64> {
-    let kernel = InolfKernel::load(asset)?;
+/// How much held-out PSNR a coarser march may cost against every voxel's: the first start's
+/// objects lose 0.01-0.11 dB at stride 2 and 0.08-0.28 dB at 3 (BENCHMARKS.md, 2026-12-05e).
+pub const MARCH_STRIDE_BUDGET_DB: f64 = 0.1;
+
+/// The coarsest march stride whose held-out PSNR, and every finer stride's, stays within
+/// `budget_db` of every voxel's (`scores[i]`: the PSNR at stride `i + 1`); 1 when none does.
+pub fn choose_march_stride(scores: &[f64], budget_db: f64) -> u32 {
+    let Some(&every_voxel) = scores.first() else { return 1 };
+    let within = scores.iter().take_while(|&&p| p.is_finite() && p >= every_voxel - budget_db).count();
+    within.max(1) as u32
+}
+
+/// Mean PSNR (over white) of the asset on the dataset's test views at every march stride
+/// from 1 (every voxel) to the largest.
+fn score_strides(asset: &Path, dataset: &Path) -> Result<Vec<f64>> {
+    let mut kernel = InolfKernel::load(asset)?;
     let data = nephele_train::dataset::load_split(dataset, "test", 1)?;
     anyhow::ensure!(!data.views.is_empty(), "the dataset has no test views");
-    let (psnr, _) = nephele_train::score::mean_score(&kernel, &data.views, data.camera_angle_x)?.unwrap_or_default();
-    Ok(psnr)
+    let mut scores = Vec::new();
+    for stride in 1..=nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE {
+        kernel.set_march_stride(stride)?;
+        let (psnr, _) =
+            nephele_train::score::mean_score(&kernel, &data.views, data.camera_angle_x)?.unwrap_or_default();
+        scores.push(psnr);
+    }
+    Ok(scores)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_march_stride_is_the_coarsest_within_the_budget() {
+        // The first start's objects on 2026-12-05 (held-out dB at strides 1-4).
+        assert_eq!(choose_march_stride(&[34.315, 34.203, 34.035, 33.732], 0.1), 1);
+        assert_eq!(choose_march_stride(&[26.432, 26.350, 26.181, 26.134], 0.1), 2);
+        assert_eq!(choose_march_stride(&[20.024, 20.016, 19.948, 19.845], 0.1), 3);
+        // A coarser stride that happens to score well after a finer one that did not is not
+        // taken; nothing, a NaN or an empty list give every voxel.
+        assert_eq!(choose_march_stride(&[30.0, 29.0, 30.0], 0.1), 1);
+        assert_eq!(choose_march_stride(&[30.0, f64::NAN, 30.0], 0.1), 1);
+        assert_eq!(choose_march_stride(&[f64::NAN, 30.0], 0.1), 1);
+        assert_eq!(choose_march_stride(&[], 0.1), 1);
+        assert_eq!(choose_march_stride(&[30.0, 30.5, 29.95, 29.0], 0.1), 3);
+    }
 
     #[test]
     fn every_recipe_is_a_dataset_and_a_bake() {

@@ -45,9 +45,11 @@ pub struct Args {
     /// Voxels between the i-NOLF density march's samples: 1 marches every voxel (the asset's
     /// own accuracy); 2 about halves the samples of objects whose rays cross thick
     /// semi-transparent matter (the glass shell: 0.08 dB against the path tracer,
-    /// BENCHMARKS.md). CPU only: the GPU kernel marches every voxel.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
-    march_stride: u32,
+    /// BENCHMARKS.md). Default: the stride each asset's bake chose within its error budget on
+    /// held-out views (the first start's objects; every voxel for other assets). The GPU
+    /// kernel marches at the same stride.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
+    march_stride: Option<u32>,
 }
 
 /// Opens an asset, choosing the kernel by the file's magic bytes (the kernels' registry),
@@ -56,7 +58,7 @@ pub fn load_kernel(
     path: &Path,
     simd: nephele_nn::SimdMode,
     device: nephele_gpu::DeviceChoice,
-    march_stride: u32,
+    march_stride: Option<u32>,
 ) -> Result<std::sync::Arc<dyn RayKernel>> {
     let (accelerator, _) = super::open_device(device, simd)?;
     let options = nephele_kernels::assets::LoadOptions { simd, accelerator, march_stride, ..Default::default() };

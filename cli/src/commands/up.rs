@@ -63,9 +63,11 @@ pub struct Args {
     /// The workers' voxels between the i-NOLF density march's samples: 1 marches every voxel (the asset's
     /// own accuracy); 2 about halves the samples of objects whose rays cross thick
     /// semi-transparent matter (the glass shell: 0.08 dB against the path tracer,
-    /// BENCHMARKS.md). CPU only: the GPU kernel marches every voxel.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
-    march_stride: u32,
+    /// BENCHMARKS.md). Default: the stride each asset's bake chose within its error budget on
+    /// held-out views (the first start's objects; every voxel for other assets). The GPU
+    /// kernel marches at the same stride.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
+    march_stride: Option<u32>,
     /// Asset folder of the workers, where the first start bakes missing objects (default:
     /// `$NEPHELE_CACHE`, `$XDG_CACHE_HOME/nephele` or `~/.cache/nephele`, then
     /// `assets/<quality>`).
@@ -210,9 +212,10 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     for object in &baked {
         match object.psnr_db {
             Some(db) => println!(
-                "baked '{}' in {:.0} s ({db:.2} dB on held-out views): {}",
+                "baked '{}' in {:.0} s ({db:.2} dB on held-out views{}): {}",
                 object.name,
                 object.seconds,
+                object.march_stride.map(|s| format!(", march stride {s}")).unwrap_or_default(),
                 object.path.display()
             ),
             None => println!("using the baked '{}': {}", object.name, object.path.display()),
@@ -317,9 +320,10 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
             &args.simd.to_string(),
             "--device",
             &args.device.to_string(),
-            "--march-stride",
-            &args.march_stride.to_string(),
         ]);
+        if let Some(stride) = args.march_stride {
+            worker.arg("--march-stride").arg(stride.to_string());
+        }
         worker.arg("--assets").arg(&assets);
         // Calibrate on an object the workers will serve (its kernel, on its device), not on
         // the path-traced default: the scheduler's estimates come from this figure.

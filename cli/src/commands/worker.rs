@@ -48,9 +48,11 @@ pub struct Args {
     /// Voxels between the i-NOLF density march's samples: 1 marches every voxel (the asset's
     /// own accuracy); 2 about halves the samples of objects whose rays cross thick
     /// semi-transparent matter (the glass shell: 0.08 dB against the path tracer,
-    /// BENCHMARKS.md). CPU only: the GPU kernel marches every voxel.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
-    march_stride: u32,
+    /// BENCHMARKS.md). Default: the stride each asset's bake chose within its error budget on
+    /// held-out views (the first start's objects; every voxel for other assets). The GPU
+    /// kernel marches at the same stride.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
+    march_stride: Option<u32>,
     /// How results travel to the composer: compact (only the pixels the object touched, half
     /// floats and 16-bit opacity, about 11 bytes per touched pixel) or f32 (every pixel, 24
     /// bytes, exact).
@@ -109,12 +111,6 @@ pub fn run(args: Args, threads: Option<usize>) -> Result<()> {
     let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let name = args.name.unwrap_or_else(default_name);
     let (accelerator, device) = crate::commands::open_device(args.device, args.simd)?;
-    if accelerator.is_some() && args.march_stride != 1 {
-        anyhow::bail!(
-            "--march-stride {} asks the CPU kernel's coarser march, but this worker runs i-NOLF on the GPU, which marches every voxel: add --device cpu, or leave the stride at 1",
-            args.march_stride
-        );
-    }
     let load = LoadOptions {
         pathtrace_spp: args.spp,
         pathtrace_bounces: args.bounces,

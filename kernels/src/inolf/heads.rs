@@ -21,6 +21,28 @@ pub struct InolfMeta {
     /// Free-form description of the bake (source, steps, losses).
     #[serde(default)]
     pub bake: serde_json::Value,
+    /// Voxels between the density march's samples that the asset is rendered with unless a
+    /// renderer asks otherwise ([`super::cubes::DensityCubes::set_march_stride`]): 1 (every
+    /// voxel) unless the bake measured a coarser march within its error budget on held-out
+    /// views. Assets written before this field march every voxel.
+    #[serde(default = "every_voxel")]
+    pub march_stride: u32,
+}
+
+fn every_voxel() -> u32 {
+    1
+}
+
+/// Records in `asset`'s meta section the march stride it is to be rendered with (the bake's
+/// choice, [`InolfMeta::march_stride`]).
+pub fn set_asset_march_stride(asset: &mut Asset, stride: u32) -> Result<(), ModelError> {
+    if !(1..=super::cubes::MAX_MARCH_STRIDE).contains(&stride) {
+        return Err(ModelError::Shape(format!("march stride {stride} (1..={})", super::cubes::MAX_MARCH_STRIDE)));
+    }
+    let mut meta: InolfMeta = serde_json::from_str(&asset.meta).map_err(|e| ModelError::Shape(format!("meta: {e}")))?;
+    meta.march_stride = stride;
+    asset.meta = serde_json::to_string(&meta).map_err(|e| ModelError::Shape(e.to_string()))?;
+    Ok(())
 }
 
 /// Diffuse colour and tint are stored as `sqrt(value)` in 8 bits: finer steps in the darks,
@@ -56,6 +78,9 @@ pub fn load_heads(asset: &Asset) -> Result<LoadedHeads, ModelError> {
     let psh = asset.psh.as_ref().ok_or_else(|| bad("no PSH section".into()))?;
     if !(1..=5).contains(&meta.shape.sh_degree) {
         return Err(bad(format!("SH degree {}", meta.shape.sh_degree)));
+    }
+    if !(1..=super::cubes::MAX_MARCH_STRIDE).contains(&meta.march_stride) {
+        return Err(bad(format!("march stride {} (1..={})", meta.march_stride, super::cubes::MAX_MARCH_STRIDE)));
     }
     let [lo, hi] = meta.grid_bounds.map(Vec3::from);
     if !(lo.is_finite() && hi.is_finite() && (hi - lo).min_element() > 0.0) {

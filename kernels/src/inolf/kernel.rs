@@ -94,13 +94,16 @@ pub enum LoadError {
 const CHUNK: usize = 1024;
 
 impl InolfKernel {
-    /// From a loaded asset (meta, tensors and sections checked against each other).
+    /// From a loaded asset (meta, tensors and sections checked against each other), marching
+    /// at the asset's own stride ([`super::heads::InolfMeta::march_stride`]).
     pub fn from_asset(asset: Asset) -> Result<InolfKernel, ModelError> {
         let heads = load_heads(&asset)?;
         let psh = asset.psh.ok_or_else(|| ModelError::Shape("no PSH section".into()))?;
         let source = if asset.diffuse.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
+        let mut density = asset.density;
+        density.set_march_stride(heads.meta.march_stride).map_err(|e| ModelError::Shape(e.to_string()))?;
         Ok(InolfKernel {
-            density: asset.density,
+            density,
             hit_field: None,
             diffuse_cubes: asset.diffuse,
             diffuse_net: heads.diffuse,

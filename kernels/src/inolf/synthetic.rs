@@ -11,10 +11,12 @@ use nephele_geometry::Bounds;
 use nephele_geometry::camera::Camera;
 use nephele_geometry::hardcases::hard_object_density;
 
+use super::asset::{Asset, Tensor};
 use super::cubes::{CubeOptions, DensityCubes, SparseCubes};
 use super::encoding::PshEncoding;
+use super::heads::InolfMeta;
 use super::kernel::{InolfKernel, RAY_NEAR};
-use super::model::{HeadsShape, InolfModel};
+use super::model::{HeadsShape, InolfModel, ModelError};
 use super::psh::PshOptions;
 use crate::kernel::all_pixels;
 
@@ -23,6 +25,32 @@ use crate::kernel::all_pixels;
 pub struct SyntheticObject {
     pub model: InolfModel,
     pub kernel: InolfKernel,
+}
+
+impl SyntheticObject {
+    /// The object as the contents of an asset file (the specular MLP and both cube sets,
+    /// marched every voxel).
+    pub fn asset(&self) -> Result<Asset, ModelError> {
+        let meta = InolfMeta {
+            format: "inolf".into(),
+            shape: self.model.shape,
+            grid_bounds: [self.model.bounds.min.to_array(), self.model.bounds.max.to_array()],
+            bake: serde_json::Value::Null,
+            march_stride: 1,
+        };
+        let specular = self.model.specular.params();
+        Ok(Asset {
+            meta: serde_json::to_string(&meta).map_err(|e| ModelError::Shape(e.to_string()))?,
+            density: self.kernel.density().clone(),
+            diffuse: self.kernel.diffuse_cubes().cloned(),
+            psh: Some(self.model.psh.clone()),
+            tensors: vec![Tensor {
+                name: "specular.mlp".into(),
+                shape: vec![specular.len() as u32],
+                data: specular.to_vec(),
+            }],
+        })
+    }
 }
 
 /// A value in `[-1, 1)` spread by the golden-ratio hash of `i`.

@@ -106,6 +106,7 @@ pub fn to_asset(
         shape: model.shape,
         grid_bounds: [model.bounds.min.to_array(), model.bounds.max.to_array()],
         bake,
+        march_stride: 1,
     };
     let flat =
         |name: &str, data: &[f32]| Tensor { name: name.into(), shape: vec![data.len() as u32], data: data.to_vec() };

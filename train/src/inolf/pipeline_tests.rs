@@ -168,8 +168,20 @@ fn asset_without_diffuse_network_renders_from_cubes_only() {
     let diffuse = bake_diffuse_cubes(&t.model, &t.cubes, &t.hits, 1, 4).expect("bake");
     let asset = to_asset(&t.model, t.cubes.clone(), Some(diffuse), false, serde_json::Value::Null).expect("asset");
     assert_eq!(asset.tensors.len(), 1);
-    let mut kernel = InolfKernel::from_asset(asset).expect("kernel");
+    let mut kernel = InolfKernel::from_asset(asset.clone()).expect("kernel");
     assert!(kernel.set_diffuse_source(DiffuseSource::Network).is_err());
+    // The bake writes every voxel; a stride recorded in the meta section travels through the
+    // file and is what the kernel marches at; one out of range is refused.
+    assert_eq!(kernel.density().march_stride(), 1);
+    let mut strided = asset.clone();
+    nephele_kernels::inolf::heads::set_asset_march_stride(&mut strided, 3).expect("stride 3");
+    let strided = Asset::from_bytes(&strided.to_bytes().expect("encode")).expect("decode");
+    assert_eq!(InolfKernel::from_asset(strided).expect("kernel").density().march_stride(), 3);
+    let mut hostile = asset.clone();
+    assert!(hostile.meta.contains("\"march_stride\":1"), "{}", hostile.meta);
+    hostile.meta = hostile.meta.replace("\"march_stride\":1", "\"march_stride\":9");
+    let err = InolfKernel::from_asset(hostile).expect_err("stride 9");
+    assert!(err.to_string().contains("march stride 9"), "{err}");
     // No diffuse part at all is an error, not a broken kernel.
     let mut bare = to_asset(&t.model, t.cubes.clone(), None, false, serde_json::Value::Null).expect("asset");
     bare.tensors.retain(|x| x.name == "specular.mlp");
