@@ -421,10 +421,12 @@ impl DensityCubes {
     }
 
     /// Samples the march every `stride` voxels instead of every voxel (each sample's opacity
-    /// over the longer span, `1 - exp(-sigma stride step)`): a speed-for-error knob of the CPU
-    /// kernel. The glass shell, whose rays cross thick semi-transparent matter, marches about
-    /// half the samples at 2 for 0.08 dB against the path tracer (`nephele bench kernel
-    /// --march-stride`, BENCHMARKS.md); the bake always marches every voxel.
+    /// over the longer span, `1 - exp(-sigma stride step)`): the march's speed-for-error knob
+    /// (the GPU twin marches at the same stride). The glass shell, whose rays cross thick
+    /// semi-transparent matter, marches about half the samples at 2 for 0.08 dB against the
+    /// path tracer (`nephele bench kernel --march-stride`, BENCHMARKS.md). The bake itself
+    /// always marches every voxel; the stride an asset is served with is recorded in its meta
+    /// section (`InolfMeta::march_stride`).
     pub fn set_march_stride(&mut self, stride: u32) -> Result<(), CubeError> {
         if !(1..=MAX_MARCH_STRIDE).contains(&stride) {
             return Err(CubeError::BadOptions(format!("march stride {stride} is not in 1..={MAX_MARCH_STRIDE}")));
