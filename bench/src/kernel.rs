@@ -8,7 +8,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use nephele_kernels::inolf::cubes::MarchHit;
-use nephele_kernels::inolf::kernel::{InolfKernel, RAY_NEAR};
+use nephele_kernels::inolf::encoding::CellCache;
+use nephele_kernels::inolf::kernel::{HIT_OPACITY, InolfKernel, RAY_NEAR};
 use nephele_kernels::kernel::PixelResults;
 use nephele_nn::SimdMode;
 use rayon::prelude::*;
@@ -84,6 +85,28 @@ fn march_only(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]
         work = work.add(frame);
     }
     (1e3 * start.elapsed().as_secs_f64() / cameras.len() as f64, work)
+}
+
+/// The share of the heads' PSH look-ups that the kernel's cell cache answers (hit points in
+/// the kernel's order: pixel order within its chunks of 1024), over every camera.
+fn psh_cell_reuse(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]) -> f64 {
+    let (mut hits, mut queries) = (0u64, 0u64);
+    for camera in cameras {
+        let w = camera.width();
+        let pixels: Vec<u32> = (0..w * camera.height()).collect();
+        for chunk in pixels.chunks(1024) {
+            let mut cache = CellCache::default();
+            for &p in chunk {
+                let ray = camera.pixel_center_ray(p % w, p / w);
+                let h = kernel.density().march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+                if h.opacity >= HIT_OPACITY {
+                    kernel.psh().corners_with(ray.at(h.t), &mut cache);
+                }
+            }
+            (hits, queries) = (hits + cache.hits, queries + cache.queries);
+        }
+    }
+    hits as f64 / queries.max(1) as f64
 }
 
 #[derive(Debug, Clone, Copy, Default)]
@@ -162,6 +185,10 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             per_ray(work.cells),
             per_ray(work.samples),
             per_ray(work.lookups)
+        );
+        println!(
+            "heads: {:.1} % of the hit rays' PSH look-ups answered by the previous hit ray's lattice cell",
+            100.0 * psh_cell_reuse(&fast, &cameras)
         );
         println!("{:<40} {:>10} {:>14} {:>10}", "row", "ms/frame", "rays/s", "share");
         let strided_label = format!("whole kernel, march stride {}", args.march_stride);

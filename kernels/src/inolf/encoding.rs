@@ -32,6 +32,27 @@ pub struct Corners {
     pub count: u8,
 }
 
+/// The stored corners of one lattice cell: the slot of each corner `c = dx + 2 dy + 4 dz`
+/// and a bit per corner that is stored.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct CellSlots {
+    cell: [i64; 3],
+    slots: [u32; 8],
+    stored: u8,
+}
+
+/// The last cell [`PshEncoding::corners_with`] looked up. Neighbouring pixels' hit points
+/// often fall in one lattice cell (a 640x480 view of a first-start object: about two pixels
+/// per lattice voxel across), and a batch's hit rays come in pixel order, so the next point's
+/// 8 hash look-ups (16 reads of two tables of about a MiB each) are often the last point's.
+#[derive(Debug, Clone, Default)]
+pub struct CellCache {
+    last: Option<CellSlots>,
+    /// Look-ups answered from the cache, and in all.
+    pub hits: u64,
+    pub queries: u64,
+}
+
 impl PshEncoding {
     /// Builds the encoding over a lattice of side `u` at `origin`/`voxel` whose stored points
     /// are the 8 corners of the cells of `points` (the hit points seen in training); features
@@ -77,6 +98,28 @@ impl PshEncoding {
     /// The stored corners of `p`'s cell and their renormalised trilinear weights.
     #[inline]
     pub fn corners(&self, p: Vec3) -> Corners {
+        self.corners_with(p, &mut CellCache::default())
+    }
+
+    /// The 8 corners' slots of the lattice cell with lowest corner `b`.
+    #[inline]
+    fn cell_slots(&self, b: [i64; 3]) -> CellSlots {
+        let mut cell = CellSlots { cell: b, slots: [0; 8], stored: 0 };
+        for c in 0..8 {
+            let (dx, dy, dz) = (c & 1, (c >> 1) & 1, c >> 2);
+            let v = [(b[0] + dx) as i32, (b[1] + dy) as i32, (b[2] + dz) as i32];
+            if let Some(slot) = self.table.slot_i(v) {
+                cell.slots[c as usize] = slot;
+                cell.stored |= 1 << c;
+            }
+        }
+        cell
+    }
+
+    /// [`Self::corners`], reusing the slots of the cell `cache` last saw when `p` falls in
+    /// it (the same result, bit for bit).
+    #[inline]
+    pub fn corners_with(&self, p: Vec3, cache: &mut CellCache) -> Corners {
         let mut out = Corners::default();
         let f = (p - self.origin) / self.voxel;
         if !f.is_finite() {
@@ -89,11 +132,23 @@ impl PshEncoding {
         if bx < -1 || by < -1 || bz < -1 || bx >= u || by >= u || bz >= u {
             return out;
         }
+        cache.queries += 1;
+        let cell = match cache.last {
+            Some(last) if last.cell == [bx, by, bz] => {
+                cache.hits += 1;
+                last
+            }
+            _ => {
+                let looked_up = self.cell_slots([bx, by, bz]);
+                cache.last = Some(looked_up);
+                looked_up
+            }
+        };
         let mut total = 0.0;
         for c in 0..8 {
             let (dx, dy, dz) = (c & 1, (c >> 1) & 1, c >> 2);
-            let v = [(bx + dx) as i32, (by + dy) as i32, (bz + dz) as i32];
-            if let Some(slot) = self.table.slot_i(v) {
+            if cell.stored & (1 << c) != 0 {
+                let slot = cell.slots[c as usize];
                 let wc = (if dx == 1 { w.x } else { 1.0 - w.x })
                     * (if dy == 1 { w.y } else { 1.0 - w.y })
                     * (if dz == 1 { w.z } else { 1.0 - w.z });
@@ -176,6 +231,31 @@ mod tests {
         let c = enc.encode(Vec3::new(0.65, 0.55, 0.55), &mut out);
         assert_eq!(c.count, 4);
         assert!((out[1] - 1.0).abs() < 1e-5);
+    }
+
+    /// The cell cache changes nothing: along random walks (consecutive points often in one
+    /// cell, sometimes in cells with no stored corner, outside the lattice or NaN) the cached
+    /// corners equal fresh look-ups bit for bit, and the cache is used.
+    #[test]
+    fn cached_corners_are_the_looked_up_ones() {
+        let pts: Vec<Vec3> = (0..400).map(|i| Vec3::new(0.1 + 0.002 * i as f32, 0.4, 0.2 + 0.001 * i as f32)).collect();
+        let enc = PshEncoding::from_points(&pts, Vec3::ZERO, 0.05, 32, 3, &PshOptions::default()).expect("build");
+        let mut cache = CellCache::default();
+        let mut p = Vec3::new(0.1, 0.4, 0.2);
+        for i in 0..5000usize {
+            let jump = crate::inolf::synthetic::spread(i);
+            p += Vec3::new(0.004 * jump, 0.003 * crate::inolf::synthetic::spread(i + 7), 0.002);
+            if i % 97 == 0 {
+                p = Vec3::new(0.1 + 0.7 * jump.abs(), 0.4, 0.2 + 0.3 * jump.abs());
+            }
+            let q = match i % 500 {
+                13 => Vec3::NAN,
+                14 => Vec3::splat(-3.0),
+                _ => p,
+            };
+            assert_eq!(enc.corners_with(q, &mut cache), enc.corners(q), "point {i}: {q}");
+        }
+        assert!(cache.hits > cache.queries / 2 && cache.queries > 4000, "{cache:?}");
     }
 
     #[test]

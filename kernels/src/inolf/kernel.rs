@@ -18,7 +18,7 @@ use rayon::prelude::*;
 
 use super::asset::Asset;
 use super::cubes::{DensityCubes, SparseCubes};
-use super::encoding::PshEncoding;
+use super::encoding::{CellCache, PshEncoding};
 use super::heads::{decode_diffuse, load_heads};
 use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT, combine, specular_activation};
 use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
@@ -299,8 +299,10 @@ impl InolfKernel {
         let sh = sh_coefficient_count(self.shape.sh_degree);
         let s_in = f + sh + 1;
         let mut input = vec![0.0f32; n * s_in];
+        let mut cells = CellCache::default();
         for (row, h) in input.chunks_exact_mut(s_in).zip(&hits) {
-            self.psh.encode(h.1, &mut row[..f]);
+            let corners = self.psh.corners_with(h.1, &mut cells);
+            self.psh.encode_corners(&corners, &mut row[..f]);
             sh_encode(h.2.to_array(), self.shape.sh_degree, &mut row[f..f + sh]);
             row[f + sh] = h.3;
         }
