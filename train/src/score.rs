@@ -12,6 +12,9 @@ use nephele_imaging::image::RgbaImage;
 use nephele_imaging::metrics::{MetricsError, psnr_and_ssim};
 use nephele_kernels::kernel::{KernelError, KernelStats, RayKernel, all_pixels, frame_to_image};
 
+use nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE;
+use nephele_kernels::inolf::kernel::InolfKernel;
+
 use crate::dataset::View;
 
 /// What one view scored.
@@ -37,6 +40,8 @@ pub enum ScoreError {
     Metrics { view: String, source: MetricsError },
     #[error("view {0}: the kernel returned a frame of the wrong size")]
     Frame(String),
+    #[error("march stride: {0}")]
+    Stride(String),
 }
 
 /// Renders `view` (horizontal field of view `camera_angle_x`) with `kernel` and scores it.
@@ -73,4 +78,52 @@ pub fn mean_score(
     }
     let n = views.len() as f64;
     Ok(Some((psnr / n, ssim / n)))
+}
+
+/// How much held-out PSNR a coarser density march may cost against every voxel's: the first
+/// start's objects lose 0.01-0.11 dB at stride 2 and 0.08-0.28 dB at 3 (BENCHMARKS.md,
+/// 2026-12-05e).
+pub const MARCH_STRIDE_BUDGET_DB: f64 = 0.1;
+
+/// The coarsest march stride whose held-out PSNR, and every finer stride's, stays within
+/// `budget_db` of every voxel's (`scores[i]`: the PSNR at stride `i + 1`); 1 when none does.
+pub fn choose_march_stride(scores: &[f64], budget_db: f64) -> u32 {
+    let Some(&every_voxel) = scores.first() else { return 1 };
+    let within = scores.iter().take_while(|&&p| p.is_finite() && p >= every_voxel - budget_db).count();
+    within.max(1) as u32
+}
+
+/// Mean PSNR of `kernel` over `views` at every march stride from 1 (every voxel) to
+/// [`MAX_MARCH_STRIDE`] (empty when there are no views).
+pub fn march_stride_scores(kernel: &InolfKernel, views: &[View], camera_angle_x: f32) -> Result<Vec<f64>, ScoreError> {
+    let mut strided = kernel.clone();
+    let mut scores = Vec::new();
+    for stride in 1..=MAX_MARCH_STRIDE {
+        strided.set_march_stride(stride).map_err(|e| ScoreError::Stride(e.to_string()))?;
+        match mean_score(&strided, views, camera_angle_x)? {
+            Some((psnr, _)) => scores.push(psnr),
+            None => return Ok(Vec::new()),
+        }
+    }
+    Ok(scores)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_march_stride_is_the_coarsest_within_the_budget() {
+        // The first start's objects on 2026-12-05 (held-out dB at strides 1-4).
+        assert_eq!(choose_march_stride(&[34.315, 34.203, 34.035, 33.732], 0.1), 1);
+        assert_eq!(choose_march_stride(&[26.432, 26.350, 26.181, 26.134], 0.1), 2);
+        assert_eq!(choose_march_stride(&[20.024, 20.016, 19.948, 19.845], 0.1), 3);
+        // A coarser stride that happens to score well after a finer one that did not is not
+        // taken; nothing, a NaN or an empty list give every voxel.
+        assert_eq!(choose_march_stride(&[30.0, 29.0, 30.0], 0.1), 1);
+        assert_eq!(choose_march_stride(&[30.0, f64::NAN, 30.0], 0.1), 1);
+        assert_eq!(choose_march_stride(&[f64::NAN, 30.0], 0.1), 1);
+        assert_eq!(choose_march_stride(&[], 0.1), 1);
+        assert_eq!(choose_march_stride(&[30.0, 30.5, 29.95, 29.0], 0.1), 3);
+    }
 }

@@ -26,6 +26,10 @@ pub struct DatasetSpec {
     pub width: u32,
     pub height: u32,
     pub spp: u32,
+    /// Samples per pixel of the test views; 0: `spp`. The held-out views are the reference
+    /// a bake is scored against: more samples there keep the path tracer's noise out of the
+    /// score (and out of choices made on it) for few views' cost.
+    pub test_spp: u32,
     pub bounces: u32,
     /// Seed of the views and of the path tracer.
     pub seed: u64,
@@ -97,7 +101,9 @@ pub fn render_dataset(
                 .seed
                 .wrapping_mul(0x9E37_79B9)
                 .wrapping_add(frames.len() as u64 + if split == "test" { 1 << 32 } else { 0 });
-            let image = renderer.render(&camera, &RenderOptions { seed: view_seed, ..options }, on_rows)?;
+            let samples_per_pixel = if split == "test" && spec.test_spp > 0 { spec.test_spp } else { spec.spp };
+            let image =
+                renderer.render(&camera, &RenderOptions { seed: view_seed, samples_per_pixel, ..options }, on_rows)?;
             let name = format!("r_{i}");
             image.to_rgba(Aov::Color).save_png(dir.join(format!("{name}.png")))?;
             let depth_path = if spec.depth {
@@ -159,6 +165,7 @@ mod tests {
             width: 8,
             height: 6,
             spp: 1,
+            test_spp: 16,
             bounces: 1,
             seed: 3,
             full_sphere: false,

@@ -79,6 +79,10 @@ pub struct RenderArgs {
     /// Samples per pixel.
     #[arg(long, default_value_t = 64)]
     spp: u32,
+    /// Samples per pixel of the test views (the reference a bake is scored against); default:
+    /// `--spp`.
+    #[arg(long)]
+    test_spp: Option<u32>,
     /// Longest path in bounces.
     #[arg(long, default_value_t = 8)]
     bounces: u32,
@@ -124,6 +128,7 @@ impl RenderArgs {
             width: self.size.0,
             height: self.size.1,
             spp: self.spp,
+            test_spp: self.test_spp.unwrap_or(0),
             bounces: self.bounces,
             seed: self.seed,
             full_sphere: self.full_sphere,
@@ -157,12 +162,13 @@ pub(crate) fn render_into(
         .with_context(|| format!("rendering the dataset of '{name}' into {}", out.display()))?;
     bar.finish_and_clear();
     println!(
-        "wrote {} train and {} test views of '{name}' at {}x{}, {} spp, to {}",
+        "wrote {} train and {} test views of '{name}' at {}x{}, {} spp ({} for the test views), to {}",
         spec.views,
         spec.test_views,
         spec.width,
         spec.height,
         spec.spp,
+        if spec.test_spp > 0 { spec.test_spp } else { spec.spp },
         out.display()
     );
     Ok(())

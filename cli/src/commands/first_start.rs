@@ -17,6 +17,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use nephele_kernels::inolf::kernel::InolfKernel;
 use nephele_train::inolf::pipeline::{BakeRecipe, bake};
+use nephele_train::score::{MARCH_STRIDE_BUDGET_DB, choose_march_stride, march_stride_scores};
 use nephele_train::synth::DatasetSpec;
 
 use super::bake::Bars;
@@ -43,6 +44,8 @@ pub struct Recipe {
     pub views: usize,
     pub test_views: usize,
     pub spp: u32,
+    /// Samples per pixel of the held-out views, the bake's reference (0: `spp`).
+    pub test_spp: u32,
     pub bounces: u32,
     /// The bake; the rest of `nephele bake`'s defaults. `cube_res` 5 (4 steps per cell) is
     /// finer than a pixel of the training views here, as good as 8 on held-out views, and
@@ -62,6 +65,7 @@ impl Recipe {
             width: self.size,
             height: self.size,
             spp: self.spp,
+            test_spp: self.test_spp,
             bounces: self.bounces,
             seed: 0,
             full_sphere: false,
@@ -78,6 +82,9 @@ impl BakeQuality {
                 views: 64,
                 test_views: 4,
                 spp: 32,
+                // The 4 held-out views converged further (a path tracer's noise at 32 spp
+                // alone caps the glossy object's PSNR near 26 dB): about 30 s more in all.
+                test_spp: 256,
                 bounces: 6,
                 bake: BakeRecipe {
                     field_steps: 400,
@@ -102,6 +109,7 @@ impl BakeQuality {
                 views: 24,
                 test_views: 2,
                 spp: 4,
+                test_spp: 16,
                 bounces: 3,
                 bake: BakeRecipe {
                     field_steps: 40,
@@ -409,6 +417,7 @@ fn bake_object(dir: &Path, name: &str, recipe: &Recipe, progress: &Progress) -> 
     let mut asset = baked.asset;
     let scores = score_strides(&part, &data).context("scoring the asset on the held-out views")?;
     let stride = choose_march_stride(&scores, MARCH_STRIDE_BUDGET_DB);
+    anyhow::ensure!(!scores.is_empty(), "the dataset has no test views");
     let psnr = scores[stride as usize - 1];
     println!(
         "'{name}': {psnr:.2} dB PSNR on {} held-out views of {1}x{1} (i-NOLF against the path tracer) at march stride {stride}; every voxel {2:.2} dB, strides 1-{3}: {4}",
@@ -431,52 +440,17 @@ fn bake_object(dir: &Path, name: &str, recipe: &Recipe, progress: &Progress) -> 
     })
 }
 
-/// How much held-out PSNR a coarser march may cost against every voxel's: the first start's
-/// objects lose 0.01-0.11 dB at stride 2 and 0.08-0.28 dB at 3 (BENCHMARKS.md, 2026-12-05e).
-pub const MARCH_STRIDE_BUDGET_DB: f64 = 0.1;
-
-/// The coarsest march stride whose held-out PSNR, and every finer stride's, stays within
-/// `budget_db` of every voxel's (`scores[i]`: the PSNR at stride `i + 1`); 1 when none does.
-pub fn choose_march_stride(scores: &[f64], budget_db: f64) -> u32 {
-    let Some(&every_voxel) = scores.first() else { return 1 };
-    let within = scores.iter().take_while(|&&p| p.is_finite() && p >= every_voxel - budget_db).count();
-    within.max(1) as u32
-}
-
 /// Mean PSNR (over white) of the asset on the dataset's test views at every march stride
 /// from 1 (every voxel) to the largest.
 fn score_strides(asset: &Path, dataset: &Path) -> Result<Vec<f64>> {
-    let mut kernel = InolfKernel::load(asset)?;
+    let kernel = InolfKernel::load(asset)?;
     let data = nephele_train::dataset::load_split(dataset, "test", 1)?;
-    anyhow::ensure!(!data.views.is_empty(), "the dataset has no test views");
-    let mut scores = Vec::new();
-    for stride in 1..=nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE {
-        kernel.set_march_stride(stride)?;
-        let (psnr, _) =
-            nephele_train::score::mean_score(&kernel, &data.views, data.camera_angle_x)?.unwrap_or_default();
-        scores.push(psnr);
-    }
-    Ok(scores)
+    Ok(march_stride_scores(&kernel, &data.views, data.camera_angle_x)?)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_march_stride_is_the_coarsest_within_the_budget() {
-        // The first start's objects on 2026-12-05 (held-out dB at strides 1-4).
-        assert_eq!(choose_march_stride(&[34.315, 34.203, 34.035, 33.732], 0.1), 1);
-        assert_eq!(choose_march_stride(&[26.432, 26.350, 26.181, 26.134], 0.1), 2);
-        assert_eq!(choose_march_stride(&[20.024, 20.016, 19.948, 19.845], 0.1), 3);
-        // A coarser stride that happens to score well after a finer one that did not is not
-        // taken; nothing, a NaN or an empty list give every voxel.
-        assert_eq!(choose_march_stride(&[30.0, 29.0, 30.0], 0.1), 1);
-        assert_eq!(choose_march_stride(&[30.0, f64::NAN, 30.0], 0.1), 1);
-        assert_eq!(choose_march_stride(&[f64::NAN, 30.0], 0.1), 1);
-        assert_eq!(choose_march_stride(&[], 0.1), 1);
-        assert_eq!(choose_march_stride(&[30.0, 30.5, 29.95, 29.0], 0.1), 3);
-    }
 
     #[test]
     fn every_recipe_is_a_dataset_and_a_bake() {

@@ -387,6 +387,7 @@ fn the_library_bake_turns_posed_images_into_an_asset() {
         width: 32,
         height: 32,
         spp: 2,
+        test_spp: 0,
         bounces: 2,
         seed: 0,
         full_sphere: false,
