@@ -35,9 +35,10 @@ pub struct KernelArgs {
     #[arg(long, default_value_t = 3)]
     rounds: usize,
     /// A row for the march sampling every N voxels (`nephele worker --march-stride`), timed
-    /// in the same rounds and scored against every-voxel frames; 1 leaves it out.
-    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
-    march_stride: u32,
+    /// in the same rounds and scored against every-voxel frames; default: the stride each
+    /// asset's bake chose (no row for an asset marched every voxel); 1 leaves it out.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
+    march_stride: Option<u32>,
 }
 
 /// PSNR (dB, peak 1) of colour and opacity together between two lists of frames; 99 when
@@ -149,7 +150,8 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
         fast.set_march_stride(1)?;
         let mut scalar = fast.clone();
         scalar.set_simd(SimdMode::Off);
-        let strided = match args.march_stride {
+        let stride = args.march_stride.unwrap_or(asset_stride);
+        let strided = match stride {
             1 => None,
             n => {
                 let mut kernel = fast.clone();
@@ -191,7 +193,7 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             100.0 * psh_cell_reuse(&fast, &cameras)
         );
         println!("{:<40} {:>10} {:>14} {:>10}", "row", "ms/frame", "rays/s", "share");
-        let strided_label = format!("whole kernel, march stride {}", args.march_stride);
+        let strided_label = format!("whole kernel, march stride {stride}");
         let mut rows = vec![
             ("whole kernel, AVX2+FMA where present", fast_ms),
             ("whole kernel, scalar (--simd off)", scalar_ms),
@@ -210,7 +212,7 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             let per_ray = |v: u64| v as f64 / strided_work.rays.max(1) as f64;
             println!(
                 "march stride {}: {:.2} samples and {:.2} corner decodes per ray; {:.2}x the speed of every voxel in this run; colour and opacity {:.2} dB PSNR against every voxel's",
-                args.march_stride,
+                stride,
                 per_ray(strided_work.samples),
                 per_ray(strided_work.lookups),
                 fast_ms / strided_ms.max(1e-12),
