@@ -21,6 +21,7 @@
 
 pub mod h264;
 pub mod http;
+pub mod nack_limit;
 pub mod pose;
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -33,7 +34,7 @@ use serde::Serialize;
 use serde_json::json;
 use thiserror::Error;
 use tokio::sync::Notify;
-use webrtc::api::interceptor_registry::register_default_interceptors;
+use webrtc::api::interceptor_registry::{configure_nack, configure_rtcp_reports, configure_twcc_receiver_only};
 use webrtc::api::media_engine::{MIME_TYPE_H264, MediaEngine};
 use webrtc::api::setting_engine::SettingEngine;
 use webrtc::api::{API, APIBuilder};
@@ -266,7 +267,13 @@ pub fn client_api() -> Result<API, LoadError> {
 pub fn rtc_api() -> Result<API, webrtc::Error> {
     let mut media = MediaEngine::default();
     media.register_codec(h264_codec(), RTPCodecType::Video)?;
-    let registry = register_default_interceptors(Registry::new(), &mut media)?;
+    // webrtc-rs's default interceptors, with a limit on NACKs per lost packet under its NACK
+    // generator (`nack_limit`: a browser gives up on a packet, webrtc-rs's generator never).
+    let mut registry = Registry::new();
+    registry.add(Box::new(nack_limit::NackLimitBuilder));
+    let registry = configure_nack(registry, &mut media);
+    let registry = configure_rtcp_reports(registry);
+    let registry = configure_twcc_receiver_only(registry, &mut media)?;
     let mut settings = SettingEngine::default();
     settings.set_include_loopback_candidate(true);
     settings.set_network_types(vec![NetworkType::Udp4]);
