@@ -83,7 +83,7 @@ impl BakeQuality {
                 test_views: 4,
                 spp: 32,
                 // The 4 held-out views converged further (a path tracer's noise at 32 spp
-                // alone caps the glossy object's PSNR near 26 dB): about 30 s more in all.
+                // alone caps the glossy object's PSNR near 26 dB): about 20 s more in all.
                 test_spp: 256,
                 bounces: 6,
                 bake: BakeRecipe {
@@ -412,12 +412,10 @@ fn bake_object(dir: &Path, name: &str, recipe: &Recipe, progress: &Progress) -> 
     let views = super::bake::training_data(&data, "train", 1, 0, 0)?;
     println!("bake: {} views of {1}x{1} from {2}", views.views.len(), recipe.size, data.display());
     let baked = bake(&views, &data.display().to_string(), &recipe.bake, None, &mut Bars::new(progress))?;
-    baked.asset.save(&part).with_context(|| format!("writing {}", part.display()))?;
-
     let mut asset = baked.asset;
-    let scores = score_strides(&part, &data).context("scoring the asset on the held-out views")?;
-    let stride = choose_march_stride(&scores, MARCH_STRIDE_BUDGET_DB);
+    let scores = score_strides(&asset, &data).context("scoring the asset on the held-out views")?;
     anyhow::ensure!(!scores.is_empty(), "the dataset has no test views");
+    let stride = choose_march_stride(&scores, MARCH_STRIDE_BUDGET_DB);
     let psnr = scores[stride as usize - 1];
     println!(
         "'{name}': {psnr:.2} dB PSNR on {} held-out views of {1}x{1} (i-NOLF against the path tracer) at march stride {stride}; every voxel {2:.2} dB, strides 1-{3}: {4}",
@@ -442,8 +440,8 @@ fn bake_object(dir: &Path, name: &str, recipe: &Recipe, progress: &Progress) -> 
 
 /// Mean PSNR (over white) of the asset on the dataset's test views at every march stride
 /// from 1 (every voxel) to the largest.
-fn score_strides(asset: &Path, dataset: &Path) -> Result<Vec<f64>> {
-    let kernel = InolfKernel::load(asset)?;
+fn score_strides(asset: &nephele_kernels::inolf::asset::Asset, dataset: &Path) -> Result<Vec<f64>> {
+    let kernel = InolfKernel::from_asset(asset.clone())?;
     let data = nephele_train::dataset::load_split(dataset, "test", 1)?;
     Ok(march_stride_scores(&kernel, &data.views, data.camera_angle_x)?)
 }
