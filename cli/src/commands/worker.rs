@@ -49,8 +49,8 @@ pub struct Args {
     /// own accuracy); 2 about halves the samples of objects whose rays cross thick
     /// semi-transparent matter (the glass shell: 0.08 dB against the path tracer,
     /// BENCHMARKS.md). Default: the stride each asset's bake chose within its error budget on
-    /// held-out views (the first start's objects; every voxel for other assets). The GPU
-    /// kernel marches at the same stride.
+    /// held-out views (the first start's objects, or `nephele bake --march-stride`; every
+    /// voxel otherwise). The GPU kernel marches at the same stride.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=i64::from(nephele_kernels::inolf::cubes::MAX_MARCH_STRIDE)))]
     march_stride: Option<u32>,
     /// How results travel to the composer: compact (only the pixels the object touched, half
