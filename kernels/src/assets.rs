@@ -247,24 +247,23 @@ mod tests {
         let object = crate::inolf::synthetic::synthetic_object(1.0).expect("object");
         let mut asset = object.asset().expect("asset");
         asset.save(&path).expect("save");
-        for (asked, marched) in [(None, 1), (Some(3), 3)] {
+        // The stride the device twin is handed, for a stride asked (or none).
+        let twin_is_asked_at = |asked: Option<u32>, marched: u32| {
             let options =
                 LoadOptions { accelerator: Some(Arc::new(NoTwins)), march_stride: asked, ..LoadOptions::default() };
             let refused = load_inolf(&path, &options).expect_err("no twin");
             assert!(refused.to_string().contains(&format!("no i-NOLF twin at stride {marched}")), "{refused}");
-        }
+        };
+        twin_is_asked_at(None, 1);
+        twin_is_asked_at(Some(3), 3);
         let bad = LoadOptions { march_stride: Some(0), ..LoadOptions::default() };
         assert!(load_inolf(&path, &bad).is_err());
         // The bake's choice travels in the asset; the renderer's option still overrides it.
         crate::inolf::heads::set_asset_march_stride(&mut asset, 2).expect("stride 2");
         assert!(crate::inolf::heads::set_asset_march_stride(&mut asset, 0).is_err());
         asset.save(&path).expect("save");
-        for (asked, marched) in [(None, 2), (Some(1), 1)] {
-            let options =
-                LoadOptions { accelerator: Some(Arc::new(NoTwins)), march_stride: asked, ..LoadOptions::default() };
-            let refused = load_inolf(&path, &options).expect_err("no twin");
-            assert!(refused.to_string().contains(&format!("no i-NOLF twin at stride {marched}")), "{refused}");
-        }
+        twin_is_asked_at(None, 2);
+        twin_is_asked_at(Some(1), 1);
         let cpu = load_inolf(&path, &LoadOptions::default()).expect("the CPU kernel");
         assert_eq!(cpu.kind(), "inolf");
     }
