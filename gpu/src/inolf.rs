@@ -125,8 +125,11 @@ impl GpuInolfKernel {
 
         let c = density.cubes();
         let mut a = Words::default();
-        a.f32s([RAY_NEAR, HIT_OPACITY, density.march_stride() as f32]);
-        a.u32s([0]);
+        // The hit rule (`DensityCubes::march`): the layer's opacity (2: never, for the sample
+        // of largest weight) and its gap as a distance.
+        let (layer_opacity, layer_gap_voxels) = density.hit_rule().layer();
+        let layer_gap = layer_gap_voxels * density.cubes().sample_step();
+        a.f32s([RAY_NEAR, HIT_OPACITY, density.march_stride() as f32, layer_opacity]);
         a.vec4([c.min().x, c.min().y, c.min().z, c.cell()]);
         let (voxel_words, _) = density.voxel_bits();
         a.uvec4([c.dims()[0], c.dims()[1], c.dims()[2], c.cube_res()]);
@@ -143,7 +146,7 @@ impl GpuInolfKernel {
             p_offsets,
             p_keys,
             p_features,
-            0,
+            layer_gap.to_bits(),
             0,
         ]);
 

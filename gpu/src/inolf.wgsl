@@ -18,7 +18,7 @@ struct Params {
     ray_near: f32,
     hit_opacity: f32,
     d_stride: f32,       // voxels between the march's samples (`DensityCubes::set_march_stride`)
-    pad1: u32,
+    layer_opacity: f32,  // `HitRule::LayerBehind`'s opacity; 2 (never reached): the largest weight
 
     // Density cubes.
     d_min: vec4<f32>,   // xyz min, w cell
@@ -48,7 +48,7 @@ struct Params {
     p_offsets_offset: u32,
     p_keys_offset: u32,
     p_features_offset: u32,
-    p_pad0: u32,
+    layer_gap: f32,      // `HitRule::LayerBehind`'s gap, a distance (voxels x sample step)
     p_pad1: u32,
 };
 
@@ -124,6 +124,7 @@ fn floor_clamped(x: f32, hi: i32) -> i32 {
 struct March {
     opacity: f32,
     t: f32,
+    front_t: f32, // `MarchHit::front_t`: the sample of largest weight, the depth reported
 };
 
 // `DensityCubes::march` over [t_near, infinity): DDA over coarse cells, the empty box around
@@ -131,11 +132,12 @@ struct March {
 // sample step times the march stride); returns the coarse opacity and the distance
 // of the sample of largest blending weight.
 fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
-    var hit = March(0.0, 0.0);
+    var hit = March(0.0, 0.0, 0.0);
     // `marchable_direction` (nephele-geometry): components under 1e-20 count as 0. Camera
     // rays are unit length, so its length check never refuses one here.
     let dir = select(dir_in, vec3<f32>(0.0), abs(dir_in) < vec3<f32>(1e-20));
     var max_weight = 0.0;
+    var layer_t = BIG;
     let lo = params.d_min.xyz;
     let cell_size = params.d_min.w;
     let d = vec3<i32>(params.d_dims.xyz);
@@ -270,9 +272,12 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
                     hit.t = t;
                 }
                 transmittance *= 1.0 - alpha;
+                if layer_t == BIG && 1.0 - transmittance >= params.layer_opacity {
+                    layer_t = t;
+                }
                 if transmittance < params.d_min_transmittance {
                     hit.opacity = clamp(1.0 - transmittance, 0.0, 1.0);
-                    return hit;
+                    return take_layer(hit, layer_t);
                 }
             }
         }
@@ -287,6 +292,17 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
         t_next[axis] += t_delta[axis];
     }
     hit.opacity = clamp(1.0 - transmittance, 0.0, 1.0);
+    return take_layer(hit, layer_t);
+}
+
+// `MarchHit::take_layer`: the hit point moves to the layer when it lies more than the gap
+// behind the sample of largest weight.
+fn take_layer(hit_in: March, layer_t: f32) -> March {
+    var hit = hit_in;
+    hit.front_t = hit.t;
+    if layer_t < BIG && layer_t - hit.t > params.layer_gap {
+        hit.t = layer_t;
+    }
     return hit;
 }
 
@@ -529,7 +545,7 @@ fn main(
 
     // Eq. 7.
     let c = a * (vec3<f32>(dif[0], dif[1], dif[2]) + vec3<f32>(dif[3], dif[4], dif[5]) * spec);
-    let depth = view_depth(params.camera, p);
+    let depth = view_depth(params.camera, origin + dir * m.front_t);
     if a > 0.0 && is_finite(a) && is_finite(depth) && depth > 0.0 && is_finite(c.x) && is_finite(c.y) && is_finite(c.z) {
         out[i * 6u + 0u] = max(c.x, 0.0);
         out[i * 6u + 1u] = max(c.y, 0.0);

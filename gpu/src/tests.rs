@@ -17,6 +17,7 @@ use proptest::prelude::*;
 use crate::{Agreement, DeviceChoice, GpuAccelerator, GpuContext, GpuError, GpuInolfKernel};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::assets::{LoadOptions, load_by_magic};
+use nephele_kernels::inolf::cubes::HitRule;
 use nephele_kernels::inolf::kernel::{DiffuseSource, InolfKernel};
 use nephele_kernels::inolf::model::InolfModel;
 use nephele_kernels::inolf::synthetic::{SyntheticObject, synthetic_object};
@@ -105,6 +106,28 @@ fn strided_marches_agree_with_the_cpu_kernel() {
         let changed = (0..strided.len()).filter(|&i| strided.depth[i] != every_voxel.depth[i]).count();
         assert!(changed > 20, "stride {stride}: only {changed} depths moved");
     }
+}
+
+/// With the see-through hit rule (a layer behind the largest weight) the twin takes the same
+/// layer as the CPU: they agree as closely, and the colours differ from the largest weight's
+/// where the depths (of the sample of largest weight, `MarchHit::front_t`) do not.
+#[test]
+fn see_through_hits_agree_with_the_cpu_kernel() {
+    let f = fixture();
+    let camera = Camera::look_at(33, 25, 0.9, Vec3::new(2.5, -1.5, 1.0), Vec3::ZERO, Vec3::Z).expect("camera");
+    let (largest, _) = f.gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
+    let mut cpu = f.cpu.clone();
+    // The synthetic object's layers are a few voxels apart: a gap of 2 voxels finds them.
+    cpu.set_hit_rule(HitRule::LayerBehind { opacity: 0.9, gap: 2.0 }).expect("rule");
+    let gpu = GpuInolfKernel::new(context(), &cpu).expect("gpu kernel");
+    whole_frames_agree(&cpu, &gpu);
+    let (layered, _) = gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
+    let recoloured = (0..layered.len())
+        .filter(|&i| (0..3).any(|c| (layered.color[i][c] - largest.color[i][c]).abs() > 1e-3))
+        .count();
+    let both_hit = (0..layered.len()).filter(|&i| layered.opacity[i] > 0.0 && largest.opacity[i] > 0.0);
+    let moved = both_hit.filter(|&i| layered.depth[i] != largest.depth[i]).count();
+    assert!(recoloured > 5 && moved == 0, "{recoloured} pixels recoloured, {moved} depths moved");
 }
 
 fn whole_frames_agree(cpu_kernel: &InolfKernel, gpu_kernel: &GpuInolfKernel) {

@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
+use nephele_kernels::inolf::cubes::HitRule;
 use nephele_kernels::inolf::kernel::InolfKernel;
 use nephele_kernels::ngp::{RadianceField, load_field, save_field};
 use nephele_train::dataset::{self, Dataset};
@@ -107,8 +108,32 @@ pub struct Args {
     /// The same for the heads' diffuse hash grid (baked into the diffuse cubes). 0: off.
     #[arg(long, default_value_t = BakeRecipe::default().grid_decay)]
     grid_decay: f32,
+    /// Which sample of the density march stands for a ray's hit point (where the heads'
+    /// features are read; recorded in the asset): largest-weight (NEPHELE's, right for opaque
+    /// objects), see-through (the layer where the ray's opacity reaches 0.9 when that lies 16
+    /// voxels or more behind the largest weight: what a glass object holds, not the glass
+    /// that flickers in front of it), or auto: see-through when most training rays meet such
+    /// a layer.
+    #[arg(long, default_value = "auto", value_name = "auto|largest-weight|see-through")]
+    hit_rule: HitRuleArg,
     #[arg(long, default_value_t = BakeRecipe::default().seed)]
     seed: u64,
+}
+
+/// `nephele bake --hit-rule`: `None` is auto.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HitRuleArg(Option<HitRule>);
+
+impl std::str::FromStr for HitRuleArg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim() {
+            "auto" => Ok(HitRuleArg(None)),
+            "largest-weight" => Ok(HitRuleArg(Some(HitRule::LargestWeight))),
+            "see-through" => Ok(HitRuleArg(Some(HitRule::SEE_THROUGH))),
+            _ => Err(format!("'{s}' is not a hit rule (auto, largest-weight or see-through)")),
+        }
+    }
 }
 
 impl Args {
@@ -131,6 +156,7 @@ impl Args {
             pseudo_views: self.pseudo_views,
             psh_decay: self.psh_decay,
             grid_decay: self.grid_decay,
+            hit_rule: self.hit_rule.0,
             seed: self.seed,
         }
     }
@@ -318,6 +344,10 @@ mod tests {
     #[test]
     fn march_strides_parse_or_fail_clearly() {
         assert_eq!("auto".parse(), Ok(MarchStrideArg::Auto));
+        assert_eq!("see-through".parse(), Ok(HitRuleArg(Some(HitRule::SEE_THROUGH))));
+        assert_eq!(" largest-weight".parse(), Ok(HitRuleArg(Some(HitRule::LargestWeight))));
+        assert_eq!("auto".parse(), Ok(HitRuleArg(None)));
+        assert!("max".parse::<HitRuleArg>().expect_err("max").contains("not a hit rule"));
         assert_eq!(" 3".parse(), Ok(MarchStrideArg::Fixed(3)));
         for bad in ["0", "5", "-1", "two", ""] {
             let err = bad.parse::<MarchStrideArg>().expect_err(bad);

@@ -133,8 +133,8 @@ impl BakeQuality {
     /// mix. Bump the suffix when a recipe or the asset format changes.
     pub fn folder(self) -> &'static str {
         match self {
-            BakeQuality::Standard => "standard-v5",
-            BakeQuality::Quick => "quick-v3",
+            BakeQuality::Standard => "standard-v6",
+            BakeQuality::Quick => "quick-v4",
             BakeQuality::Off => "path-traced",
         }
     }

@@ -20,6 +20,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use glam::Vec3;
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use nephele_geometry::Bounds;
@@ -280,10 +281,63 @@ pub struct DensityCubes {
     /// Voxels between the march's samples ([`DensityCubes::set_march_stride`]), as a float
     /// for the loop; 1 unless asked.
     stride: f32,
+    /// Which sample stands for a ray's hit point ([`DensityCubes::set_hit_rule`]).
+    hit_rule: HitRule,
 }
 
 /// The largest [`DensityCubes::set_march_stride`].
 pub const MAX_MARCH_STRIDE: u32 = 4;
+
+/// Which sample of a ray's march stands for its hit point: where the PSH features and the
+/// diffuse cubes are read (so the bake and the renderer must agree: an asset records its
+/// rule, `InolfMeta::hit_rule`) and the depth the composer fuses by.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HitRule {
+    /// The sample of largest blending weight (NEPHELE eq. 4): the front of an opaque
+    /// surface, however soft the field made it.
+    #[default]
+    LargestWeight,
+    /// The first sample at which the accumulated opacity reaches `opacity`, where that
+    /// sample lies more than `gap` voxels behind the sample of largest weight (a second
+    /// layer: the content of a glass shell behind the glass), else the sample of largest
+    /// weight. Through glass the weights spread over layers far apart and the largest
+    /// flips between the glass and what it holds from one ray to the next, so the features
+    /// learn speckle; the deeper layer is the same point from every view.
+    LayerBehind { opacity: f32, gap: f32 },
+}
+
+impl HitRule {
+    /// The layered rule the bakes use for see-through objects: 0.9 of the ray's opacity, 16
+    /// voxels (the built-in glass shell: 88 % of its hit rays cross such a gap, the opaque
+    /// objects 2 and 9 %; held-out PSNR in BENCHMARKS.md, 2026-12-05f).
+    pub const SEE_THROUGH: HitRule = HitRule::LayerBehind { opacity: 0.9, gap: 16.0 };
+
+    /// Checks the rule's numbers: `opacity` in `[0.5, 0.99]` (reachable before the march
+    /// stops at [`MIN_TRANSMITTANCE`]), `gap` in `[1, 4096]` voxels.
+    pub fn validate(self) -> Result<(), CubeError> {
+        match self {
+            HitRule::LargestWeight => Ok(()),
+            HitRule::LayerBehind { opacity, gap } => {
+                if !(0.5..=0.99).contains(&opacity) || !(1.0..=4096.0).contains(&gap) {
+                    return Err(CubeError::BadOptions(format!(
+                        "hit rule: layer opacity {opacity} (0.5..=0.99) or gap {gap} voxels (1..=4096)"
+                    )));
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// The opacity a layer is found at (above 1, never reached, for the largest weight) and
+    /// the gap in voxels.
+    pub fn layer(self) -> (f32, f32) {
+        match self {
+            HitRule::LargestWeight => (2.0, 0.0),
+            HitRule::LayerBehind { opacity, gap } => (opacity, gap),
+        }
+    }
+}
 
 /// Chebyshev distance (in cells, capped at 255) from every cell of `cubes`' grid to the
 /// nearest cell holding a cube: a breadth-first search from those cells over the 26
@@ -364,10 +418,19 @@ impl VoxelOccupancy {
 pub struct MarchHit {
     /// Accumulated blending weight `1 - T`, in `[0, 1]` (the coarse opacity).
     pub opacity: f32,
-    /// Distance along the (unit) direction of the sample of largest weight; 0 if none.
+    /// Distance along the (unit) direction of the hit point ([`HitRule`]; the sample of
+    /// largest weight unless the rule moved it to a layer behind); 0 if none.
     pub t: f32,
-    /// That largest weight.
+    /// The largest weight of a sample.
     pub max_weight: f32,
+    /// Whether the hit rule moved `t` from the sample of largest weight to a layer behind.
+    pub layered: bool,
+    /// Distance of the sample of largest weight (equal to `t` unless `layered`): the depth a
+    /// kernel reports, the first surface the eye meets. Reprojection between frames needs
+    /// it: with the layer's depth the glass shell's reuse of previous frames mostly stopped
+    /// paying (a live 640x480 user 24.4 frames/s, 26.1-26.7 with this depth; BENCHMARKS.md
+    /// 2026-12-05f).
+    pub front_t: f32,
     /// Sample positions visited inside stored cubes.
     pub samples: u32,
     /// Of those, the samples whose voxel holds matter: corners decoded and interpolated
@@ -417,7 +480,18 @@ impl DensityCubes {
         let lut = decode_table(cubes.sample_step());
         let occupancy = VoxelOccupancy::of(&cubes);
         let proximity = proximity_of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, proximity, stride: 1.0 })
+        Ok(DensityCubes { cubes, lut, occupancy, proximity, stride: 1.0, hit_rule: HitRule::LargestWeight })
+    }
+
+    /// Chooses which sample is a ray's hit point ([`HitRule`]; the largest weight unless asked).
+    pub fn set_hit_rule(&mut self, rule: HitRule) -> Result<(), CubeError> {
+        rule.validate()?;
+        self.hit_rule = rule;
+        Ok(())
+    }
+
+    pub fn hit_rule(&self) -> HitRule {
+        self.hit_rule
     }
 
     /// Samples the march every `stride` voxels instead of every voxel (each sample's opacity
@@ -581,7 +655,7 @@ impl DensityCubes {
         let cubes = SparseCubes { min: bounds.min, cell, dims, cube_res: o.cube_res, channels: 1, index, data };
         let occupancy = VoxelOccupancy::of(&cubes);
         let proximity = proximity_of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, proximity, stride: 1.0 })
+        Ok(DensityCubes { cubes, lut, occupancy, proximity, stride: 1.0, hit_rule: HitRule::LargestWeight })
     }
 
     /// Interpolated density (`sigma`) at `p`; 0 outside the cubes.
@@ -693,6 +767,10 @@ impl DensityCubes {
             }
         }
         let mut transmittance = 1.0f32;
+        // The layer of `HitRule::LayerBehind`: where the accumulated opacity first reaches
+        // `layer_opacity` (never, above 1, for the largest weight).
+        let (layer_opacity, layer_gap) = self.hit_rule.layer();
+        let mut layer_t = f32::INFINITY;
         let mut t_cur = t0;
         // Samples sit at t0 + (k + 1/2) step, whatever cell they fall in.
         let mut k = 0u64;
@@ -784,8 +862,12 @@ impl DensityCubes {
                         hit.t = t;
                     }
                     transmittance *= 1.0 - alpha;
+                    if layer_t == f32::INFINITY && 1.0 - transmittance >= layer_opacity {
+                        layer_t = t;
+                    }
                     if transmittance < MIN_TRANSMITTANCE {
                         hit.opacity = (1.0 - transmittance).clamp(0.0, 1.0);
+                        hit.take_layer(layer_t, layer_gap * step);
                         return hit;
                     }
                 }
@@ -801,7 +883,21 @@ impl DensityCubes {
             t_next[axis] += t_delta[axis];
         }
         hit.opacity = (1.0 - transmittance).clamp(0.0, 1.0);
+        hit.take_layer(layer_t, layer_gap * step);
         hit
+    }
+}
+
+impl MarchHit {
+    /// [`HitRule::LayerBehind`]: the hit point moves to the layer at `layer_t` when that lies
+    /// more than `gap` (a distance) behind the sample of largest weight.
+    #[inline(always)]
+    fn take_layer(&mut self, layer_t: f32, gap: f32) {
+        self.front_t = self.t;
+        if layer_t < f32::INFINITY && layer_t - self.t > gap {
+            self.t = layer_t;
+            self.layered = true;
+        }
     }
 }
 
@@ -872,6 +968,83 @@ mod tests {
     fn build(density: fn(&[Vec3], &mut [f32])) -> DensityCubes {
         let options = CubeOptions { resolution: 16, cube_res: 8, probe: 2, dilate: 1 };
         DensityCubes::build(unit_box(), &options, density, &|_| {}).expect("build")
+    }
+
+    /// A dense thin sheet (optical depth 2: opacity 0.86) across the box at x in
+    /// [-0.7, -0.65] and an opaque box [0, 0.5]^3 behind it: glass in front of content.
+    fn sheet_and_box_density(points: &[Vec3], out: &mut [f32]) {
+        for (p, o) in points.iter().zip(out) {
+            *o = if (-0.7..=-0.65).contains(&p.x) {
+                40.0
+            } else if p.cmpge(Vec3::ZERO).all() && p.cmple(Vec3::splat(0.5)).all() {
+                400.0
+            } else {
+                0.0
+            };
+        }
+    }
+
+    fn sheet_and_box_cubes() -> &'static DensityCubes {
+        static CUBES: std::sync::OnceLock<DensityCubes> = std::sync::OnceLock::new();
+        CUBES.get_or_init(|| build(sheet_and_box_density))
+    }
+
+    #[test]
+    fn the_see_through_rule_takes_the_layer_behind_the_glass() {
+        let largest = sheet_and_box_cubes().clone();
+        let mut layered = largest.clone();
+        layered.set_hit_rule(HitRule::SEE_THROUGH).expect("rule");
+        // Through the sheet into the box (sheet at t 1.3-1.35, box front at t 2).
+        let o = Vec3::new(-2.0, 0.25, 0.25);
+        let (a, b) = (largest.march(o, Vec3::X, 0.0, f32::INFINITY), layered.march(o, Vec3::X, 0.0, f32::INFINITY));
+        assert!((a.t - 1.325).abs() < 0.06 && !a.layered, "{a:?}");
+        assert!((b.t - 2.0).abs() < 0.04 && b.layered, "{b:?}");
+        assert_eq!((a.front_t, b.front_t), (a.t, a.t));
+        assert_eq!((a.opacity, a.max_weight, a.samples), (b.opacity, b.max_weight, b.samples));
+        // Through the sheet alone: the opacity never reaches 0.9, the largest weight stays.
+        let o = Vec3::new(-2.0, -0.5, 0.25);
+        let (a, b) = (largest.march(o, Vec3::X, 0.0, f32::INFINITY), layered.march(o, Vec3::X, 0.0, f32::INFINITY));
+        assert!(a.opacity > 0.7 && a.opacity < 0.9, "{a:?}");
+        assert_eq!(a, b);
+        // Into the box alone: one opaque surface, no layer behind it.
+        let o = Vec3::new(0.25, 0.25, 2.0);
+        let (a, b) = (largest.march(o, -Vec3::Z, 0.0, f32::INFINITY), layered.march(o, -Vec3::Z, 0.0, f32::INFINITY));
+        assert!(a.opacity > 0.99 && (a.t - 1.5).abs() < 0.04, "{a:?}");
+        assert_eq!(a, b);
+        // Numbers a march cannot honour are refused.
+        for bad in [
+            HitRule::LayerBehind { opacity: 0.999, gap: 16.0 },
+            HitRule::LayerBehind { opacity: f32::NAN, gap: 16.0 },
+            HitRule::LayerBehind { opacity: 0.9, gap: 0.5 },
+            HitRule::LayerBehind { opacity: 0.9, gap: f32::INFINITY },
+        ] {
+            assert!(layered.clone().set_hit_rule(bad).is_err(), "{bad:?}");
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(500))]
+
+        /// On any ray, the see-through rule changes nothing but the hit point, and moves that
+        /// only backwards, by more than the gap, to where the opacity reached the layer's.
+        #[test]
+        fn the_see_through_rule_only_moves_hits_back_past_the_gap(o in origin(), d in direction(), near in 0.0f32..0.2) {
+            let largest = sheet_and_box_cubes();
+            let mut layered = largest.clone();
+            layered.set_hit_rule(HitRule::SEE_THROUGH).expect("rule");
+            let (a, b) = (largest.march(o, d, near, f32::INFINITY), layered.march(o, d, near, f32::INFINITY));
+            check_sane(&b);
+            prop_assert_eq!((a.opacity, a.max_weight, a.samples, a.lookups), (b.opacity, b.max_weight, b.samples, b.lookups));
+            let gap = 16.0 * largest.cubes().sample_step();
+            if b.layered {
+                prop_assert!(b.t > a.t + gap && b.opacity >= 0.9, "{:?} vs {:?}", a, b);
+                prop_assert_eq!(b.front_t, a.t);
+                let before = reference_march(largest, o, d, near, b.t - 1e-3);
+                prop_assert!(before.opacity < 0.9 + 1e-3, "{:?} then {:?}", before, b);
+            } else {
+                prop_assert_eq!(a, b);
+            }
+        }
     }
 
     fn sphere_cubes() -> &'static DensityCubes {

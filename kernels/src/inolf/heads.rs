@@ -27,6 +27,11 @@ pub struct InolfMeta {
     /// views. Assets written before this field march every voxel.
     #[serde(default = "every_voxel")]
     pub march_stride: u32,
+    /// Which sample of the march is a ray's hit point: the rule the heads were trained with
+    /// ([`super::cubes::HitRule`]). Assets written before this field took the sample of
+    /// largest weight.
+    #[serde(default)]
+    pub hit_rule: super::cubes::HitRule,
 }
 
 fn every_voxel() -> u32 {
@@ -82,6 +87,7 @@ pub fn load_heads(asset: &Asset) -> Result<LoadedHeads, ModelError> {
     if !(1..=super::cubes::MAX_MARCH_STRIDE).contains(&meta.march_stride) {
         return Err(bad(format!("march stride {} (1..={})", meta.march_stride, super::cubes::MAX_MARCH_STRIDE)));
     }
+    meta.hit_rule.validate().map_err(|e| bad(e.to_string()))?;
     let [lo, hi] = meta.grid_bounds.map(Vec3::from);
     if !(lo.is_finite() && hi.is_finite() && (hi - lo).min_element() > 0.0) {
         return Err(bad("grid bounds".into()));

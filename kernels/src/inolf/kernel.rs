@@ -95,13 +95,14 @@ const CHUNK: usize = 1024;
 
 impl InolfKernel {
     /// From a loaded asset (meta, tensors and sections checked against each other), marching
-    /// at the asset's own stride ([`super::heads::InolfMeta::march_stride`]).
+    /// at the asset's own stride and with its hit rule ([`super::heads::InolfMeta`]).
     pub fn from_asset(asset: Asset) -> Result<InolfKernel, ModelError> {
         let heads = load_heads(&asset)?;
         let psh = asset.psh.ok_or_else(|| ModelError::Shape("no PSH section".into()))?;
         let source = if asset.diffuse.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
         let mut density = asset.density;
         density.set_march_stride(heads.meta.march_stride).map_err(|e| ModelError::Shape(e.to_string()))?;
+        density.set_hit_rule(heads.meta.hit_rule).map_err(|e| ModelError::Shape(e.to_string()))?;
         Ok(InolfKernel {
             density,
             hit_field: None,
@@ -146,6 +147,12 @@ impl InolfKernel {
         if let Some(field) = &mut self.hit_field {
             Arc::make_mut(field).set_simd(simd);
         }
+    }
+
+    /// Which sample is a ray's hit point ([`DensityCubes::set_hit_rule`]); an asset's heads
+    /// are only right with the rule they were trained with (`from_asset` applies it).
+    pub fn set_hit_rule(&mut self, rule: super::cubes::HitRule) -> Result<(), ModelError> {
+        self.density.set_hit_rule(rule).map_err(|e| ModelError::Shape(e.to_string()))
     }
 
     /// Samples the density march every `stride` voxels ([`DensityCubes::set_march_stride`]).
@@ -252,23 +259,27 @@ impl InolfKernel {
     ) -> Result<(u64, u64), ModelError> {
         let width = camera.width();
         let mut hits: Vec<(usize, Vec3, Vec3, f32)> = Vec::with_capacity(pixels.len());
+        // Per hit, the view depth reported: of the sample of largest weight, which a hit
+        // rule may have left for a layer behind (`MarchHit::front_t`).
+        let mut front_depths: Vec<f32> = Vec::with_capacity(pixels.len());
         let mut field_scratch = self.hit_field.as_ref().map(|_| FieldScratch::new());
         let mut network_samples = 0u64;
         for (k, &p) in pixels.iter().enumerate() {
             let ray = camera.pixel_center_ray(p % width, p / width);
-            let (opacity, t) = match (&self.hit_field, &mut field_scratch) {
+            let (opacity, t, front_t) = match (&self.hit_field, &mut field_scratch) {
                 (Some(field), Some(scratch)) => {
                     let r = field.density_hit(ray.origin, ray.direction, RAY_NEAR, scratch);
                     network_samples += u64::from(r.samples);
-                    (r.opacity, r.peak_distance)
+                    (r.opacity, r.peak_distance, r.peak_distance)
                 }
                 _ => {
                     let h = self.density.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
-                    (h.opacity, h.t)
+                    (h.opacity, h.t, h.front_t)
                 }
             };
             if opacity >= HIT_OPACITY {
                 hits.push((k, ray.at(t), ray.direction, opacity));
+                front_depths.push(camera.view_depth(ray.at(front_t)));
             }
         }
         if hits.is_empty() {
@@ -317,7 +328,7 @@ impl InolfKernel {
                 &specular[i * SPECULAR_OUT..(i + 1) * SPECULAR_OUT],
             );
             let k = h.0;
-            let d = camera.view_depth(h.1);
+            let d = front_depths[i];
             if a > 0.0 && a.is_finite() && d.is_finite() && d > 0.0 && c.iter().all(|v| v.is_finite()) {
                 color[k] = c.map(|v| v.max(0.0));
                 opacity[k] = a.clamp(0.0, 1.0);

@@ -37,6 +37,7 @@ impl SyntheticObject {
             grid_bounds: [self.model.bounds.min.to_array(), self.model.bounds.max.to_array()],
             bake: serde_json::Value::Null,
             march_stride: 1,
+            hit_rule: self.kernel.density().hit_rule(),
         };
         let specular = self.model.specular.params();
         Ok(Asset {

@@ -107,6 +107,7 @@ pub fn to_asset(
         grid_bounds: [model.bounds.min.to_array(), model.bounds.max.to_array()],
         bake,
         march_stride: 1,
+        hit_rule: cubes.hit_rule(),
     };
     let flat =
         |name: &str, data: &[f32]| Tensor { name: name.into(), shape: vec![data.len() as u32], data: data.to_vec() };

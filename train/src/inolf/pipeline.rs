@@ -13,7 +13,7 @@ use std::time::Instant;
 use nephele_geometry::Bounds;
 use nephele_geometry::camera::{Camera, CameraError};
 use nephele_kernels::inolf::asset::Asset;
-use nephele_kernels::inolf::cubes::{CubeError, CubeOptions, DensityCubes};
+use nephele_kernels::inolf::cubes::{CubeError, CubeOptions, DensityCubes, HitRule};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::model::{HeadsShape, InolfModel, ModelError};
 use nephele_kernels::inolf::psh::{PshError, PshOptions};
@@ -24,7 +24,9 @@ use serde_json::json;
 use thiserror::Error;
 
 use super::bake::{bake_diffuse_cubes, field_density_for_cubes, to_asset};
-use super::train::{TrainOptions, TrainingView, collect_hit_points, train, training_views};
+use super::train::{
+    TrainOptions, TrainingView, choose_hit_rule, collect_hit_points, layered_share, train, training_views,
+};
 use crate::dataset::Dataset;
 use crate::dataset::sample_views_on_sphere;
 use crate::ngp::train::common_focus;
@@ -70,6 +72,9 @@ pub struct BakeRecipe {
     /// ([`TrainOptions::psh_decay`], [`TrainOptions::grid_decay`]); 0: off.
     pub psh_decay: f32,
     pub grid_decay: f32,
+    /// Which sample of the march is a ray's hit point; `None`: chosen from the share of
+    /// training rays that see a second layer ([`choose_hit_rule`]).
+    pub hit_rule: Option<HitRule>,
     pub seed: u64,
 }
 
@@ -93,6 +98,7 @@ impl Default for BakeRecipe {
             pseudo_views: 0,
             psh_decay: 0.0,
             grid_decay: 0.0,
+            hit_rule: None,
             seed: 1,
         }
     }
@@ -229,7 +235,7 @@ pub fn bake(
     };
     progress.stage("density cubes", 1, "cells");
     let density = field_density_for_cubes(&field, recipe.density_threshold);
-    let cubes = {
+    let mut cubes = {
         let progress = std::sync::Mutex::new(&mut *progress);
         DensityCubes::build(bounds, &cube_options, density, &|p| {
             if let Ok(mut progress) = progress.lock() {
@@ -264,6 +270,22 @@ pub fn bake(
         ));
         views.extend(pseudo);
     }
+    let t = Instant::now();
+    let share = layered_share(&cubes, &views, 2, HitRule::SEE_THROUGH)?;
+    let rule = recipe.hit_rule.unwrap_or_else(|| choose_hit_rule(share));
+    cubes.set_hit_rule(rule)?;
+    progress.finished(format!(
+        "hit points: {} ({:.1} % of hit rays see a layer behind the largest weight{}), {:.1} s",
+        match rule {
+            HitRule::LargestWeight => "the sample of largest weight".to_string(),
+            HitRule::LayerBehind { opacity, gap } => {
+                format!("see-through, where the opacity reaches {opacity} when that lies {gap} voxels or more behind the largest weight")
+            }
+        },
+        100.0 * share,
+        if recipe.hit_rule.is_some() { ", as asked" } else { "" },
+        t.elapsed().as_secs_f64()
+    ));
     let t = Instant::now();
     let hits = collect_hit_points(&cubes, &views, 1);
     let cb = cubes.bounds();
@@ -323,7 +345,7 @@ pub fn bake(
     let description = json!({
         "dataset": source, "views": data.views.len(), "size": [w, h],
         "field_steps": if field_trained { recipe.field_steps } else { 0 }, "steps": recipe.head_steps,
-        "loss": report.smoothed_loss, "pseudo_views": recipe.pseudo_views, "psh_decay": recipe.psh_decay, "grid_decay": recipe.grid_decay, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "cube_probe": recipe.cube_probe, "psh_res": recipe.psh_res,
+        "loss": report.smoothed_loss, "pseudo_views": recipe.pseudo_views, "psh_decay": recipe.psh_decay, "grid_decay": recipe.grid_decay, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "cube_probe": recipe.cube_probe, "psh_res": recipe.psh_res, "layered_share": share,
     });
     let asset = to_asset(&model, cubes, Some(diffuse), recipe.keep_diffuse_network, description)?;
     Ok(Baked { asset, field })

@@ -16,7 +16,7 @@ use super::bake::{bake_diffuse_cubes, to_asset};
 use super::train::{TrainOptions, TrainingView, collect_hit_points, train};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::inolf::asset::Asset;
-use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes};
+use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes, HitRule};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::kernel::{DiffuseSource, HitSource, InolfKernel};
 use nephele_kernels::inolf::model::{HeadsShape, InolfModel};
@@ -182,6 +182,22 @@ fn asset_without_diffuse_network_renders_from_cubes_only() {
     hostile.meta = hostile.meta.replace("\"march_stride\":1", "\"march_stride\":9");
     let err = InolfKernel::from_asset(hostile).expect_err("stride 9");
     assert!(err.to_string().contains("march stride 9"), "{err}");
+    // The hit rule the heads were trained with travels the same way; assets older than the
+    // field take the largest weight; numbers a march cannot honour are refused.
+    assert!(asset.meta.contains("\"hit_rule\":\"largest_weight\""), "{}", asset.meta);
+    let mut see_through = asset.clone();
+    see_through.meta =
+        see_through.meta.replace("\"largest_weight\"", "{\"layer_behind\":{\"opacity\":0.9,\"gap\":16.0}}");
+    let see_through = Asset::from_bytes(&see_through.to_bytes().expect("encode")).expect("decode");
+    assert_eq!(InolfKernel::from_asset(see_through).expect("kernel").density().hit_rule(), HitRule::SEE_THROUGH);
+    let mut older = asset.clone();
+    older.meta = older.meta.replace(",\"hit_rule\":\"largest_weight\"", "");
+    assert!(!older.meta.contains("hit_rule"), "{}", older.meta);
+    assert_eq!(InolfKernel::from_asset(older).expect("kernel").density().hit_rule(), HitRule::LargestWeight);
+    let mut hostile = asset.clone();
+    hostile.meta = hostile.meta.replace("\"largest_weight\"", "{\"layer_behind\":{\"opacity\":1.5,\"gap\":16.0}}");
+    let err = InolfKernel::from_asset(hostile).expect_err("opacity 1.5");
+    assert!(err.to_string().contains("layer opacity 1.5"), "{err}");
     // No diffuse part at all is an error, not a broken kernel.
     let mut bare = to_asset(&t.model, t.cubes.clone(), None, false, serde_json::Value::Null).expect("asset");
     bare.tensors.retain(|x| x.name == "specular.mlp");
@@ -411,11 +427,19 @@ fn the_library_bake_turns_posed_images_into_an_asset() {
     let mut progress = Recorder::default();
     let baked = bake(&data, "tiny diffuse", &recipe, None, &mut progress).expect("bake");
     assert_eq!(progress.stages, ["radiance field", "density cubes", "i-NOLF heads"]);
-    assert_eq!(progress.summaries.len(), 5, "{:?}", progress.summaries);
+    assert_eq!(progress.summaries.len(), 6, "{:?}", progress.summaries);
+    // A diffuse scene is opaque: the bake keeps the largest weight and says why.
+    assert!(
+        progress.summaries[2].starts_with("hit points: the sample of largest weight ("),
+        "{:?}",
+        progress.summaries
+    );
     assert!(progress.field_handed_over);
 
     let meta: serde_json::Value = serde_json::from_str(&baked.asset.meta).expect("meta is JSON");
     assert_eq!(meta["bake"]["field_steps"], 60, "{meta}");
+    assert!(meta["bake"]["layered_share"].as_f64().is_some_and(|s| s < 0.5), "{meta}");
+    assert_eq!(meta["hit_rule"], "largest_weight", "{meta}");
     let kernel = InolfKernel::from_asset(baked.asset).expect("kernel");
     let (mut baked_db, mut empty_db) = (0.0, 0.0);
     for view in &data.views {
@@ -489,4 +513,15 @@ fn dropped_pixels_are_never_trained() {
     assert!(crate::targets::is_dropped(&views[0].target[0]));
     assert!(views[0].target[1..].iter().flatten().all(|v| (0.0..=1.0).contains(v)));
     assert!(check.verdict().is_err(), "1 in 64 is more than 1 %");
+}
+
+/// The bake's choice of hit rule on the shares measured on the built-in objects (64 views of
+/// 128x128 each): only the glass shell is see-through.
+#[test]
+fn only_mostly_layered_objects_are_baked_see_through() {
+    use super::train::choose_hit_rule;
+    assert_eq!(choose_hit_rule(0.879), HitRule::SEE_THROUGH);
+    for opaque in [0.093, 0.018, 0.0, 0.5, f64::NAN] {
+        assert_eq!(choose_hit_rule(opaque), HitRule::LargestWeight, "{opaque}");
+    }
 }
