@@ -271,7 +271,9 @@ pub fn bake(
         views.extend(pseudo);
     }
     let t = Instant::now();
-    let share = layered_share(&cubes, &views, 2, HitRule::SEE_THROUGH)?;
+    // The share is measured with the layered rule itself, then the chosen rule replaces it.
+    cubes.set_hit_rule(HitRule::SEE_THROUGH)?;
+    let share = layered_share(&cubes, &views, 2);
     let rule = recipe.hit_rule.unwrap_or_else(|| choose_hit_rule(share));
     cubes.set_hit_rule(rule)?;
     progress.finished(format!(

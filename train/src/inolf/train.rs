@@ -13,8 +13,8 @@ use rayon::prelude::*;
 use crate::dataset::Dataset;
 use crate::targets::{PixelCheck, TargetSpace, is_dropped, premultiplied_targets};
 use nephele_geometry::SplitMix64;
-use nephele_geometry::camera::{Camera, CameraError};
-use nephele_kernels::inolf::cubes::{CubeError, DensityCubes, HitRule, MarchHit};
+use nephele_geometry::camera::{Camera, CameraError, Ray};
+use nephele_kernels::inolf::cubes::{DensityCubes, HitRule, MarchHit};
 use nephele_kernels::inolf::encoding::Corners;
 use nephele_kernels::inolf::kernel::{HIT_OPACITY, RAY_NEAR};
 use nephele_kernels::inolf::model::{
@@ -52,21 +52,23 @@ pub fn training_views(dataset: &Dataset) -> Result<(Vec<TrainingView>, PixelChec
 /// Marches the centre ray of every pixel of every view (in parallel) and returns the hit
 /// points of the rays that hit: the occupancy the PSH is built from.
 pub fn collect_hit_points(cubes: &DensityCubes, views: &[TrainingView], stride: u32) -> Vec<Vec3> {
-    let stride = stride.max(1);
-    views
-        .par_iter()
-        .flat_map_iter(|v| {
-            let (w, h) = (v.camera.width(), v.camera.height());
-            (0..h)
-                .step_by(stride as usize)
-                .flat_map(move |y| (0..w).step_by(stride as usize).map(move |x| (x, y)))
-                .filter_map(|(x, y)| {
-                    let ray = v.camera.pixel_center_ray(x, y);
-                    let hit = cubes.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
-                    (hit.opacity >= HIT_OPACITY).then(|| ray.at(hit.t))
-                })
-        })
-        .collect()
+    views.par_iter().flat_map_iter(|v| hitting_rays(cubes, v, stride).map(|(ray, hit)| ray.at(hit.t))).collect()
+}
+
+/// The centre rays of every `stride`-th pixel of `view` each way that hit the cubes, with
+/// their march.
+fn hitting_rays<'a>(
+    cubes: &'a DensityCubes,
+    view: &'a TrainingView,
+    stride: u32,
+) -> impl Iterator<Item = (Ray, MarchHit)> + 'a {
+    let stride = stride.max(1) as usize;
+    let (w, h) = (view.camera.width(), view.camera.height());
+    (0..h).step_by(stride).flat_map(move |y| (0..w).step_by(stride).map(move |x| (x, y))).filter_map(|(x, y)| {
+        let ray = view.camera.pixel_center_ray(x, y);
+        let hit = cubes.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+        (hit.opacity >= HIT_OPACITY).then_some((ray, hit))
+    })
 }
 
 /// Share of hit rays above which a bake takes [`HitRule::SEE_THROUGH`] (see
@@ -74,35 +76,15 @@ pub fn collect_hit_points(cubes: &DensityCubes, views: &[TrainingView], stride: 
 pub const LAYERED_SHARE: f64 = 0.5;
 
 /// The share of the views' hitting pixel-centre rays (every `stride`-th pixel each way) whose
-/// hit point `rule` moves to a layer behind the sample of largest weight.
-pub fn layered_share(
-    cubes: &DensityCubes,
-    views: &[TrainingView],
-    stride: u32,
-    rule: HitRule,
-) -> Result<f64, CubeError> {
-    let mut layered_cubes = cubes.clone();
-    layered_cubes.set_hit_rule(rule)?;
-    let stride = stride.max(1) as usize;
+/// hit point the cubes' hit rule moves to a layer behind the sample of largest weight.
+pub fn layered_share(cubes: &DensityCubes, views: &[TrainingView], stride: u32) -> f64 {
     let (hits, layered) = views
         .par_iter()
         .map(|v| {
-            let (w, h) = (v.camera.width(), v.camera.height());
-            let mut counts = (0u64, 0u64);
-            for y in (0..h).step_by(stride) {
-                for x in (0..w).step_by(stride) {
-                    let ray = v.camera.pixel_center_ray(x, y);
-                    let hit = layered_cubes.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
-                    if hit.opacity >= HIT_OPACITY {
-                        counts.0 += 1;
-                        counts.1 += u64::from(hit.layered);
-                    }
-                }
-            }
-            counts
+            hitting_rays(cubes, v, stride).fold((0u64, 0u64), |(n, l), (_, hit)| (n + 1, l + u64::from(hit.layered)))
         })
         .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
-    Ok(if hits == 0 { 0.0 } else { layered as f64 / hits as f64 })
+    if hits == 0 { 0.0 } else { layered as f64 / hits as f64 }
 }
 
 /// The hit rule of a bake whose training rays see a second layer `share` of the time: the
