@@ -88,6 +88,50 @@ fn march_only(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]
     (1e3 * start.elapsed().as_secs_f64() / cameras.len() as f64, work)
 }
 
+/// The rays of a frame by what the march meets: they miss the grid's box, cross it without
+/// a hit, or hit.
+const RAY_CLASSES: [&str; 3] = ["miss the box", "cross the box, no hit", "hit"];
+
+/// The march alone per class of ray ([`RAY_CLASSES`]), every camera: ms per frame and the
+/// summed work of each class. The rays are sorted into classes first, untimed.
+fn march_by_class(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]) -> [(f64, MarchWork); 3] {
+    let bounds = kernel.density().bounds();
+    let class_of = |camera: &nephele_geometry::camera::Camera, p: u32| {
+        let ray = camera.pixel_center_ray(p % camera.width(), p / camera.width());
+        let inv = ray.direction.recip();
+        let (ta, tb) = ((bounds.min - ray.origin) * inv, (bounds.max - ray.origin) * inv);
+        let enters = ta.min(tb).max_element().max(RAY_NEAR) < ta.max(tb).min_element();
+        let hit = kernel.density().march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY).opacity >= HIT_OPACITY;
+        if hit { 2 } else { usize::from(enters) }
+    };
+    let mut lists: [Vec<Vec<u32>>; 3] = Default::default();
+    for camera in cameras {
+        let mut per_camera: [Vec<u32>; 3] = Default::default();
+        for p in 0..camera.width() * camera.height() {
+            per_camera[class_of(camera, p)].push(p);
+        }
+        for (all, one) in lists.iter_mut().zip(per_camera) {
+            all.push(one);
+        }
+    }
+    lists.map(|per_camera| {
+        let start = Instant::now();
+        let mut work = MarchWork::default();
+        for (camera, pixels) in cameras.iter().zip(&per_camera) {
+            let w = camera.width();
+            let counted = pixels
+                .par_iter()
+                .map(|&p| {
+                    let ray = camera.pixel_center_ray(p % w, p / w);
+                    MarchWork::of(&kernel.density().march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY))
+                })
+                .reduce(MarchWork::default, MarchWork::add);
+            work = work.add(counted);
+        }
+        (1e3 * start.elapsed().as_secs_f64() / cameras.len() as f64, work)
+    })
+}
+
 /// The share of the heads' PSH look-ups that the kernel's cell cache answers (hit points in
 /// the kernel's order: pixel order within its chunks of 1024), over every camera.
 fn psh_cell_reuse(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]) -> f64 {
@@ -164,6 +208,7 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
         let bar = progress.bar((args.rounds * kernels * cameras.len()) as u64, "rendering", "frames");
         let (mut fast_ms, mut scalar_ms, mut march_ms, mut strided_ms) = (0.0, 0.0, 0.0, 0.0);
         let (mut hits, mut work) = (0.0, MarchWork::default());
+        let mut by_class = [(0.0, MarchWork::default()); 3];
         let (mut fast_frames, mut scalar_frames, mut strided_frames) = (Vec::new(), Vec::new(), Vec::new());
         let share = 1.0 / args.rounds as f64;
         for _ in 0..args.rounds {
@@ -173,6 +218,9 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             (scalar_ms, scalar_frames) = (scalar_ms + share * t, out);
             let (t, counted) = march_only(&fast, &cameras);
             (march_ms, work) = (march_ms + share * t, counted);
+            for (sum, (t, counted)) in by_class.iter_mut().zip(march_by_class(&fast, &cameras)) {
+                *sum = (sum.0 + share * t, counted);
+            }
             if let Some(kernel) = &strided {
                 let (t, _, out) = run(kernel, &cameras, &bar)?;
                 (strided_ms, strided_frames) = (strided_ms + share * t, out);
@@ -192,6 +240,20 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             "heads: {:.1} % of the hit rays' PSH look-ups answered by the previous hit ray's lattice cell",
             100.0 * psh_cell_reuse(&fast, &cameras)
         );
+        let class_ms: f64 = by_class.iter().map(|c| c.0).sum();
+        let threads = rayon::current_num_threads() as f64;
+        for (name, (ms, w)) in RAY_CLASSES.iter().zip(&by_class) {
+            let rays = w.rays.max(1) as f64;
+            println!(
+                "  march, rays that {name}: {:.0} per frame, {:.1} % of the march's time, {:.0} ns of a thread per ray; per ray {:.2} cells, {:.2} samples, {:.2} corner decodes",
+                w.rays as f64 / cameras.len() as f64,
+                100.0 * ms / class_ms.max(1e-12),
+                ms * 1e6 * threads * cameras.len() as f64 / rays,
+                w.cells as f64 / rays,
+                w.samples as f64 / rays,
+                w.lookups as f64 / rays
+            );
+        }
         println!("{:<40} {:>10} {:>14} {:>10}", "row", "ms/frame", "rays/s", "share");
         let strided_label = format!("whole kernel, march stride {stride}");
         let mut rows = vec![
