@@ -25,6 +25,7 @@ pub mod fusion;
 pub mod latency;
 mod media;
 pub mod metrics;
+pub mod pacer;
 pub mod pose;
 pub mod retransmit;
 pub mod service;

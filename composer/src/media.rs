@@ -95,8 +95,12 @@ pub(crate) fn spawn_media_thread(
                     lock(&media).0.bitrate_changes += 1;
                 }
                 last_rebuild = Instant::now();
+                let target = settings.bitrate_bps;
                 match H264Encoder::new(settings) {
-                    Ok(e) => encoder = Some(e),
+                    Ok(e) => {
+                        encoder = Some(e);
+                        viewer.set_pacing_target(target);
+                    }
                     Err(e) => {
                         tracing::warn!(session, "encoder for {w}x{h}: {e}");
                         lock(&media).0.encode_errors += 1;

@@ -31,6 +31,8 @@ pub struct ComposerMetrics {
     pub(crate) peer_connections: Gauge,
     pub(crate) nack_resent: Counter,
     pub(crate) nack_refused: Counter,
+    pub(crate) packets_paced: Counter,
+    pub(crate) pacing_wait_ms: Counter,
     pub(crate) master_linked: Gauge,
     pub(crate) results_after_release: Counter,
     pub(crate) held_tasks: Gauge,
@@ -74,6 +76,12 @@ impl ComposerMetrics {
             "nack_refused",
             "NACKed packets not resent: older than 400 ms, resent already, unknown, or past the budget (a quarter of the stream)",
         );
+        let packets_paced = counter(
+            &mut registry,
+            "packets_paced",
+            "Video packets the pacer held back (a frame larger than 40 ms at 2.5 times the target bitrate)",
+        );
+        let pacing_wait_ms = counter(&mut registry, "pacing_wait_ms", "Summed wait of the paced packets, milliseconds");
         let master_linked = register(
             &mut registry,
             "master_linked",
@@ -113,6 +121,8 @@ impl ComposerMetrics {
             peer_connections,
             nack_resent,
             nack_refused,
+            packets_paced,
+            pacing_wait_ms,
             master_linked,
             results_after_release,
             held_tasks,

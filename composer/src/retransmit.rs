@@ -15,7 +15,9 @@
 //!   bytes first sent over it, plus one packet (so a lone loss on a slow stream is repaired).
 //!
 //! The bookkeeping is [`Retransmissions`] (pure, times given); the interceptor is its thin
-//! shell in webrtc-rs's interceptor chain, in place of the stock responder.
+//! shell in webrtc-rs's interceptor chain, in place of the stock responder. Its writer of
+//! each outgoing stream also paces the first sending of every packet ([`crate::pacer`]);
+//! resends go out at once.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -26,6 +28,8 @@ use webrtc::interceptor::stream_info::StreamInfo;
 use webrtc::interceptor::{Attributes, Interceptor, InterceptorBuilder, RTCPReader, RTCPWriter, RTPReader, RTPWriter};
 use webrtc::rtcp::transport_feedbacks::transport_layer_nack::TransportLayerNack;
 use webrtc::rtp::packet::Packet;
+
+use crate::pacer::{Pacer, Pacing};
 
 /// Packets older than this are not resent.
 pub const MAX_AGE: Duration = Duration::from_millis(400);
@@ -140,28 +144,48 @@ pub struct RetransmitCounters {
 }
 
 /// Builds a [`BoundedResponder`] per peer connection (registered in place of webrtc-rs's
-/// responder), all counting into one [`RetransmitCounters`].
+/// responder), all counting into one [`RetransmitCounters`] and, when pacing is on, pacing
+/// at the rates of one [`Pacing`].
 #[derive(Debug, Default)]
 pub struct BoundedResponderBuilder {
     pub counters: Arc<RetransmitCounters>,
+    pub pacing: Option<Arc<Pacing>>,
 }
 
 impl InterceptorBuilder for BoundedResponderBuilder {
     fn build(&self, _id: &str) -> Result<Arc<dyn Interceptor + Send + Sync>> {
-        Ok(Arc::new(BoundedResponder { streams: Arc::default(), counters: Arc::clone(&self.counters) }))
+        Ok(Arc::new(BoundedResponder {
+            streams: Arc::default(),
+            counters: Arc::clone(&self.counters),
+            pacing: self.pacing.clone(),
+        }))
     }
 }
 
-/// One outgoing stream: its bookkeeping and the writer resends go to.
+/// One outgoing stream: its bookkeeping, its pacer and the writer resends go to.
 struct Stream {
     ssrc: u32,
     book: Mutex<Retransmissions>,
+    /// The pacer, its rate cell (bits per second, 0: none) and the counters; `None`:
+    /// pacing is off.
+    pacer: Option<(Mutex<Pacer>, Arc<AtomicU64>, Arc<Pacing>)>,
+    /// The pacer's clock (tokio's: the same as the system's, and paused in tests).
+    epoch: tokio::time::Instant,
     next: Arc<dyn RTPWriter + Send + Sync>,
 }
 
 #[async_trait::async_trait]
 impl RTPWriter for Stream {
     async fn write(&self, packet: &Packet, attributes: &Attributes) -> Result<usize> {
+        if let Some((pacer, rate, pacing)) = &self.pacer {
+            let bps = rate.load(Ordering::Relaxed) as f64;
+            let now = self.epoch.elapsed().as_secs_f64();
+            let wait = pacer.lock().unwrap_or_else(|p| p.into_inner()).reserve(size(packet), bps, now);
+            if wait > 0.0 {
+                pacing.count_wait(wait);
+                tokio::time::sleep(Duration::from_secs_f64(wait)).await;
+            }
+        }
         self.book.lock().unwrap_or_else(|p| p.into_inner()).on_sent(packet, Instant::now());
         self.next.write(packet, attributes).await
     }
@@ -171,6 +195,7 @@ impl RTPWriter for Stream {
 pub struct BoundedResponder {
     streams: Arc<Mutex<Vec<Arc<Stream>>>>,
     counters: Arc<RetransmitCounters>,
+    pacing: Option<Arc<Pacing>>,
 }
 
 impl std::fmt::Debug for BoundedResponder {
@@ -251,17 +276,30 @@ impl Interceptor for BoundedResponder {
         info: &StreamInfo,
         writer: Arc<dyn RTPWriter + Send + Sync>,
     ) -> Arc<dyn RTPWriter + Send + Sync> {
-        // Only streams that negotiated plain NACK feedback.
-        if !info.rtcp_feedback.iter().any(|fb| fb.typ == "nack" && fb.parameter.is_empty()) {
+        // NACKs are answered only for streams that negotiated plain NACK feedback.
+        let nack = info.rtcp_feedback.iter().any(|fb| fb.typ == "nack" && fb.parameter.is_empty());
+        if !nack && self.pacing.is_none() {
             return writer;
         }
-        let stream = Arc::new(Stream { ssrc: info.ssrc, book: Mutex::default(), next: writer });
-        self.streams.lock().unwrap_or_else(|p| p.into_inner()).push(Arc::clone(&stream));
+        let pacer = self.pacing.as_ref().map(|p| (Mutex::default(), p.handle(info.ssrc), Arc::clone(p)));
+        let stream = Arc::new(Stream {
+            ssrc: info.ssrc,
+            book: Mutex::default(),
+            pacer,
+            epoch: tokio::time::Instant::now(),
+            next: writer,
+        });
+        if nack {
+            self.streams.lock().unwrap_or_else(|p| p.into_inner()).push(Arc::clone(&stream));
+        }
         stream
     }
 
     async fn unbind_local_stream(&self, info: &StreamInfo) {
         self.streams.lock().unwrap_or_else(|p| p.into_inner()).retain(|s| s.ssrc != info.ssrc);
+        if let Some(pacing) = &self.pacing {
+            pacing.forget(info.ssrc);
+        }
     }
 
     async fn bind_remote_stream(
@@ -330,5 +368,62 @@ mod tests {
         let limit = sent_bytes as f64 * BUDGET_SHARE + seconds * ALLOWANCE as f64;
         assert!(resent_bytes as f64 <= limit + 1000.0, "{resent_bytes} bytes resent against {sent_bytes} sent");
         assert!(resent_bytes > 0);
+    }
+
+    /// Records when each packet reached the next writer (tokio's clock).
+    #[derive(Default)]
+    struct Recorder {
+        sent: Mutex<Vec<(u16, tokio::time::Instant)>>,
+    }
+
+    #[async_trait::async_trait]
+    impl RTPWriter for Recorder {
+        async fn write(&self, packet: &Packet, _attributes: &Attributes) -> Result<usize> {
+            self.sent
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .push((packet.header.sequence_number, tokio::time::Instant::now()));
+            Ok(size(packet))
+        }
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn the_writer_paces_at_the_rate_its_session_sets() {
+        let pacing = Arc::new(Pacing::default());
+        let builder = BoundedResponderBuilder { counters: Arc::default(), pacing: Some(Arc::clone(&pacing)) };
+        let responder = builder.build("").expect("build");
+        let recorder = Arc::new(Recorder::default());
+        let nack = webrtc::interceptor::stream_info::RTCPFeedback { typ: "nack".into(), parameter: String::new() };
+        let info = StreamInfo { ssrc: 42, rtcp_feedback: vec![nack], ..Default::default() };
+        let writer =
+            responder.bind_local_stream(&info, Arc::clone(&recorder) as Arc<dyn RTPWriter + Send + Sync>).await;
+        let attributes = Attributes::new();
+        // No rate set yet: nothing waits.
+        let start = tokio::time::Instant::now();
+        for seq in 0..30 {
+            writer.write(&packet(seq, 1200), &attributes).await.expect("write");
+        }
+        assert_eq!(start.elapsed(), Duration::ZERO);
+        // The session sets 1 Mbit/s; after a pause the 40-ms burst (5,000 bytes) leaves at
+        // once, then one 1,200-byte packet every 9.6 ms.
+        pacing.handle(42).store(1_000_000, Ordering::Relaxed);
+        tokio::time::advance(Duration::from_secs(1)).await;
+        let start = tokio::time::Instant::now();
+        for seq in 100..120 {
+            writer.write(&packet(seq, 1200), &attributes).await.expect("write");
+        }
+        let sent = recorder.sent.lock().unwrap_or_else(|p| p.into_inner()).clone();
+        let paced: Vec<f64> = sent[30..].iter().map(|(_, at)| (*at - start).as_secs_f64()).collect();
+        assert_eq!(sent.len(), 50);
+        assert!(paced[..5].iter().all(|&t| t == 0.0), "{paced:?}");
+        for (k, &t) in paced.iter().enumerate().skip(5) {
+            // Tokio's timer has millisecond steps: within one of the schedule.
+            let due = k as f64 * 0.0096 - 0.04;
+            assert!(t >= due - 1e-9 && t <= due + 0.0011, "packet {k} at {t} s, due {due}");
+        }
+        assert_eq!(pacing.packets_delayed.load(Ordering::Relaxed), 15);
+        // The stream's end drops its rate.
+        responder.unbind_local_stream(&info).await;
+        assert!(pacing.is_empty());
     }
 }

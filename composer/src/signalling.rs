@@ -43,6 +43,10 @@ async fn metrics(State(shared): State<Arc<Shared>>, headers: HeaderMap) -> Respo
     let m = &shared.metrics;
     m.nack_resent.inc_by(resent.saturating_sub(m.nack_resent.get()));
     m.nack_refused.inc_by(refused.saturating_sub(m.nack_refused.get()));
+    let (paced, wait) = shared.rtc.paced();
+    m.packets_paced.inc_by(paced.saturating_sub(m.packets_paced.get()));
+    let wait_ms = wait.as_millis() as u64;
+    m.pacing_wait_ms.inc_by(wait_ms.saturating_sub(m.pacing_wait_ms.get()));
     nephele_telemetry::metrics_response(&shared.metrics.registry)
 }
 

@@ -20,7 +20,7 @@
 //! composer learns the browser's address as a peer-reflexive candidate. With
 //! [`MdnsMode::Query`] the composer also resolves `.local` names on the local link.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, Weak};
 use std::time::{Duration, Instant};
 
@@ -56,6 +56,7 @@ use webrtc::track::track_local::track_local_static_sample::TrackLocalStaticSampl
 
 use crate::encode::EncodedFrame;
 use crate::fusion::SessionId;
+use crate::pacer::{PACING_FACTOR, Pacing};
 use crate::retransmit::{BoundedResponderBuilder, RetransmitCounters};
 
 /// The H.264 format we send and negotiate: constrained baseline level 3.1, packetization
@@ -143,6 +144,11 @@ pub struct RtcConfig {
     /// A viewer silent this long (no ICE traffic) has failed: its session ends. The
     /// connection counts as "disconnected" after a third of it.
     pub failed_timeout: Duration,
+    /// Pace the video's packets at [`crate::pacer::PACING_FACTOR`] times the encoder's
+    /// target bitrate ([`crate::pacer`]); off (the default): each frame leaves as one burst.
+    /// Off by default because, paced at a multiple of our loss-based target, the stream of
+    /// the lossy-link test fared worse (BENCHMARKS.md, 2026-12-05g).
+    pub pacing: bool,
 }
 
 impl Default for RtcConfig {
@@ -155,6 +161,7 @@ impl Default for RtcConfig {
             mdns: MdnsMode::Off,
             gather_timeout: Duration::from_secs(5),
             failed_timeout: Duration::from_secs(10),
+            pacing: false,
         }
     }
 }
@@ -197,17 +204,22 @@ pub fn h264_codec() -> RTCRtpCodecParameters {
 
 /// Builds a webrtc-rs API object for H.264 video and data channels under `config`.
 pub fn build_api(config: &RtcConfig) -> Result<API, RtcError> {
-    build_api_counting(config, Arc::default())
+    build_api_counting(config, Arc::default(), Arc::default())
 }
 
-/// [`build_api`], its NACK responder counting into `retransmits`.
-fn build_api_counting(config: &RtcConfig, retransmits: Arc<RetransmitCounters>) -> Result<API, RtcError> {
+/// [`build_api`], its NACK responder counting into `retransmits` and pacing at the rates of
+/// `pacing` when the configuration asks for pacing.
+fn build_api_counting(
+    config: &RtcConfig,
+    retransmits: Arc<RetransmitCounters>,
+    pacing: Arc<Pacing>,
+) -> Result<API, RtcError> {
     let mut media = MediaEngine::default();
     media.register_codec(h264_codec(), RTPCodecType::Video)?;
     // webrtc-rs's default interceptors but for its NACK responder, replaced by one with a
     // budget (`retransmit`); the NACK generator is for received media, which has none here.
     let mut registry = Registry::new();
-    registry.add(Box::new(BoundedResponderBuilder { counters: retransmits }));
+    registry.add(Box::new(BoundedResponderBuilder { counters: retransmits, pacing: config.pacing.then_some(pacing) }));
     let registry = configure_rtcp_reports(registry);
     let registry = configure_twcc_receiver_only(registry, &mut media)?;
     let mut settings = SettingEngine::default();
@@ -242,6 +254,8 @@ pub struct RtcStack {
     made: StdMutex<Vec<Weak<RTCPeerConnection>>>,
     /// NACKed packets resent and refused by every connection's responder.
     retransmits: Arc<RetransmitCounters>,
+    /// The pacing rates of the streams, and what pacing did.
+    pacing: Arc<Pacing>,
 }
 
 impl std::fmt::Debug for RtcStack {
@@ -253,12 +267,22 @@ impl std::fmt::Debug for RtcStack {
 impl RtcStack {
     pub fn new(config: RtcConfig) -> Result<Self, RtcError> {
         let retransmits = Arc::<RetransmitCounters>::default();
+        let pacing = Arc::<Pacing>::default();
         Ok(RtcStack {
-            api: build_api_counting(&config, Arc::clone(&retransmits))?,
+            api: build_api_counting(&config, Arc::clone(&retransmits), Arc::clone(&pacing))?,
             config,
             made: StdMutex::default(),
             retransmits,
+            pacing,
         })
+    }
+
+    /// Packets the pacer held back so far, over every connection, and their summed wait.
+    pub fn paced(&self) -> (u64, Duration) {
+        (
+            self.pacing.packets_delayed.load(Ordering::Relaxed),
+            Duration::from_micros(self.pacing.delay_us.load(Ordering::Relaxed)),
+        )
     }
 
     /// NACKed packets resent and refused so far, over every connection.
@@ -330,6 +354,16 @@ impl RtcStack {
             format!("nephele-{session}"),
         ));
         let sender = pc.add_track(Arc::clone(&track) as Arc<dyn TrackLocal + Send + Sync>).await?;
+        // The stream's pacing rate, shared with its writer in the interceptor chain by SSRC
+        // (the sender has chosen it already; the writer binds once negotiation ends).
+        let pacing = match (self.config.pacing, sender.get_parameters().await.encodings.first()) {
+            (true, Some(encoding)) => Some(PacingHandle {
+                ssrc: encoding.ssrc,
+                rate: self.pacing.handle(encoding.ssrc),
+                pacing: Arc::clone(&self.pacing),
+            }),
+            _ => None,
+        };
 
         // RTCP from the viewer: picture loss / full intra request → keyframe; receiver
         // reports' loss and REMB estimates → the media thread's rate controller.
@@ -426,7 +460,7 @@ impl RtcStack {
         if !answer_sends_h264(&local.sdp) {
             return Err(RtcError::NoH264);
         }
-        Ok((local.sdp, Viewer { session, pc: Arc::clone(pc), track, channel, connected, feedback }))
+        Ok((local.sdp, Viewer { session, pc: Arc::clone(pc), track, channel, connected, feedback, pacing }))
     }
 }
 
@@ -480,6 +514,21 @@ pub struct Viewer {
     connected: Arc<AtomicBool>,
     /// The receiver's rate feedback since the media thread last took it.
     feedback: Arc<StdMutex<Vec<(Feedback, Instant)>>>,
+    /// The video stream's pacing rate; `None`: not paced.
+    pacing: Option<PacingHandle>,
+}
+
+/// A viewer's end of its stream's pacing rate.
+struct PacingHandle {
+    ssrc: u32,
+    rate: Arc<AtomicU64>,
+    pacing: Arc<Pacing>,
+}
+
+impl Drop for PacingHandle {
+    fn drop(&mut self) {
+        self.pacing.forget(self.ssrc);
+    }
 }
 
 /// Most rate reports held for the media thread.
@@ -501,6 +550,14 @@ impl Viewer {
 
     pub fn is_connected(&self) -> bool {
         self.connected.load(Ordering::SeqCst)
+    }
+
+    /// Paces the video at [`PACING_FACTOR`] times `target_bps`, the encoder's target bitrate
+    /// (nothing when pacing is off).
+    pub fn set_pacing_target(&self, target_bps: u32) {
+        if let Some(p) = &self.pacing {
+            p.rate.store((PACING_FACTOR * f64::from(target_bps)) as u64, Ordering::Relaxed);
+        }
     }
 
     /// The receiver's rate feedback (receiver reports' loss, REMB) since the last call.
