@@ -11,8 +11,7 @@
 //! never fills the queue. The burst allowance lets an ordinary frame (a few packets) leave at
 //! once, so pacing costs latency only on frames larger than about 40 ms of the pacing rate.
 //!
-//! Off unless asked (`RtcConfig::pacing`, `nephele composer --pacing`): paced at a multiple of
-//! our loss-based target, the lossy-link test's stream fared worse (docs/security.md).
+//! On unless turned off (`RtcConfig::pacing`, `nephele composer --no-pacing`).
 //!
 //! Pure: [`Pacer::reserve`] takes the packet's size, the rate and the time on the caller's
 //! clock and answers how long the packet must wait; [`Pacing`] carries the rate from a

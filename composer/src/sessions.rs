@@ -157,7 +157,11 @@ pub(crate) async fn event_loop(shared: Arc<Shared>, mut events: mpsc::Receiver<V
                 if let Ok(Control::Ping { t }) = control
                     && let Ok(reply) = serde_json::to_string(&Control::Pong { t })
                 {
-                    let _ = viewer.send_text(reply).await;
+                    // Sent apart: on a congested association the send waits, and this loop
+                    // also forwards every viewer's poses.
+                    tokio::spawn(async move {
+                        let _ = viewer.send_text(reply).await;
+                    });
                 }
             }
         }

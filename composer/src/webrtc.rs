@@ -145,9 +145,7 @@ pub struct RtcConfig {
     /// connection counts as "disconnected" after a third of it.
     pub failed_timeout: Duration,
     /// Pace the video's packets at [`crate::pacer::PACING_FACTOR`] times the encoder's
-    /// target bitrate ([`crate::pacer`]); off (the default): each frame leaves as one burst.
-    /// Off by default because, paced at a multiple of our loss-based target, the stream of
-    /// the lossy-link test fared worse (BENCHMARKS.md, 2026-12-05g).
+    /// target bitrate ([`crate::pacer`]; the default); off: each frame leaves as one burst.
     pub pacing: bool,
 }
 
@@ -161,7 +159,7 @@ impl Default for RtcConfig {
             mdns: MdnsMode::Off,
             gather_timeout: Duration::from_secs(5),
             failed_timeout: Duration::from_secs(10),
-            pacing: false,
+            pacing: true,
         }
     }
 }

@@ -48,13 +48,12 @@ pub struct Args {
     /// Do not offer loopback (127.0.0.1) host candidates.
     #[arg(long)]
     no_loopback: bool,
-    /// Pace the video: its packets leave no faster than 2.5 times the encoder's target
-    /// bitrate after a burst of 40 ms at that rate (WebRTC's pacer), so that a keyframe
-    /// large for its rate does not overflow a short router queue on the way. Off by default:
-    /// paced at a multiple of the loss-based target, a stream through a lossy, narrowing
-    /// link fared worse (BENCHMARKS.md).
+    /// Send each video frame as one burst. By default its packets leave no faster than 2.5
+    /// times the encoder's target bitrate after a burst of 40 ms at that rate (WebRTC's
+    /// pacer), so that a keyframe large for its rate does not overflow a short router queue
+    /// on the way; ordinary frames fit the burst and leave at once.
     #[arg(long)]
-    pacing: bool,
+    no_pacing: bool,
     /// Resolve browsers' mDNS `.local` host candidates by multicast DNS (off: the browser is
     /// found as a peer-reflexive candidate instead, which works across hosts too).
     #[arg(long)]
@@ -116,7 +115,7 @@ pub fn run(args: Args) -> Result<()> {
             nat_1to1_ips: args.public_ips.into_iter().filter(|ip| !ip.trim().is_empty()).collect(),
             udp_ports: args.udp_ports,
             mdns: if args.mdns { MdnsMode::Query } else { MdnsMode::Off },
-            pacing: args.pacing,
+            pacing: !args.no_pacing,
             ..RtcConfig::default()
         },
         source: match args.source {

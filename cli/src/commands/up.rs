@@ -87,9 +87,10 @@ pub struct Args {
     /// Render every view of a headset or a quilt in full (the master's `--no-derived-views`).
     #[arg(long)]
     no_derived_views: bool,
-    /// Pace the video's packets (the composer's `--pacing`; off by default, BENCHMARKS.md).
+    /// Send each video frame as one burst instead of pacing it (the composer's
+    /// `--no-pacing`).
     #[arg(long)]
-    pacing: bool,
+    no_pacing: bool,
     /// Frames a worker may take from its previous full render of a view (the master's
     /// `--previous-frames`; 0: every frame in full).
     #[arg(long, value_name = "N")]
@@ -309,8 +310,8 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     if let Some(file) = args.operator_token.file() {
         composer.arg("--operator-token-file").arg(file);
     }
-    if args.pacing {
-        composer.arg("--pacing");
+    if args.no_pacing {
+        composer.arg("--no-pacing");
     }
     supervisor.spawn("composer", composer, Restart::OnExit)?;
     for i in 0..args.workers {
