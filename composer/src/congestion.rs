@@ -8,7 +8,15 @@
 //! * loss below 2 %: `rate *= 1.08` (at most once a second: GCC's 8 % per second);
 //! * in between: hold;
 //! * a REMB caps the rate at the estimate (it expires after 5 s without a new one);
-//! * always within `[floor, ceiling]`.
+//! * always within `[floor, ceiling]`;
+//! * below the floor the frame rate falls: loss above 10 % while the rate sits at its floor
+//!   doubles a frame divisor (the stream sends one frame in 2, 4 or 8; at most once a
+//!   second), so that a link narrower than the floor is not flooded (its queue would drop
+//!   the data channel's packets too); loss below 2 % halves it again (at most once a
+//!   second) before the rate may grow.
+//!
+//! The divisor comes first on the way up because the picture of a frame at the floor
+//! rate is already the coarsest worth sending; fewer such frames keep it.
 //!
 //! Pure: the caller feeds [`Feedback`] with times in seconds and reads [`RateController::target_bps`].
 
@@ -29,6 +37,10 @@ const INCREASE: f64 = 1.08;
 const INCREASE_EVERY_S: f64 = 1.0;
 const DECREASE_EVERY_S: f64 = 0.3;
 const ESTIMATE_LIFETIME_S: f64 = 5.0;
+/// The largest frame divisor: one frame in 8 (a 30-fps stream at about 4 fps).
+pub const MAX_FRAME_DIVISOR: u32 = 8;
+const DIVISOR_UP_EVERY_S: f64 = 1.0;
+const DIVISOR_DOWN_EVERY_S: f64 = 1.0;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct RateController {
@@ -39,6 +51,9 @@ pub struct RateController {
     estimate: Option<(f64, f64)>,
     last_increase: f64,
     last_decrease: f64,
+    /// One frame in `divisor` is sent (1: all).
+    divisor: u32,
+    last_divisor_change: f64,
 }
 
 impl RateController {
@@ -53,6 +68,8 @@ impl RateController {
             estimate: None,
             last_increase: f64::NEG_INFINITY,
             last_decrease: f64::NEG_INFINITY,
+            divisor: 1,
+            last_divisor_change: f64::NEG_INFINITY,
         }
     }
 
@@ -61,6 +78,20 @@ impl RateController {
     pub fn on_feedback(&mut self, feedback: Feedback, now: f64) {
         match feedback {
             Feedback::Loss(loss) if (0.0..=1.0).contains(&loss) => {
+                let since_divisor = now - self.last_divisor_change;
+                if loss > HIGH_LOSS && self.rate <= self.floor {
+                    if since_divisor >= DIVISOR_UP_EVERY_S && self.divisor < MAX_FRAME_DIVISOR {
+                        self.divisor *= 2;
+                        self.last_divisor_change = now;
+                    }
+                } else if loss < LOW_LOSS && self.divisor > 1 {
+                    if since_divisor >= DIVISOR_DOWN_EVERY_S {
+                        self.divisor /= 2;
+                        self.last_divisor_change = now;
+                    }
+                    // The rate grows only once every frame is sent again.
+                    return;
+                }
                 if loss > HIGH_LOSS {
                     if now - self.last_decrease >= DECREASE_EVERY_S {
                         self.rate *= 1.0 - loss / 2.0;
@@ -75,6 +106,11 @@ impl RateController {
             Feedback::Estimate(bps) if bps.is_finite() && bps > 0.0 => self.estimate = Some((bps, now)),
             _ => {}
         }
+    }
+
+    /// The stream sends one frame in this many (1: every frame).
+    pub fn frame_divisor(&self) -> u32 {
+        self.divisor
     }
 
     /// The bitrate to encode at, at `now`.
@@ -120,6 +156,39 @@ mod tests {
             c.on_feedback(Feedback::Loss(0.0), 300.0 + f64::from(i));
         }
         assert_eq!(c.target_bps(500.0), 4e6);
+    }
+
+    #[test]
+    fn below_the_floor_the_frame_rate_falls_and_comes_back_first() {
+        let mut c = RateController::new(1e6, 0.5e6, 1e6);
+        // Heavy loss: the rate falls to the floor first; the divisor stays 1 meanwhile.
+        let mut t = 0.0;
+        while c.target_bps(t) > 0.5e6 {
+            c.on_feedback(Feedback::Loss(0.5), t);
+            assert_eq!(c.frame_divisor(), 1);
+            t += 0.5;
+        }
+        // At the floor, still losing: 2, 4, 8, at most once a second, never beyond 8.
+        c.on_feedback(Feedback::Loss(0.5), t + 0.5);
+        assert_eq!(c.frame_divisor(), 2);
+        c.on_feedback(Feedback::Loss(0.5), t + 1.0);
+        assert_eq!(c.frame_divisor(), 2, "not twice within a second");
+        for k in 2..10 {
+            c.on_feedback(Feedback::Loss(0.5), t + f64::from(k));
+        }
+        assert_eq!(c.frame_divisor(), MAX_FRAME_DIVISOR);
+        // Moderate loss holds; clean reports halve it once a second at most, and the rate
+        // stays at the floor until every frame is sent again.
+        t += 20.0;
+        c.on_feedback(Feedback::Loss(0.05), t);
+        assert_eq!(c.frame_divisor(), 8);
+        for (k, want) in [(0.0, 4), (0.5, 4), (1.0, 2), (2.0, 1)] {
+            c.on_feedback(Feedback::Loss(0.0), t + k);
+            assert_eq!(c.frame_divisor(), want, "at +{k} s");
+            assert_eq!(c.target_bps(t + k), 0.5e6);
+        }
+        c.on_feedback(Feedback::Loss(0.0), t + 3.0);
+        assert!(c.target_bps(t + 3.0) > 0.5e6, "then the rate grows");
     }
 
     #[test]

@@ -43,7 +43,16 @@ pub(crate) fn spawn_media_thread(
         // at most every two seconds.
         let mut rate: Option<RateController> = None;
         let mut last_rebuild = Instant::now();
+        let mut frame_index = 0u64;
         while let Ok(frame) = frames.recv() {
+            // Below the floor bitrate the frame rate falls: one frame in `divisor`.
+            frame_index += 1;
+            let divisor = rate.as_ref().map_or(1, RateController::frame_divisor);
+            if divisor > 1 && !frame_index.is_multiple_of(u64::from(divisor)) {
+                lock(&media).0.frames_skipped_for_rate += 1;
+                shared.metrics.frames_skipped_for_rate.inc();
+                continue;
+            }
             let (w, h) = (frame.layout.width(), frame.layout.height());
             let t0 = Instant::now();
             let picture = match yuv.take() {
@@ -73,8 +82,17 @@ pub(crate) fn spawn_media_thread(
             let feedback = viewer.take_feedback();
             let mut retarget = None;
             if let (Some(controller), Some(enc)) = (rate.as_mut(), encoder.as_ref()) {
+                let divisor = controller.frame_divisor();
                 for (report, at) in feedback {
                     controller.on_feedback(report, at.saturating_duration_since(started).as_secs_f64());
+                }
+                if controller.frame_divisor() != divisor {
+                    tracing::info!(
+                        session,
+                        from = divisor,
+                        to = controller.frame_divisor(),
+                        "the stream sends one frame in this many (below its floor bitrate)"
+                    );
                 }
                 let target = controller.target_bps(started.elapsed().as_secs_f64());
                 let current = f64::from(enc.settings().bitrate_bps);

@@ -32,6 +32,7 @@ pub struct ComposerMetrics {
     pub(crate) nack_resent: Counter,
     pub(crate) nack_refused: Counter,
     pub(crate) packets_paced: Counter,
+    pub(crate) frames_skipped_for_rate: Counter,
     pub(crate) pacing_wait_ms: Counter,
     pub(crate) master_linked: Gauge,
     pub(crate) results_after_release: Counter,
@@ -75,6 +76,11 @@ impl ComposerMetrics {
             &mut registry,
             "nack_refused",
             "NACKed packets not resent: older than 400 ms, resent already, unknown, or past the budget (a quarter of the stream)",
+        );
+        let frames_skipped_for_rate = counter(
+            &mut registry,
+            "frames_skipped_for_rate",
+            "Frames left out because the stream sends one in several below its floor bitrate (a link narrower than the floor)",
         );
         let packets_paced = counter(
             &mut registry,
@@ -122,6 +128,7 @@ impl ComposerMetrics {
             nack_resent,
             nack_refused,
             packets_paced,
+            frames_skipped_for_rate,
             pacing_wait_ms,
             master_linked,
             results_after_release,

@@ -24,6 +24,9 @@ pub struct MediaCounters {
     pub frames_dropped_busy: u64,
     /// Times the receiver's feedback moved the stream's bitrate (the encoder re-created).
     pub bitrate_changes: u64,
+    /// Fused frames left out because the stream sends one frame in several at its floor
+    /// bitrate ([`crate::congestion::RateController::frame_divisor`]).
+    pub frames_skipped_for_rate: u64,
     pub encode_errors: u64,
     pub send_errors: u64,
     pub keyframes_requested: u64,
