@@ -92,9 +92,11 @@ fn march_only(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]
 /// a hit, or hit.
 const RAY_CLASSES: [&str; 3] = ["miss the box", "cross the box, no hit", "hit"];
 
-/// The march alone per class of ray ([`RAY_CLASSES`]), every camera: ms per frame and the
-/// summed work of each class. The rays are sorted into classes first, untimed.
-fn march_by_class(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]) -> [(f64, MarchWork); 3] {
+/// Every camera's pixels sorted into [`RAY_CLASSES`] (untimed; once per asset): per class,
+/// per camera, the pixels.
+type ClassPixels = [Vec<Vec<u32>>; 3];
+
+fn classify_rays(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]) -> ClassPixels {
     let bounds = kernel.density().bounds();
     let class_of = |camera: &nephele_geometry::camera::Camera, p: u32| {
         let ray = camera.pixel_center_ray(p % camera.width(), p / camera.width());
@@ -114,10 +116,21 @@ fn march_by_class(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Cam
             all.push(one);
         }
     }
-    lists.map(|per_camera| {
+    lists
+}
+
+/// The march alone per class of ray ([`classify_rays`]), every camera: ms per frame and the
+/// summed work of each class.
+fn march_by_class(
+    kernel: &InolfKernel,
+    cameras: &[nephele_geometry::camera::Camera],
+    classes: &ClassPixels,
+) -> [(f64, MarchWork); 3] {
+    std::array::from_fn(|class| {
+        let per_camera = &classes[class];
         let start = Instant::now();
         let mut work = MarchWork::default();
-        for (camera, pixels) in cameras.iter().zip(&per_camera) {
+        for (camera, pixels) in cameras.iter().zip(per_camera) {
             let w = camera.width();
             let counted = pixels
                 .par_iter()
@@ -204,6 +217,7 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             }
         };
         let cameras = orbit(&fast, args.size, args.views, args.distance)?;
+        let classes = classify_rays(&fast, &cameras);
         let kernels = 2 + usize::from(strided.is_some());
         let bar = progress.bar((args.rounds * kernels * cameras.len()) as u64, "rendering", "frames");
         let (mut fast_ms, mut scalar_ms, mut march_ms, mut strided_ms) = (0.0, 0.0, 0.0, 0.0);
@@ -218,7 +232,7 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             (scalar_ms, scalar_frames) = (scalar_ms + share * t, out);
             let (t, counted) = march_only(&fast, &cameras);
             (march_ms, work) = (march_ms + share * t, counted);
-            for (sum, (t, counted)) in by_class.iter_mut().zip(march_by_class(&fast, &cameras)) {
+            for (sum, (t, counted)) in by_class.iter_mut().zip(march_by_class(&fast, &cameras, &classes)) {
                 *sum = (sum.0 + share * t, counted);
             }
             if let Some(kernel) = &strided {
