@@ -56,9 +56,8 @@ pub struct Picture {
     pub mean_y: f64,
     /// The luma plane, row-major, `width * height`.
     pub luma: Vec<u8>,
-    /// RTP packets of the access unit, and the time from the first's arrival to the last's.
+    /// RTP packets of the access unit.
     pub packets: usize,
-    pub arrival_spread: std::time::Duration,
 }
 
 /// How the client connects.
@@ -117,10 +116,8 @@ async fn receive_video(track: Arc<TrackRemote>, pictures: mpsc::UnboundedSender<
         tracing::error!("cannot create an H.264 decoder");
         return;
     };
-    let mut first_arrival: Option<std::time::Instant> = None;
     let mut packets = 0;
     while let Ok((packet, _)) = track.read_rtp().await {
-        let first = *first_arrival.get_or_insert_with(std::time::Instant::now);
         packets += 1;
         if let Ok(chunk) = depacketizer.depacketize(&packet.payload) {
             unit.extend_from_slice(&chunk);
@@ -135,22 +132,12 @@ async fn receive_video(track: Arc<TrackRemote>, pictures: mpsc::UnboundedSender<
             let luma: Vec<u8> =
                 (0..height).flat_map(|r| yuv.y()[r * stride..r * stride + width].iter().copied()).collect();
             let mean_y = luma.iter().map(|&v| f64::from(v)).sum::<f64>() / luma.len().max(1) as f64;
-            let picture = Picture {
-                width,
-                height,
-                idr,
-                bytes: unit.len(),
-                mean_y,
-                luma,
-                packets,
-                arrival_spread: first.elapsed(),
-            };
+            let picture = Picture { width, height, idr, bytes: unit.len(), mean_y, luma, packets };
             if pictures.send(picture).is_err() {
                 return;
             }
         }
         unit.clear();
-        first_arrival = None;
         packets = 0;
     }
 }

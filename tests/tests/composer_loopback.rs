@@ -348,26 +348,16 @@ async fn a_keyframe_leaves_paced_unless_pacing_is_off() {
         let rate = PACING_FACTOR * f64::from(bitrate);
         let burst = BURST.as_secs_f64() * rate / 8.0;
         assert!(idr.bytes as f64 > 3.0 * burst, "the keyframe ({} bytes) must need pacing", idr.bytes);
+        assert!(idr.packets >= 2, "{} packets", idr.packets);
         // The media thread counts after the frame left; the counters are read at a scrape.
         tokio::time::sleep(Duration::from_millis(200)).await;
         let paced = composer_counter(&composer, "nephele_composer_packets_paced_total").await;
         let wait_ms = composer_counter(&composer, "nephele_composer_pacing_wait_ms_total").await;
         if pacing {
-            // Every packet past the burst waited; the last left at least the time of the
-            // keyframe's bytes less the burst and itself after the first (its Annex B bytes
-            // are within a few per cent of its RTP bytes). Arrival on loopback can only add
-            // to that spread (unpaced, its 3 packets arrive within about 3 ms), so half of
-            // it is a safe floor.
+            // The packets past the burst were held back (their spacing on a given clock is
+            // checked in `retransmit`'s paused-clock test; arrival times on loopback would
+            // depend on this machine's scheduling).
             assert!(paced > 0 && wait_ms > 0, "paced {paced}, waited {wait_ms} ms");
-            let last_packet = idr.bytes as f64 / idr.packets.max(1) as f64;
-            let least = (idr.bytes as f64 - last_packet - burst) * 8.0 / rate;
-            assert!(least > 0.02, "{least}");
-            assert!(
-                idr.arrival_spread.as_secs_f64() >= 0.5 * least,
-                "{} packets over {:?}, at least {least} s expected",
-                idr.packets,
-                idr.arrival_spread
-            );
         } else {
             assert_eq!((paced, wait_ms), (0, 0));
         }
