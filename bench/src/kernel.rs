@@ -207,6 +207,8 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
         fast.set_march_stride(1)?;
         let mut scalar = fast.clone();
         scalar.set_simd(SimdMode::Off);
+        let mut unhinted = fast.clone();
+        unhinted.set_prefetch(false);
         let stride = args.march_stride.unwrap_or(asset_stride);
         let strided = match stride {
             1 => None,
@@ -218,18 +220,21 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
         };
         let cameras = orbit(&fast, args.size, args.views, args.distance)?;
         let classes = classify_rays(&fast, &cameras);
-        let kernels = 2 + usize::from(strided.is_some());
+        let kernels = 3 + usize::from(strided.is_some());
         let bar = progress.bar((args.rounds * kernels * cameras.len()) as u64, "rendering", "frames");
-        let (mut fast_ms, mut scalar_ms, mut march_ms, mut strided_ms) = (0.0, 0.0, 0.0, 0.0);
+        let (mut fast_ms, mut scalar_ms, mut march_ms, mut strided_ms, mut unhinted_ms) = (0.0, 0.0, 0.0, 0.0, 0.0);
         let (mut hits, mut work) = (0.0, MarchWork::default());
         let mut by_class = [(0.0, MarchWork::default()); 3];
-        let (mut fast_frames, mut scalar_frames, mut strided_frames) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut fast_frames, mut scalar_frames, mut strided_frames, mut unhinted_frames) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let share = 1.0 / args.rounds as f64;
         for _ in 0..args.rounds {
             let (t, hit, out) = run(&fast, &cameras, &bar)?;
             (fast_ms, hits, fast_frames) = (fast_ms + share * t, hit, out);
             let (t, _, out) = run(&scalar, &cameras, &bar)?;
             (scalar_ms, scalar_frames) = (scalar_ms + share * t, out);
+            let (t, _, out) = run(&unhinted, &cameras, &bar)?;
+            (unhinted_ms, unhinted_frames) = (unhinted_ms + share * t, out);
             let (t, counted) = march_only(&fast, &cameras);
             (march_ms, work) = (march_ms + share * t, counted);
             for (sum, (t, counted)) in by_class.iter_mut().zip(march_by_class(&fast, &cameras, &classes)) {
@@ -273,6 +278,7 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
         let mut rows = vec![
             ("whole kernel, AVX2+FMA where present", fast_ms),
             ("whole kernel, scalar (--simd off)", scalar_ms),
+            ("whole kernel, no prefetch hints", unhinted_ms),
             ("density march alone", march_ms),
             ("heads of the hit rays (the difference)", fast_ms - march_ms),
         ];
@@ -299,6 +305,11 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             "scalar over AVX2+FMA in this run: {:.2}x; largest difference of their results {:.2e}",
             scalar_ms / fast_ms.max(1e-12),
             largest_difference(&fast_frames, &scalar_frames)
+        );
+        println!(
+            "without the heads' prefetch hints in this run: {:.2}x; largest difference of their results {:.2e} (none expected)",
+            unhinted_ms / fast_ms.max(1e-12),
+            largest_difference(&fast_frames, &unhinted_frames)
         );
     }
     Ok(())

@@ -25,6 +25,7 @@ use thiserror::Error;
 
 use nephele_geometry::Bounds;
 use nephele_geometry::camera::marchable_direction;
+use nephele_nn::simd::Prefetch;
 
 /// Index-grid entry of a cell without a cube.
 pub const EMPTY_CELL: u32 = u32::MAX;
@@ -215,6 +216,21 @@ impl SparseCubes {
                 * (if dz == 1 { w.z } else { 1.0 - w.z });
         }
         (offs, ws)
+    }
+
+    /// Hints that [`SparseCubes::sample`] at `p` will read its corners soon (the kernel hints
+    /// a few hit points ahead: the reads of the diffuse cubes missed the cache, 7 % of a live
+    /// user's machine under `perf`, most of it waiting).
+    #[inline]
+    pub fn prefetch_sample(&self, p: Vec3, prefetch: Prefetch) {
+        let Some(c) = self.cell_of(p) else { return };
+        let Some(cube) = self.cube_at(c) else { return };
+        let (offs, _) = self.corners(cube, c, p);
+        // Corners dx = 0 and 1 are neighbours in memory: the start and the end of each row.
+        for k in [0, 2, 4, 6] {
+            prefetch.element(&self.data, offs[k]);
+            prefetch.element(&self.data, offs[k + 1] + self.channels as usize - 1);
+        }
     }
 
     /// Trilinear interpolation of the raw samples (`byte / 255`) at `p`, into `out`

@@ -24,7 +24,7 @@ use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT
 use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
 use crate::ngp::{FieldScratch, RadianceField};
 use nephele_geometry::camera::Camera;
-use nephele_nn::simd::{Simd, WithSimd};
+use nephele_nn::simd::{Prefetch, Simd, WithSimd};
 use nephele_nn::{HashGrid, Mlp, MlpWorkspace, SimdMode, sh_coefficient_count, sh_encode};
 
 /// Rays whose coarse opacity is below this are treated as misses (kernel and training).
@@ -79,6 +79,8 @@ pub struct InolfKernel {
     specular: Mlp,
     shape: HeadsShape,
     source: DiffuseSource,
+    /// Hints that fetch the PSH tables' lines ahead of their reads.
+    prefetch: Prefetch,
 }
 
 /// Why an asset file could not be opened as a kernel.
@@ -92,6 +94,9 @@ pub enum LoadError {
 
 /// Pixels per rayon task.
 const CHUNK: usize = 1024;
+
+/// Hit points between a diffuse-cube read and its hint ([`SparseCubes::prefetch_sample`]).
+const DIFFUSE_LOOKAHEAD: usize = 8;
 
 impl InolfKernel {
     /// From a loaded asset (meta, tensors and sections checked against each other), marching
@@ -113,6 +118,7 @@ impl InolfKernel {
             specular: heads.specular,
             shape: heads.meta.shape,
             source,
+            prefetch: Prefetch::new(),
         })
     }
 
@@ -134,7 +140,14 @@ impl InolfKernel {
             specular: model.specular.clone(),
             shape: model.shape,
             source,
+            prefetch: Prefetch::new(),
         }
+    }
+
+    /// Whether the heads hint the CPU to fetch their table reads ahead (on by default; off
+    /// only to measure what the hints save: the results are the same either way).
+    pub fn set_prefetch(&mut self, on: bool) {
+        self.prefetch = if on { Prefetch::new() } else { Prefetch::off() };
     }
 
     /// Chooses the instruction set of the march and the heads (default: the best the CPU
@@ -290,7 +303,10 @@ impl InolfKernel {
         let mut diffuse = vec![0.0f32; n * DIFFUSE_OUT];
         match (self.source, &self.diffuse_cubes, &self.diffuse_net) {
             (DiffuseSource::Cubes, Some(cubes), _) => {
-                for (row, h) in diffuse.chunks_exact_mut(DIFFUSE_OUT).zip(&hits) {
+                for (i, (row, h)) in diffuse.chunks_exact_mut(DIFFUSE_OUT).zip(&hits).enumerate() {
+                    if let Some(ahead) = hits.get(i + DIFFUSE_LOOKAHEAD) {
+                        cubes.prefetch_sample(ahead.1, self.prefetch);
+                    }
                     cubes.sample(h.1, row);
                     row.iter_mut().for_each(|v| *v = decode_diffuse(*v));
                 }
@@ -310,10 +326,13 @@ impl InolfKernel {
         let sh = sh_coefficient_count(self.shape.sh_degree);
         let s_in = f + sh + 1;
         let mut input = vec![0.0f32; n * s_in];
+        // The look-ups of all hits first, then the feature rows: neither loop branches on
+        // what it reads, so the table reads of many hits are in flight together.
         let mut cells = CellCache::default();
-        for (row, h) in input.chunks_exact_mut(s_in).zip(&hits) {
-            let corners = self.psh.corners_with(h.1, &mut cells);
-            self.psh.encode_corners(&corners, &mut row[..f]);
+        let points: Vec<Vec3> = hits.iter().map(|h| h.1).collect();
+        let corners = self.psh.corners_batch(&points, &mut cells, self.prefetch);
+        for ((row, h), corners) in input.chunks_exact_mut(s_in).zip(&hits).zip(&corners) {
+            self.psh.encode_corners(corners, &mut row[..f]);
             sh_encode(h.2.to_array(), self.shape.sh_degree, &mut row[f..f + sh]);
             row[f + sh] = h.3;
         }

@@ -302,6 +302,11 @@ proptest! {
             prop_assert!(stats.rays_hit == stats.rays);
         }
         check_scalar_twin(&kernel, &camera, &pixels, &out)?;
+        // The heads' prefetch hints change nothing.
+        let mut unhinted = kernel.clone();
+        unhinted.set_prefetch(false);
+        let (same, _) = unhinted.render_pixels(&camera, &pixels).expect("render");
+        prop_assert_eq!((&same.color, &same.opacity, &same.depth), (&out.color, &out.opacity, &out.depth));
 
         let mut network = kernel.clone();
         network.use_density_network(fog_field());
