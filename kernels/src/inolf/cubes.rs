@@ -219,7 +219,7 @@ impl SparseCubes {
     }
 
     /// Hints that [`SparseCubes::sample`] at `p` will read its corners soon (the kernel hints
-    /// a few hit points ahead: the reads of the diffuse cubes missed the cache, 7 % of a live
+    /// a few hit points ahead: the reads of the diffuse cubes missed the cache, 6-7 % of a live
     /// user's machine under `perf`, most of it waiting).
     #[inline]
     pub fn prefetch_sample(&self, p: Vec3, prefetch: Prefetch) {

@@ -217,38 +217,7 @@ impl PshEncoding {
             .map(|&(i, w)| if i == NONE { Corners::default() } else { weigh(&cells[i as usize], w) })
             .collect()
     }
-}
 
-/// Cells between the stages of [`PshEncoding::corners_batch`]'s pipeline.
-const LOOKAHEAD: usize = 8;
-
-/// The stored corners of `cell` and their trilinear weights at `w` (the position in the cell,
-/// each coordinate in `[0, 1)`), renormalised over the stored ones.
-#[inline(always)]
-fn weigh(cell: &CellSlots, w: Vec3) -> Corners {
-    let mut out = Corners::default();
-    let mut total = 0.0;
-    for c in 0..8 {
-        let (dx, dy, dz) = (c & 1, (c >> 1) & 1, c >> 2);
-        if cell.stored & (1 << c) != 0 {
-            let wc = (if dx == 1 { w.x } else { 1.0 - w.x })
-                * (if dy == 1 { w.y } else { 1.0 - w.y })
-                * (if dz == 1 { w.z } else { 1.0 - w.z });
-            out.slots[out.count as usize] = cell.slots[c as usize];
-            out.weights[out.count as usize] = wc;
-            out.count += 1;
-            total += wc;
-        }
-    }
-    if total > 1e-12 {
-        out.weights.iter_mut().for_each(|x| *x /= total);
-    } else {
-        out.count = 0;
-    }
-    out
-}
-
-impl PshEncoding {
     /// Encodes `p` into `out` (`dim()` values); returns the corners used.
     #[inline]
     pub fn encode(&self, p: Vec3, out: &mut [f32]) -> Corners {
@@ -283,6 +252,35 @@ impl PshEncoding {
             }
         }
     }
+}
+
+/// Cells between the stages of [`PshEncoding::corners_batch`]'s pipeline.
+const LOOKAHEAD: usize = 8;
+
+/// The stored corners of `cell` and their trilinear weights at `w` (the position in the cell,
+/// each coordinate in `[0, 1)`), renormalised over the stored ones.
+#[inline(always)]
+fn weigh(cell: &CellSlots, w: Vec3) -> Corners {
+    let mut out = Corners::default();
+    let mut total = 0.0;
+    for c in 0..8 {
+        let (dx, dy, dz) = (c & 1, (c >> 1) & 1, c >> 2);
+        if cell.stored & (1 << c) != 0 {
+            let wc = (if dx == 1 { w.x } else { 1.0 - w.x })
+                * (if dy == 1 { w.y } else { 1.0 - w.y })
+                * (if dz == 1 { w.z } else { 1.0 - w.z });
+            out.slots[out.count as usize] = cell.slots[c as usize];
+            out.weights[out.count as usize] = wc;
+            out.count += 1;
+            total += wc;
+        }
+    }
+    if total > 1e-12 {
+        out.weights.iter_mut().for_each(|x| *x /= total);
+    } else {
+        out.count = 0;
+    }
+    out
 }
 
 #[cfg(test)]

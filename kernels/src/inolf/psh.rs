@@ -116,7 +116,8 @@ pub struct PshTable {
     /// `m^3` slots, each the packed key of its voxel or [`EMPTY_KEY`]; index `x + m (y + m z)`.
     keys: Vec<u32>,
     /// `c mod r` and `c mod m` for every coordinate `c < u`, so that a query divides nothing
-    /// (nine integer divisions per voxel were a third of a lattice cell's look-up).
+    /// (it took nine integer divisions per voxel, each tens of cycles of latency; `perf` put
+    /// only a few per cent of the look-up on them, most of it waited on the tables' reads).
     residues: Residues,
 }
 
@@ -125,9 +126,9 @@ pub struct PshTable {
 /// inside the grid.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CellProbe {
-    pub slots: [u32; 8],
-    pub keys: [u32; 8],
-    pub inside: u8,
+    pub(crate) slots: [u32; 8],
+    keys: [u32; 8],
+    inside: u8,
 }
 
 /// Residues of the grid coordinates, derived from `u`, `m` and `r`.
@@ -416,7 +417,8 @@ impl PshTable {
         self.offsets.len() * 6 + self.keys.len() * 4
     }
 
-    /// `h(p)` without the occupancy check (`p` inside the grid).
+    /// `h(p)` without the occupancy check (`p` inside the grid; a coordinate of `u` or more
+    /// panics).
     #[inline]
     pub fn hash(&self, p: [u32; 3]) -> u32 {
         let res = &self.residues;
