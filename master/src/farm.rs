@@ -616,6 +616,8 @@ impl Actor {
                 }
             }
             Message::BatchDone(done) => {
+                self.metrics.links.rays_traced.inc_by(done.stats.rays);
+                self.metrics.links.rays_hit.inc_by(done.stats.rays_hit.min(done.stats.rays));
                 if let Err(e) = self.scheduler.batch_done(worker, BatchId(done.ids.batch_id), now) {
                     // A batch cancelled, superseded or re-issued meanwhile: nothing to do.
                     tracing::debug!(worker = id, batch = done.ids.batch_id, "late result: {e}");
@@ -1090,6 +1092,8 @@ impl Actor {
                 "sessions_refused": c.sessions_refused.get(),
                 "sessions_ended_by_peer": c.sessions_ended_by_peer.get(),
                 "stale_reports": c.stale_reports.get(),
+                "rays_traced": c.rays_traced.get(),
+                "rays_hit": c.rays_hit.get(),
             },
         })
     }
@@ -1214,6 +1218,7 @@ mod tests {
         // Serve batches until the plan comes.
         let mut tasks = std::collections::BTreeSet::new();
         let mut assets = std::collections::BTreeSet::new();
+        let (mut traced, mut hit) = (0u64, 0u64);
         let plan = loop {
             tokio::select! {
                 command = next(&mut wrx) => {
@@ -1232,8 +1237,11 @@ mod tests {
                     }
                     tasks.insert(batch.ids.task_id);
                     assets.insert(batch.asset_id.clone());
-                    let done = BatchDone { ids: batch.ids, pixels: batch.pixels.len() as u32, render_time_us: 10, stats: KernelStats::default() };
+                    let rays = batch.pixels.len() as u64;
+                    let stats = KernelStats { rays, rays_hit: rays / 2, queries: rays / 2 };
+                    let done = BatchDone { ids: batch.ids, pixels: batch.pixels.len() as u32, render_time_us: 10, stats };
                     assert!(farm.send(Event::WorkerMessage(wid, Message::BatchDone(done))));
+                    (traced, hit) = (traced + rays, hit + rays / 2);
                 }
                 command = next(&mut crx) => match command {
                     LinkCommand::Send(Message::FramePlan(plan)) => break plan,
@@ -1252,6 +1260,9 @@ mod tests {
         assert_eq!(state["composer"]["name"], "c");
         assert_eq!(state["sessions"][0]["id"], "s1-abc");
         assert!(state["live"]["plans_sent"].as_u64() >= Some(1), "{state:#}");
+        // The reports' ray counts are summed (every report is in: the plan came after them).
+        assert_eq!(state["live"]["rays_traced"].as_u64(), Some(traced), "{state:#}");
+        assert_eq!(state["live"]["rays_hit"].as_u64(), Some(hit), "{state:#}");
 
         farm.close("s1-abc".into()).await;
         let close = loop {

@@ -38,11 +38,14 @@ pub(crate) struct LinkCounters {
     pub sessions_denied: Counter,
     pub sessions_rate_limited: Counter,
     pub handshakes_failed: Counter,
+    /// From the workers' `BatchDone` reports: rays their kernels traced, and those that hit.
+    pub rays_traced: Counter,
+    pub rays_hit: Counter,
 }
 
 impl LinkCounters {
     fn register(&self, registry: &mut Registry) {
-        let entries: [(&str, &str, &Counter); 16] = [
+        let entries: [(&str, &str, &Counter); 18] = [
             ("workers_joined", "Workers that registered", &self.workers_joined),
             ("workers_left", "Worker links that closed", &self.workers_left),
             ("workers_lost", "Workers dropped for missing their heartbeats", &self.workers_lost),
@@ -59,6 +62,16 @@ impl LinkCounters {
             ),
             ("sessions_ended_by_peer", "Sessions the composer ended (viewer gone)", &self.sessions_ended_by_peer),
             ("stale_reports", "Worker reports for batches no longer in flight", &self.stale_reports),
+            (
+                "rays_traced",
+                "Rays the workers' kernels traced, from their batch reports (pixels taken by reprojection excluded)",
+                &self.rays_traced,
+            ),
+            (
+                "rays_hit",
+                "Of those rays, the ones that hit their object (the rest cost a march for nothing)",
+                &self.rays_hit,
+            ),
             (
                 "farm_peers_unauthenticated",
                 "Farm connections refused for not proving the farm secret (none, or a wrong one)",
