@@ -79,7 +79,7 @@ pub struct InolfKernel {
     specular: Mlp,
     shape: HeadsShape,
     source: DiffuseSource,
-    /// Hints that fetch the PSH tables' lines ahead of their reads.
+    /// Hints that fetch the PSH tables' and diffuse cubes' lines ahead of their reads.
     prefetch: Prefetch,
 }
 
