@@ -314,13 +314,18 @@ mod tests {
         assert!((out[1] - 1.0).abs() < 1e-5);
     }
 
+    /// A small encoding stored around a strip of points, for the look-up tests' random walks.
+    fn strip_encoding() -> PshEncoding {
+        let pts: Vec<Vec3> = (0..400).map(|i| Vec3::new(0.1 + 0.002 * i as f32, 0.4, 0.2 + 0.001 * i as f32)).collect();
+        PshEncoding::from_points(&pts, Vec3::ZERO, 0.05, 32, 3, &PshOptions::default()).expect("build")
+    }
+
     /// The cell cache changes nothing: along random walks (consecutive points often in one
     /// cell, sometimes in cells with no stored corner, outside the lattice or NaN) the cached
     /// corners equal fresh look-ups bit for bit, and the cache is used.
     #[test]
     fn cached_corners_are_the_looked_up_ones() {
-        let pts: Vec<Vec3> = (0..400).map(|i| Vec3::new(0.1 + 0.002 * i as f32, 0.4, 0.2 + 0.001 * i as f32)).collect();
-        let enc = PshEncoding::from_points(&pts, Vec3::ZERO, 0.05, 32, 3, &PshOptions::default()).expect("build");
+        let enc = strip_encoding();
         let mut cache = CellCache::default();
         let mut p = Vec3::new(0.1, 0.4, 0.2);
         for i in 0..5000usize {
@@ -344,8 +349,7 @@ mod tests {
     /// pipeline's fill and drain included), with hints and without.
     #[test]
     fn batched_corners_are_the_one_by_one_corners() {
-        let pts: Vec<Vec3> = (0..400).map(|i| Vec3::new(0.1 + 0.002 * i as f32, 0.4, 0.2 + 0.001 * i as f32)).collect();
-        let enc = PshEncoding::from_points(&pts, Vec3::ZERO, 0.05, 32, 3, &PshOptions::default()).expect("build");
+        let enc = strip_encoding();
         let mut walk = Vec::new();
         let mut p = Vec3::new(0.1, 0.4, 0.2);
         for i in 0..3000usize {
