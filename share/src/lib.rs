@@ -228,36 +228,41 @@ pub fn reproject(
     let candidates = close_cracks(&splat_depths(target, sources, settings), w, h);
     let cos_max = settings.max_angle_deg.to_radians().cos();
     let distances: Vec<Vec<u16>> = sources.par_iter().map(|source| empty_distances(source, settings)).collect();
-    // Rows in parallel: each pixel's fate depends on the sources and its own depth only.
-    let pixels: Vec<(Fate, [f32; 3], f32, f32)> = (0..w * h)
-        .into_par_iter()
-        .with_min_len(w.max(1))
-        .map(|t| {
-            let ray = target.pixel_center_ray((t % w) as u32, (t / w) as u32);
-            let Some((t0, t1)) = ray_box(&ray, bounds) else {
-                return (Fate::OutsideBounds, [0.0; 3], 0.0, 0.0);
-            };
-            if candidates[t].is_finite() {
-                let point = ray.at(candidates[t] / target.depth_per_distance(&ray));
-                if let Some(sample) = best_sample(target, point, sources, settings, cos_max) {
-                    return (Fate::Reused, sample.color, sample.opacity, target.view_depth(sample.point));
-                }
-                // A solid source point lands in this pixel: its ray passes matter, so it is not
-                // empty (and the walk below, the costliest check, would only find that out).
-                return (Fate::Render, [0.0; 3], 0.0, 0.0);
-            }
-            match seen_empty(&ray, t0, t1, sources, &distances, settings) {
-                true => (Fate::SeenEmpty, [0.0; 3], 0.0, 0.0),
-                false => (Fate::Render, [0.0; 3], 0.0, 0.0),
-            }
-        })
-        .collect();
+    // Rows in parallel, written in place: each pixel's fate depends on the sources and its
+    // own depth only.
     let mut frame = PixelResults::with_len(w * h);
-    let mut fate = Vec::with_capacity(w * h);
-    for (t, (f, color, opacity, depth)) in pixels.into_iter().enumerate() {
-        fate.push(f);
-        (frame.color[t], frame.opacity[t], frame.depth[t]) = (color, opacity, depth);
-    }
+    let mut fate = vec![Fate::Render; w * h];
+    let row_len = w.max(1);
+    frame
+        .color
+        .par_chunks_mut(row_len)
+        .zip(frame.opacity.par_chunks_mut(row_len))
+        .zip(frame.depth.par_chunks_mut(row_len))
+        .zip(fate.par_chunks_mut(row_len))
+        .enumerate()
+        .for_each(|(y, (((colors, opacities), depths), fates))| {
+            for x in 0..fates.len() {
+                let t = y * w + x;
+                let ray = target.pixel_center_ray(x as u32, y as u32);
+                let Some((t0, t1)) = ray_box(&ray, bounds) else {
+                    fates[x] = Fate::OutsideBounds;
+                    continue;
+                };
+                if candidates[t].is_finite() {
+                    let point = ray.at(candidates[t] / target.depth_per_distance(&ray));
+                    // Without a reusable sample, a solid source point that lands in this
+                    // pixel says its ray passes matter: not empty (and the walk below, the
+                    // costliest check, would only find that out), so it is rendered.
+                    if let Some(sample) = best_sample(target, point, sources, settings, cos_max) {
+                        fates[x] = Fate::Reused;
+                        (colors[x], opacities[x], depths[x]) =
+                            (sample.color, sample.opacity, target.view_depth(sample.point));
+                    }
+                } else if seen_empty(&ray, t0, t1, sources, &distances, settings) {
+                    fates[x] = Fate::SeenEmpty;
+                }
+            }
+        });
     widen_holes(&mut fate, &mut frame, w, h, settings.edge_band);
     Ok(Reprojection { width, height, frame, fate })
 }
@@ -313,13 +318,25 @@ fn close_cracks(depth: &[f32], w: usize, h: usize) -> Vec<f32> {
     };
     for j in 0..h {
         for i in 0..w {
-            if depth[j * w + i].is_finite() {
+            let k = j * w + i;
+            if depth[k].is_finite() {
+                continue;
+            }
+            if i >= 1 && j >= 1 && i + 1 < w && j + 1 < h {
+                // Inside: the four pairs' neighbours indexed directly.
+                let (up, down) = (k - w, k + w);
+                for (a, b) in [(k - 1, k + 1), (up, down), (up - 1, down + 1), (up + 1, down - 1)] {
+                    let (da, db) = (depth[a], depth[b]);
+                    if da.is_finite() && db.is_finite() {
+                        closed[k] = closed[k].min(0.5 * (da + db));
+                    }
+                }
                 continue;
             }
             for &(a, b) in &pairs {
                 let (da, db) = (at(i, j, a), at(i, j, b));
                 if da.is_finite() && db.is_finite() {
-                    closed[j * w + i] = closed[j * w + i].min(0.5 * (da + db));
+                    closed[k] = closed[k].min(0.5 * (da + db));
                 }
             }
         }
@@ -506,21 +523,38 @@ fn empty_distances(source: &Source<'_>, settings: &Settings) -> Vec<u16> {
         true => d[y as usize * w + x as usize],
         false => 0,
     };
-    for y in 0..h as isize {
-        for x in 0..w as isize {
-            let k = y as usize * w + x as usize;
+    // Interior pixels (all eight neighbours inside) index directly; the border through `at`.
+    let inner = |x: usize, y: usize| x >= 1 && y >= 1 && x + 1 < w && y + 1 < h;
+    for y in 0..h {
+        for x in 0..w {
+            let k = y * w + x;
             if is_empty(source.frame, k, settings) {
-                let near = at(&distance, x - 1, y).min(at(&distance, x - 1, y - 1));
-                let near = near.min(at(&distance, x, y - 1)).min(at(&distance, x + 1, y - 1));
+                let near = if inner(x, y) {
+                    let above = k - w;
+                    distance[k - 1].min(distance[above - 1]).min(distance[above]).min(distance[above + 1])
+                } else {
+                    let (x, y) = (x as isize, y as isize);
+                    let near = at(&distance, x - 1, y).min(at(&distance, x - 1, y - 1));
+                    near.min(at(&distance, x, y - 1)).min(at(&distance, x + 1, y - 1))
+                };
                 distance[k] = near.saturating_add(1);
             }
         }
     }
-    for y in (0..h as isize).rev() {
-        for x in (0..w as isize).rev() {
-            let k = y as usize * w + x as usize;
-            let near = at(&distance, x + 1, y).min(at(&distance, x + 1, y + 1));
-            let near = near.min(at(&distance, x, y + 1)).min(at(&distance, x - 1, y + 1));
+    for y in (0..h).rev() {
+        for x in (0..w).rev() {
+            let k = y * w + x;
+            if distance[k] == 0 {
+                continue;
+            }
+            let near = if inner(x, y) {
+                let below = k + w;
+                distance[k + 1].min(distance[below + 1]).min(distance[below]).min(distance[below - 1])
+            } else {
+                let (x, y) = (x as isize, y as isize);
+                let near = at(&distance, x + 1, y).min(at(&distance, x + 1, y + 1));
+                near.min(at(&distance, x, y + 1)).min(at(&distance, x - 1, y + 1))
+            };
             distance[k] = distance[k].min(near.saturating_add(1));
         }
     }
