@@ -6,7 +6,8 @@
 //! Why on the worker and not in the composer: the worker holds the source pixels the moment
 //! they are rendered and the kernel that renders the leftovers, so a derived view costs no
 //! second round trip (composer → master → worker) and no extra frame of latency, and the
-//! reprojection (0.2-0.35 of a full render of the view, BENCHMARKS.md) spreads over the farm
+//! reprojection (0.4-0.8 of a full render of the view, leftovers included, on the first
+//! start's objects: `nephele bench share`, BENCHMARKS.md 2026-12-05i) spreads over the farm
 //! instead of loading the one composer that also encodes every stream.
 //!
 //! The source is the batch's bounding box of pixels: the master sends only batches that hold
