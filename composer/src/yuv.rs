@@ -15,8 +15,8 @@
 //!   or heights are handled: the chroma planes are `ceil(w/2) x ceil(h/2)` and an edge block
 //!   averages the pixels it has. (The encoder itself requires even sizes.)
 //!
-//! The transfer curve's power is computed through `log2` and `exp2` polynomials (relative
-//! error about 1e-7, checked in the tests) rather than looked up: the same code runs eight
+//! The transfer curve's power is computed through `log2` and `exp2` polynomials (within 1e-5
+//! of the exact curve, checked in the tests) rather than looked up: the same code runs eight
 //! pixels at a time with AVX2 + FMA ([`pulp::Arch::dispatch`] chooses at run time, no
 //! `unsafe`) and one at a time on other CPUs and at the picture's edges. The table with linear
 //! interpolation that it replaces (4096 entries, error 1e-4) could not vectorise without
