@@ -216,12 +216,11 @@ impl Yuv420 {
                 let full = if rows == 2 { w / 2 } else { 0 };
                 let vectored =
                     arch.dispatch(RowPair { rgb: rgb_rows.as_flattened(), width: w, luma, cb, cr, blocks: full });
-                let one = pulp::Scalar::new();
                 for cx in vectored..full {
                     let x = 2 * cx;
                     let mut sum = [0.0f32; 3];
                     for i in [x, x + 1, w + x, w + x + 1] {
-                        let e = rgb_rows[i].map(|c| srgb_encode(one, c));
+                        let e = rgb_rows[i].map(linear_to_srgb);
                         luma[i] = luma_code(KR * e[0] + KG * e[1] + KB * e[2]);
                         sum = [sum[0] + e[0], sum[1] + e[1], sum[2] + e[2]];
                     }
@@ -236,7 +235,7 @@ impl Yuv420 {
                     for dy in 0..rows {
                         for x in 2 * cx..(2 * cx + 2).min(w) {
                             let i = dy * w + x;
-                            let [r, g, b] = rgb_rows[i].map(|c| srgb_encode(one, c));
+                            let [r, g, b] = rgb_rows[i].map(linear_to_srgb);
                             luma[i] = luma_code(KR * r + KG * g + KB * b);
                             sr += r;
                             sg += g;
@@ -298,11 +297,7 @@ impl WithSimd for RowPair<'_> {
                 }
                 let e: [S::f32s; 6] =
                     std::array::from_fn(|k| srgb_encode(simd, simd.partial_load_f32s(&soa[k][..lanes])));
-                let luma_of = |r, g, b| {
-                    let y =
-                        simd.mul_add_f32s(splat(KR), r, simd.mul_add_f32s(splat(KG), g, simd.mul_f32s(splat(KB), b)));
-                    simd.mul_add_f32s(splat(219.0), y, splat(16.0))
-                };
+                let luma_of = |r, g, b| simd.mul_add_f32s(splat(219.0), luma_lanes(simd, r, g, b), splat(16.0));
                 let even = luma_of(e[0], e[1], e[2]);
                 let odd = luma_of(e[3], e[4], e[5]);
                 simd.partial_store_u32s(&mut codes[0][..lanes], code_bits(simd, even));
@@ -317,7 +312,7 @@ impl WithSimd for RowPair<'_> {
                 }
             }
             let [r, g, b] = sum.map(|v| simd.mul_f32s(v, splat(0.25)));
-            let y = simd.mul_add_f32s(splat(KR), r, simd.mul_add_f32s(splat(KG), g, simd.mul_f32s(splat(KB), b)));
+            let y = luma_lanes(simd, r, g, b);
             let pb = simd.mul_f32s(simd.sub_f32s(b, y), splat(1.0 / (2.0 * (1.0 - KB))));
             let pr = simd.mul_f32s(simd.sub_f32s(r, y), splat(1.0 / (2.0 * (1.0 - KR))));
             for (plane, p) in [(&mut *self.cb, pb), (&mut *self.cr, pr)] {
@@ -332,6 +327,13 @@ impl WithSimd for RowPair<'_> {
         }
         blocks
     }
+}
+
+/// `Y' = Kr R' + Kg G' + Kb B'` lane by lane.
+#[inline(always)]
+fn luma_lanes<S: Simd>(simd: S, r: S::f32s, g: S::f32s, b: S::f32s) -> S::f32s {
+    let splat = |v: f32| simd.splat_f32s(v);
+    simd.mul_add_f32s(splat(KR), r, simd.mul_add_f32s(splat(KG), g, simd.mul_f32s(splat(KB), b)))
 }
 
 /// [`code`] lane by lane: the low byte of each lane is the rounded, clamped 8-bit code.
