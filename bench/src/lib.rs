@@ -26,6 +26,7 @@ use nephele_pathtracer::{RenderOptions, Renderer};
 use serde_json::json;
 
 pub mod assigner;
+pub mod covered;
 pub mod device;
 pub mod encode;
 pub mod gi;
@@ -88,6 +89,10 @@ pub enum Command {
     /// eyes against path tracing, and the inter-eye coherence error with and without the
     /// coherence loss.
     Gi(crate::gi::GiArgs),
+    /// The environment kernel with and without the objects' solid matter (the room behind
+    /// them is not lit): samples hidden against the pixels the objects cover, time per view
+    /// flat and stereo in one run, and the PSNR of the visible pixels against no occluders.
+    Covered(crate::covered::CoveredArgs),
     /// The numerical-stability suite: adversarial rays (axis-parallel, grazing, inside the box
     /// and the matter, far away, denormal components, and degenerate ones that must be
     /// rejected) through every kernel (CPU, GPU, path tracer, stereo GI) and both trainers'
@@ -141,6 +146,7 @@ pub fn run(command: Command, progress: &dyn Progress) -> Result<()> {
         Command::Device(args) => crate::device::device(args, progress),
         Command::Kernel(args) => crate::kernel::run_kernel(args, progress),
         Command::Gi(args) => crate::gi::run(args, progress),
+        Command::Covered(args) => crate::covered::run(args, progress),
         Command::Hardcases(args) => crate::hardcases::hardcases(args, progress),
         Command::Share(args) => crate::share::run(args, progress),
         Command::Assigner(args) => crate::assigner::run(args, progress),

@@ -73,7 +73,7 @@ fn sample_result(pixels: usize, batch_id: u64) -> BatchResult {
         depth: pixels.iter().map(|&p| if p % 5 == 0 { 0.0 } else { 2.0 + hash(p) }).collect(),
         pixels,
         render_time_us: 1000,
-        stats: KernelStats { rays: 1, rays_hit: 1, queries: 1 },
+        stats: KernelStats { rays: 1, rays_hit: 1, queries: 1, hidden: 0 },
         encoding: nephele_proto::ResultEncoding::F32,
     }
 }
@@ -256,6 +256,7 @@ pub fn run(args: WireArgs, progress: &dyn Progress) -> Result<()> {
         composer: "127.0.0.1:9000".into(),
         derived: Vec::new(),
         reuse: Default::default(),
+        occluders: Vec::new(),
     });
     let mut batch_frame = Vec::new();
     encode_frame(&batch, &mut batch_frame, &cfg)?;

@@ -26,10 +26,12 @@ pub mod camera;
 pub mod hardcases;
 pub mod pixels;
 pub mod rng;
+pub mod solid;
 pub mod view;
 
 pub use bounds::Bounds;
 pub use camera::{Camera, CameraError, Ray};
 pub use pixels::{PixelOutOfImage, PixelResults, all_pixels, validate_pixels};
 pub use rng::SplitMix64;
+pub use solid::{SolidGrid, SolidGridError};
 pub use view::ViewProjection;

@@ -184,6 +184,6 @@ impl RayKernel for GpuInolfKernel {
         let tables = [&self.density, &self.diffuse, &self.psh, &self.specular];
         let (out, hit) = render(&self.ctx, &self.pipeline, camera, pixels, &self.params.0, &tables)?;
         let rays_hit = hit.iter().filter(|&&h| h > 0.5).count() as u64;
-        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries: rays_hit }))
+        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries: rays_hit, hidden: 0 }))
     }
 }

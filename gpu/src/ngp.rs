@@ -121,6 +121,6 @@ impl RayKernel for GpuNgpKernel {
         let (out, samples) = render(&self.ctx, &self.pipeline, camera, pixels, &self.field_params.0, &tables)?;
         let rays_hit = samples.iter().filter(|&&s| s > 0.0).count() as u64;
         let queries = samples.iter().map(|&s| s as u64).sum();
-        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries }))
+        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries, hidden: 0 }))
     }
 }

@@ -23,8 +23,13 @@
 //! (`ObjectInfo::full_frame`). Pixels that see the sky through a window get
 //! [`SKY_DEPTH`], so that every object is fused in front of them.
 //!
-//! Not yet: the objects' shadows and light on the room (the room is shaded as if empty),
-//! pixels covered by opaque objects are still shaded (the network sees the whole image), the
+//! Where objects stand in the room, the master sends their solid matter with the batch
+//! ([`RayKernel::render_pixels_behind`]): G-buffer samples whose first hit lies behind it are
+//! not lit (no shadow rays, no bounce), since the fused object covers them with full
+//! opacity; the network still runs over the whole window (those pixels enter it with their
+//! geometry and no direct light).
+//!
+//! Not yet: the objects' shadows and light on the room (the room is shaded as if empty), the
 //! ball's motion (the room is rendered at one moment, [`GiServeSettings::time_s`]).
 
 use std::path::Path;
@@ -35,7 +40,7 @@ use nephele_nn::UNetWorkspace;
 use nephele_pathtracer::{Background, RenderOptions, RenderOutput, Renderer, scenes};
 
 use crate::gi::{GBufferPixel, GiModel, GiModelError, UNetDevice};
-use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, validate_pixels};
+use crate::kernel::{Bounds, KernelError, KernelStats, PixelResults, RayKernel, SolidGrid, validate_pixels};
 
 /// View depth given to pixels that see no geometry (the sky through a window), metres: behind
 /// anything an object can be, and inside the compact wire form's half-float range.
@@ -187,7 +192,13 @@ impl GiKernel {
             .map_err(|e| KernelError::Failed(e.to_string()))
     }
 
-    fn g_buffer(&self, camera: &Camera) -> Result<(RenderOutput, Vec<GBufferPixel>), KernelError> {
+    /// The G-buffer and direct light of `camera`'s image; samples behind `occluders` keep
+    /// their G-buffer and get no light ([`Renderer::render_behind`]).
+    fn g_buffer(
+        &self,
+        camera: &Camera,
+        occluders: &[SolidGrid],
+    ) -> Result<(RenderOutput, Vec<GBufferPixel>), KernelError> {
         let options = RenderOptions {
             samples_per_pixel: self.settings.samples_per_pixel,
             max_bounces: 1,
@@ -195,7 +206,10 @@ impl GiKernel {
             background: Background::Environment,
             direct_only: true,
         };
-        let out = self.renderer.render(camera, &options, &|_| {}).map_err(|e| KernelError::Failed(e.to_string()))?;
+        let out = self
+            .renderer
+            .render_behind(camera, &options, occluders, &|_| {})
+            .map_err(|e| KernelError::Failed(e.to_string()))?;
         let pixels = g_buffer_pixels(&out);
         Ok((out, pixels))
     }
@@ -215,8 +229,13 @@ impl GiKernel {
     }
 
     /// Shades the rows asked of one view, or of two for the stereo model (a band of rows with
-    /// a margin, [`Self::window`]), and returns each view's `requested` pixels.
-    fn shade(&self, views: &[(&Camera, &[u32])]) -> Result<(Vec<PixelResults>, KernelStats), KernelError> {
+    /// a margin, [`Self::window`]), and returns each view's `requested` pixels. The lighting
+    /// of what `occluders` hide is skipped (the network still sees those pixels' G-buffer).
+    fn shade(
+        &self,
+        views: &[(&Camera, &[u32])],
+        occluders: &[SolidGrid],
+    ) -> Result<(Vec<PixelResults>, KernelStats), KernelError> {
         for (camera, pixels) in views {
             validate_pixels(camera, pixels)?;
         }
@@ -233,7 +252,7 @@ impl GiKernel {
             .map(|c| c.crop(0, first, c.width(), count).map_err(|e| KernelError::Failed(e.to_string())))
             .collect::<Result<_, _>>()?;
         let buffers: Vec<(RenderOutput, Vec<GBufferPixel>)> =
-            cameras.iter().map(|c| self.g_buffer(c)).collect::<Result<_, _>>()?;
+            cameras.iter().map(|c| self.g_buffer(c, occluders)).collect::<Result<_, _>>()?;
         let mut ws = self.workspaces.lock().ok().and_then(|mut pool| pool.pop()).unwrap_or_default();
         let (w, h) = (cameras[0].width() as usize, cameras[0].height() as usize);
         let failed = |e: GiModelError| KernelError::Failed(e.to_string());
@@ -280,8 +299,12 @@ impl GiKernel {
             results.push(upsample(view, pixels, camera, first, image, &out.depth));
             rays += u64::from(camera.width()) * u64::from(camera.height());
         }
-        let stats =
-            KernelStats { rays: rays * u64::from(self.settings.samples_per_pixel), rays_hit: rays, queries: passes };
+        let stats = KernelStats {
+            rays: rays * u64::from(self.settings.samples_per_pixel),
+            rays_hit: rays,
+            queries: passes,
+            hidden: buffers.iter().map(|(out, _)| out.stats.hidden_samples).sum(),
+        };
         Ok((results, stats))
     }
 }
@@ -349,7 +372,16 @@ impl RayKernel for GiKernel {
     }
 
     fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
-        let (mut results, stats) = self.shade(&[(camera, pixels)])?;
+        self.render_pixels_behind(camera, pixels, &[])
+    }
+
+    fn render_pixels_behind(
+        &self,
+        camera: &Camera,
+        pixels: &[u32],
+        occluders: &[SolidGrid],
+    ) -> Result<(PixelResults, KernelStats), KernelError> {
+        let (mut results, stats) = self.shade(&[(camera, pixels)], occluders)?;
         Ok((results.remove(0), stats))
     }
 
@@ -362,10 +394,19 @@ impl RayKernel for GiKernel {
         left: (&Camera, &[u32]),
         right: (&Camera, &[u32]),
     ) -> Option<Result<([PixelResults; 2], KernelStats), KernelError>> {
+        self.render_pair_behind(left, right, &[])
+    }
+
+    fn render_pair_behind(
+        &self,
+        left: (&Camera, &[u32]),
+        right: (&Camera, &[u32]),
+        occluders: &[SolidGrid],
+    ) -> Option<Result<([PixelResults; 2], KernelStats), KernelError>> {
         if !self.has_stereo() || (left.0.width(), left.0.height()) != (right.0.width(), right.0.height()) {
             return None;
         }
-        Some(self.shade(&[left, right]).map(|(mut results, stats)| {
+        Some(self.shade(&[left, right], occluders).map(|(mut results, stats)| {
             let right = results.remove(1);
             ([results.remove(0), right], stats)
         }))
@@ -414,6 +455,33 @@ mod tests {
             assert_eq!(part.depth[k], full.depth[p as usize]);
         }
         assert!(kernel.render_pixels(&camera, &[16 * 12]).is_err(), "outside the view");
+    }
+
+    #[test]
+    fn what_an_object_hides_is_not_lit_and_the_rest_is_untouched() {
+        let settings = GiServeSettings { samples_per_pixel: 2, scale: 1.0, time_s: 0.0 };
+        let kernel = GiKernel::new(model(1, "room-day"), None, settings).expect("kernel");
+        let camera = view(16, 12);
+        let all: Vec<u32> = (0..16 * 12).collect();
+        let (plain, plain_stats) = kernel.render_pixels(&camera, &all).expect("render");
+        assert_eq!(plain_stats.hidden, 0);
+        // A solid block behind the camera hides nothing: the same image.
+        let eye = camera.camera_to_world().transform_point3(Vec3::ZERO);
+        let forward = camera.camera_to_world().transform_vector3(-Vec3::Z);
+        let block = |at: Vec3| SolidGrid::new(at - Vec3::splat(0.1), at + Vec3::splat(0.1), [1, 1, 1], &[true]);
+        let behind = block(eye - forward).expect("grid");
+        let (same, stats) = kernel.render_pixels_behind(&camera, &all, &[behind]).expect("render");
+        assert_eq!((same, stats.hidden), (plain.clone(), 0));
+        // One in front: some samples are hidden, the view stays opaque, and only pixels with a
+        // hidden sample may change depth (a hidden sample draws fewer random numbers, so the
+        // pixel's next sample takes another path).
+        let front = block(eye + forward * 0.5).expect("grid");
+        let (hid, stats) = kernel.render_pixels_behind(&camera, &all, &[front]).expect("render");
+        assert!(stats.hidden > 0 && stats.hidden < stats.rays, "{stats:?}");
+        assert_eq!(hid.opacity, plain.opacity);
+        let moved = hid.depth.iter().zip(&plain.depth).filter(|(a, b)| a != b).count() as u64;
+        assert!(moved <= stats.hidden, "{moved} pixels changed depth, {} samples hidden", stats.hidden);
+        assert_ne!(hid.color, plain.color);
     }
 
     #[test]

@@ -13,7 +13,7 @@ use std::fmt::Debug;
 use thiserror::Error;
 
 use nephele_geometry::camera::Camera;
-pub use nephele_geometry::{Bounds, PixelOutOfImage, PixelResults, all_pixels, validate_pixels};
+pub use nephele_geometry::{Bounds, PixelOutOfImage, PixelResults, SolidGrid, all_pixels, validate_pixels};
 use nephele_pathtracer::{Background, RenderOptions, Renderer};
 
 #[derive(Debug, Error, PartialEq)]
@@ -39,6 +39,9 @@ pub struct KernelStats {
     pub rays_hit: u64,
     /// Network evaluations (or samples for the path tracer).
     pub queries: u64,
+    /// Samples an environment kernel traced but did not light because an object's solid
+    /// matter hides them ([`RayKernel::render_pixels_behind`]).
+    pub hidden: u64,
 }
 
 /// One renderable object: a camera and a pixel set in, colour, opacity and depth out.
@@ -63,6 +66,30 @@ pub trait RayKernel: Send + Sync + Debug {
     ) -> Option<Result<([PixelResults; 2], KernelStats), KernelError>> {
         let _ = (left, right);
         None
+    }
+
+    /// [`Self::render_pixels`] for a kernel behind objects whose solid matter (`occluders`, in
+    /// this kernel's coordinates) hides part of the view: an environment kernel may skip the
+    /// lighting of what they hide (issue 13); the default renders as if they were not there.
+    fn render_pixels_behind(
+        &self,
+        camera: &Camera,
+        pixels: &[u32],
+        occluders: &[SolidGrid],
+    ) -> Result<(PixelResults, KernelStats), KernelError> {
+        let _ = occluders;
+        self.render_pixels(camera, pixels)
+    }
+
+    /// [`Self::render_pair`] behind `occluders` (see [`Self::render_pixels_behind`]).
+    fn render_pair_behind(
+        &self,
+        left: (&Camera, &[u32]),
+        right: (&Camera, &[u32]),
+        occluders: &[SolidGrid],
+    ) -> Option<Result<([PixelResults; 2], KernelStats), KernelError>> {
+        let _ = occluders;
+        self.render_pair(left, right)
     }
 
     /// Whether the kernel's cost is a whole view whatever pixels are asked (an image-space
@@ -136,7 +163,7 @@ impl RayKernel for PathTracedKernel {
             out.depth[i] = if alpha > 0.0 { depth } else { 0.0 };
             rays_hit += u64::from(alpha > 0.0);
         }
-        let kernel_stats = KernelStats { rays: stats.samples, rays_hit, queries: stats.traversal.rays };
+        let kernel_stats = KernelStats { rays: stats.samples, rays_hit, queries: stats.traversal.rays, hidden: 0 };
         Ok((out, kernel_stats))
     }
 }

@@ -618,6 +618,7 @@ impl Actor {
             Message::BatchDone(done) => {
                 self.metrics.links.rays_traced.inc_by(done.stats.rays);
                 self.metrics.links.rays_hit.inc_by(done.stats.rays_hit.min(done.stats.rays));
+                self.metrics.links.samples_hidden.inc_by(done.stats.hidden.min(done.stats.rays));
                 if let Err(e) = self.scheduler.batch_done(worker, BatchId(done.ids.batch_id), now) {
                     // A batch cancelled, superseded or re-issued meanwhile: nothing to do.
                     tracing::debug!(worker = id, batch = done.ids.batch_id, "late result: {e}");
@@ -944,6 +945,15 @@ impl Actor {
             return;
         };
         let (session, frame) = batch.frames.first().copied().unwrap_or((SessionId(0), FrameId(0)));
+        // An environment need not light what the objects in front of it hide, in every
+        // session the batch feeds (issue 13).
+        let occluders = if self.catalog.is_environment(&object.asset) {
+            let scenes: Option<Vec<&str>> =
+                batch.frames.iter().map(|(s, _)| self.sessions.get(s).map(|s| s.request.scene.as_str())).collect();
+            scenes.map_or_else(Vec::new, |scenes| self.catalog.occluders(object, &scenes))
+        } else {
+            Vec::new()
+        };
         let message = RayBatch {
             ids: BatchIds {
                 batch_id: batch.id.0,
@@ -982,6 +992,7 @@ impl Actor {
                 rows_complete: batch.rows_complete,
                 ..ReuseLimits::default()
             },
+            occluders,
         };
         self.metrics.links.batches_sent.inc();
         let _ = w.link.send(LinkCommand::Send(Message::RayBatch(message)));
@@ -1094,6 +1105,7 @@ impl Actor {
                 "stale_reports": c.stale_reports.get(),
                 "rays_traced": c.rays_traced.get(),
                 "rays_hit": c.rays_hit.get(),
+                "samples_hidden": c.samples_hidden.get(),
             },
         })
     }
@@ -1238,7 +1250,7 @@ mod tests {
                     tasks.insert(batch.ids.task_id);
                     assets.insert(batch.asset_id.clone());
                     let rays = batch.pixels.len() as u64;
-                    let stats = KernelStats { rays, rays_hit: rays / 2, queries: rays / 2 };
+                    let stats = KernelStats { rays, rays_hit: rays / 2, queries: rays / 2, hidden: 0 };
                     let done = BatchDone { ids: batch.ids, pixels: batch.pixels.len() as u32, render_time_us: 10, stats };
                     assert!(farm.send(Event::WorkerMessage(wid, Message::BatchDone(done))));
                     (traced, hit) = (traced + rays, hit + rays / 2);

@@ -41,11 +41,13 @@ pub(crate) struct LinkCounters {
     /// From the workers' `BatchDone` reports: rays their kernels traced, and those that hit.
     pub rays_traced: Counter,
     pub rays_hit: Counter,
+    /// Of the environment's G-buffer samples, those the objects in front hide (not lit).
+    pub samples_hidden: Counter,
 }
 
 impl LinkCounters {
     fn register(&self, registry: &mut Registry) {
-        let entries: [(&str, &str, &Counter); 18] = [
+        let entries: [(&str, &str, &Counter); 19] = [
             ("workers_joined", "Workers that registered", &self.workers_joined),
             ("workers_left", "Worker links that closed", &self.workers_left),
             ("workers_lost", "Workers dropped for missing their heartbeats", &self.workers_lost),
@@ -71,6 +73,11 @@ impl LinkCounters {
                 "rays_hit",
                 "Of those rays, the ones that hit their object (the rest cost a march for nothing)",
                 &self.rays_hit,
+            ),
+            (
+                "samples_hidden",
+                "Environment G-buffer samples the objects' solid matter hides: traced, not lit (issue 13)",
+                &self.samples_hidden,
             ),
             (
                 "farm_peers_unauthenticated",

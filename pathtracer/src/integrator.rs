@@ -10,7 +10,9 @@ use glam::Vec3;
 use rayon::prelude::*;
 use thiserror::Error;
 
+use nephele_geometry::SolidGrid;
 use nephele_geometry::camera::{Camera, Ray};
+use nephele_geometry::solid::SolidTraversal;
 
 use super::bvh::{Bvh, Hit, TraversalStats};
 use super::material::{DielectricEvent, Material, fresnel_dielectric, luminance, refract};
@@ -94,6 +96,9 @@ pub struct RenderStats {
     pub traversal: TraversalStats,
     /// Samples whose estimate was not finite and was dropped (should stay 0).
     pub dropped_non_finite: u64,
+    /// Camera samples whose first hit lies behind an occluder's solid cells
+    /// ([`Renderer::render_behind`]): traced for the G-buffer, not lit.
+    pub hidden_samples: u64,
 }
 
 /// Per-pixel outputs of one render. Colours are linear; `color` and `direct` are
@@ -146,6 +151,8 @@ struct SampleResult {
     radiance: Vec3,
     direct: Vec3,
     first_hit: Option<FirstHit>,
+    /// The first hit lies behind an occluder: not lit.
+    hidden: bool,
 }
 
 #[derive(Debug)]
@@ -189,8 +196,34 @@ impl Renderer {
         options: &RenderOptions,
         progress: &(dyn Fn(u32) + Sync),
     ) -> Result<RenderOutput, RenderError> {
+        self.render_behind(camera, options, &[], progress)
+    }
+
+    /// [`Renderer::render`] for a scene that objects stand in, whose solid matter
+    /// (`occluders`, in this scene's coordinates) hides whatever lies behind it: a camera
+    /// sample whose first hit lies beyond the point where its ray enters a solid cell is
+    /// traced for the G-buffer (position, normal, albedo, depth) but not lit (no shadow
+    /// rays, no bounce; `color` and `direct` get nothing from it), and counted in
+    /// [`RenderStats::hidden_samples`]. Pixels none of whose samples an occluder hides render
+    /// exactly as [`Renderer::render`] renders them (a hidden sample draws fewer random
+    /// numbers, so the next sample of its pixel takes another path). Issue 13: the pixels the objects cover fully are
+    /// not shaded for the environment.
+    pub fn render_behind(
+        &self,
+        camera: &Camera,
+        options: &RenderOptions,
+        occluders: &[SolidGrid],
+        progress: &(dyn Fn(u32) + Sync),
+    ) -> Result<RenderOutput, RenderError> {
         options.validate()?;
         let (width, height) = (camera.width(), camera.height());
+        // Where a camera ray may meet a solid cell at all; the walk runs only there.
+        let mut footprint = vec![false; if occluders.is_empty() { 0 } else { width as usize * height as usize }];
+        for grid in occluders {
+            grid.footprint(camera, &mut footprint);
+        }
+        let occluders: Vec<SolidTraversal> = occluders.iter().map(SolidGrid::traversal).collect();
+        let occluders = occluders.as_slice();
         let pixels = width as usize * height as usize;
         let mut out = RenderOutput {
             width,
@@ -216,9 +249,12 @@ impl Renderer {
             .enumerate()
             .map(|(y, ((((((color, direct), alpha), depth), position), normal), albedo))| {
                 let mut stats = RenderStats::default();
+                let row = footprint.get(y * width as usize..(y + 1) * width as usize).unwrap_or(&[]);
+                let mut behind = Behind::new(occluders, row);
                 for x in 0..width as usize {
                     let pixel_index = y as u64 * u64::from(width) + x as u64;
-                    let px = self.render_pixel(camera, options, x as u32, y as u32, pixel_index, &mut stats);
+                    let px =
+                        self.render_pixel(camera, options, &mut behind, x as u32, y as u32, pixel_index, &mut stats);
                     color[x] = px.color;
                     direct[x] = px.direct;
                     alpha[x] = px.alpha;
@@ -235,6 +271,7 @@ impl Renderer {
             out.stats.samples += s.samples;
             out.stats.traversal += s.traversal;
             out.stats.dropped_non_finite += s.dropped_non_finite;
+            out.stats.hidden_samples += s.hidden_samples;
         }
         Ok(out)
     }
@@ -263,7 +300,7 @@ impl Renderer {
                 let index = u64::from(index).min(last);
                 let (x, y) = ((index % u64::from(width)) as u32, (index / u64::from(width)) as u32);
                 let mut stats = RenderStats::default();
-                let px = self.render_pixel(camera, options, x, y, index, &mut stats);
+                let px = self.render_pixel(camera, options, &mut Behind::new(&[], &[]), x, y, index, &mut stats);
                 ((px.color, px.alpha, px.depth), stats)
             })
             .collect();
@@ -280,24 +317,28 @@ impl Renderer {
         Ok((values, total))
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn render_pixel(
         &self,
         camera: &Camera,
         options: &RenderOptions,
+        behind: &mut Behind,
         x: u32,
         y: u32,
         pixel_index: u64,
         stats: &mut RenderStats,
     ) -> PixelValue {
         let mut rng = Rng::new(options.seed, pixel_index);
+        let may_hide = behind.footprint.get(x as usize).copied().unwrap_or(false);
         let mut acc = PixelValue::default();
         let mut hits = 0u32;
         let spp = options.samples_per_pixel;
         for _ in 0..spp {
             let jitter = rng.next_vec2();
             let ray = camera.ray(x as f32 + jitter.x, y as f32 + jitter.y);
-            let sample = self.trace(ray, options, &mut rng, stats);
+            let sample = self.trace(ray, options, may_hide.then_some(&mut *behind), &mut rng, stats);
             stats.samples += 1;
+            stats.hidden_samples += u64::from(sample.hidden);
             if !(sample.radiance.is_finite() && sample.direct.is_finite()) {
                 stats.dropped_non_finite += 1;
                 continue;
@@ -330,7 +371,14 @@ impl Renderer {
     }
 
     /// Follows one camera ray; see the module documentation.
-    fn trace(&self, mut ray: Ray, options: &RenderOptions, rng: &mut Rng, stats: &mut RenderStats) -> SampleResult {
+    fn trace(
+        &self,
+        mut ray: Ray,
+        options: &RenderOptions,
+        mut behind: Option<&mut Behind>,
+        rng: &mut Rng,
+        stats: &mut RenderStats,
+    ) -> SampleResult {
         let mut result = SampleResult::default();
         let mut throughput = Vec3::ONE;
         // Density with which the previous bounce chose this ray, and the normal there, for
@@ -340,7 +388,18 @@ impl Renderer {
         let last_bounce = if options.direct_only { 1 } else { options.max_bounces };
         for bounce in 0..=last_bounce {
             let is_direct = bounce <= 1;
-            let Some(hit) = self.bvh.intersect(&ray, 0.0, f32::INFINITY, &mut stats.traversal) else {
+            let hit = self.bvh.intersect(&ray, 0.0, f32::INFINITY, &mut stats.traversal);
+            if bounce == 0
+                && let Some(behind) = behind.as_deref_mut()
+            {
+                let reach = hit.as_ref().map_or(f32::INFINITY, |h| h.t);
+                if behind.hides(&ray, reach) {
+                    result.hidden = true;
+                    result.first_hit = hit.map(|h| first_hit(&self.surface_point(&ray, &h), h.t));
+                    break;
+                }
+            }
+            let Some(hit) = hit else {
                 if bounce == 0 && options.background == Background::Transparent {
                     break;
                 }
@@ -354,12 +413,7 @@ impl Renderer {
             };
             let surface = self.surface_point(&ray, &hit);
             if bounce == 0 {
-                result.first_hit = Some(FirstHit {
-                    distance: hit.t,
-                    position: surface.position,
-                    normal: surface.shading,
-                    albedo: surface.material.albedo(),
-                });
+                result.first_hit = Some(first_hit(&surface, hit.t));
             }
             if options.direct_only && bounce >= 1 && !matches!(surface.material, Material::Emissive { .. }) {
                 // Light gathered here, or further along, would be indirect.
@@ -546,6 +600,34 @@ struct PixelValue {
     position: Vec3,
     normal: Vec3,
     albedo: Vec3,
+}
+
+/// The occluders of [`Renderer::render_behind`] as one thread walks a row of camera rays:
+/// the row's pixels whose rays may meet a solid cell, and the solid cell that last blocked a
+/// ray of each occluder (tried first for the next ray).
+struct Behind<'a> {
+    occluders: &'a [SolidTraversal<'a>],
+    footprint: &'a [bool],
+    hints: Vec<Option<[u32; 3]>>,
+}
+
+impl<'a> Behind<'a> {
+    fn new(occluders: &'a [SolidTraversal<'a>], footprint: &'a [bool]) -> Behind<'a> {
+        Behind { occluders, footprint, hints: vec![None; occluders.len()] }
+    }
+
+    /// Whether an occluder hides what `ray` meets at distance `reach`.
+    fn hides(&mut self, ray: &Ray, reach: f32) -> bool {
+        self.occluders
+            .iter()
+            .zip(&mut self.hints)
+            .any(|(o, hint)| o.blocks_near(ray.origin, ray.direction, reach, hint))
+    }
+}
+
+/// What the G-buffer keeps of a camera ray's hit.
+fn first_hit(surface: &SurfacePoint, distance: f32) -> FirstHit {
+    FirstHit { distance, position: surface.position, normal: surface.shading, albedo: surface.material.albedo() }
 }
 
 fn add(result: &mut SampleResult, contribution: Vec3, is_direct: bool) {
@@ -888,6 +970,57 @@ mod tests {
             let (rays_full, rays_direct) = (a.stats.traversal.rays, b.stats.traversal.rays);
             assert!(rays_direct < rays_full, "{name}: {rays_direct} rays against {rays_full}");
         }
+    }
+
+    #[test]
+    fn samples_behind_an_occluder_keep_their_g_buffer_and_lose_their_light() {
+        let builtin = crate::scenes::builtin("room-day").expect("scene");
+        let (eye, target, fov_y) = builtin.default_view();
+        let cam = Camera::look_at(32, 24, fov_y, eye, target, Vec3::Z).expect("camera");
+        let renderer = Renderer::new(builtin.scene).expect("renderer");
+        let options = RenderOptions {
+            samples_per_pixel: 1,
+            max_bounces: 1,
+            seed: 3,
+            background: Background::Environment,
+            direct_only: true,
+        };
+        // A solid block 0.2 m across, 0.6 m in front of the eye: nothing of the room is
+        // nearer, so every ray through it is hidden.
+        let at = eye + (target - eye).normalize() * 0.6 + Vec3::new(0.05, 0.0, 0.03);
+        let block = SolidGrid::new(at - Vec3::splat(0.1), at + Vec3::splat(0.1), [2, 2, 2], &[true; 8]).expect("grid");
+        let plain = renderer.render(&cam, &options, &|_| {}).expect("render");
+        let behind = renderer.render_behind(&cam, &options, std::slice::from_ref(&block), &|_| {}).expect("render");
+        let none = renderer.render_behind(&cam, &options, &[], &|_| {}).expect("render");
+        assert_eq!((&none.color, &none.depth), (&plain.color, &plain.depth));
+        assert_eq!(plain.stats.hidden_samples, 0);
+        let (mut sure, mut possible, mut light_lost) = (0u64, 0u64, 0.0f32);
+        for y in 0..24u32 {
+            for x in 0..32u32 {
+                let i = (y * 32 + x) as usize;
+                let corners = [(0, 0), (1, 0), (0, 1), (1, 1)].map(|(dx, dy)| {
+                    let ray = cam.ray((x + dx) as f32, (y + dy) as f32);
+                    block.blocks(ray.origin, ray.direction, f32::INFINITY)
+                });
+                // The G-buffer is traced either way.
+                assert_eq!(
+                    (behind.depth[i], behind.position[i], behind.normal[i], behind.albedo[i]),
+                    (plain.depth[i], plain.position[i], plain.normal[i], plain.albedo[i])
+                );
+                if corners.iter().all(|&b| b) {
+                    sure += 1;
+                    assert_eq!((behind.direct[i], behind.color[i]), (Vec3::ZERO, Vec3::ZERO), "pixel {x} {y}");
+                    light_lost += plain.direct[i].max_element();
+                } else if !corners.iter().any(|&b| b) {
+                    assert_eq!((behind.direct[i], behind.color[i]), (plain.direct[i], plain.color[i]));
+                }
+                possible += u64::from(corners.iter().any(|&b| b));
+            }
+        }
+        assert!(sure >= 4 && light_lost > 0.0, "the block covers some lit pixels: {sure}");
+        let hidden = behind.stats.hidden_samples;
+        assert!((sure..=possible).contains(&hidden), "{hidden} hidden samples, {sure}..={possible} expected");
+        assert!(behind.stats.traversal.rays < plain.stats.traversal.rays);
     }
 
     #[test]

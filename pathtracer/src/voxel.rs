@@ -139,6 +139,53 @@ pub fn cell_occupancy(mesh: &Mesh, min: Vec3, max: Vec3, longest_cells: u32, mar
     (dims, occupied)
 }
 
+/// The cells of the box `[min, max]` (cut as [`cell_occupancy`] cuts it) that lie wholly inside
+/// the matter of a closed mesh: not within `margin` cells of its surface, and walled off from
+/// the box's faces by surface cells (a flood fill from the faces through the cells the surface
+/// does not touch reaches every other cell). A gap in the surface, or a mesh that is not
+/// closed, only makes fewer cells solid. What the environment kernel skips the lighting behind
+/// (`nephele_geometry::SolidGrid`).
+pub fn solid_cells(mesh: &Mesh, min: Vec3, max: Vec3, longest_cells: u32, margin: f32) -> ([u32; 3], Vec<bool>) {
+    let (dims, near_surface) = cell_occupancy(mesh, min, max, longest_cells, margin);
+    let [nx, ny, nz] = dims.map(|d| d as usize);
+    let index = |x: usize, y: usize, z: usize| x + nx * (y + ny * z);
+    let mut outside = vec![false; near_surface.len()];
+    let mut stack = Vec::new();
+    for z in 0..nz {
+        for y in 0..ny {
+            for x in 0..nx {
+                let on_face = x == 0 || y == 0 || z == 0 || x + 1 == nx || y + 1 == ny || z + 1 == nz;
+                let i = index(x, y, z);
+                if on_face && !near_surface[i] && !outside[i] {
+                    outside[i] = true;
+                    stack.push((x, y, z));
+                }
+            }
+        }
+    }
+    while let Some((x, y, z)) = stack.pop() {
+        let neighbours = [
+            (x.wrapping_sub(1), y, z),
+            (x + 1, y, z),
+            (x, y.wrapping_sub(1), z),
+            (x, y + 1, z),
+            (x, y, z.wrapping_sub(1)),
+            (x, y, z + 1),
+        ];
+        for (a, b, c) in neighbours {
+            if a < nx && b < ny && c < nz {
+                let i = index(a, b, c);
+                if !near_surface[i] && !outside[i] {
+                    outside[i] = true;
+                    stack.push((a, b, c));
+                }
+            }
+        }
+    }
+    let solid = near_surface.iter().zip(&outside).map(|(&surface, &out)| !surface && !out).collect();
+    (dims, solid)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -174,6 +221,52 @@ mod tests {
         // A flat box: the short axis gets fewer cells of the same side.
         let (dims, _) = cell_occupancy(&mesh, Vec3::ZERO, Vec3::new(1.0, 1.0, 0.25), 8, 0.0);
         assert_eq!(dims, [8, 8, 2]);
+    }
+
+    /// A closed axis-aligned box `[lo, hi]`, faces outward.
+    fn box_mesh(lo: Vec3, hi: Vec3) -> Mesh {
+        let p = |x: bool, y: bool, z: bool| {
+            Vec3::new(if x { hi.x } else { lo.x }, if y { hi.y } else { lo.y }, if z { hi.z } else { lo.z })
+        };
+        let positions = vec![
+            p(false, false, false),
+            p(true, false, false),
+            p(true, true, false),
+            p(false, true, false),
+            p(false, false, true),
+            p(true, false, true),
+            p(true, true, true),
+            p(false, true, true),
+        ];
+        let quads = [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [2, 3, 7, 6], [1, 2, 6, 5], [0, 4, 7, 3]];
+        let indices = quads.iter().flat_map(|q| [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]).collect();
+        Mesh::new(positions, indices)
+    }
+
+    #[test]
+    fn solid_cells_are_the_inside_of_a_closed_mesh_less_a_margin() {
+        // A closed box [0.2, 0.8]^3 in the unit box cut into 10 cells a side (0.1 each): its
+        // faces lie on cell boundaries 2 and 8; half a cell of margin marks the layers on
+        // both sides, cells 1-2 and 7-8, so cells 3-6 of each axis are solid: 4^3 = 64.
+        let mesh = box_mesh(Vec3::splat(0.2), Vec3::splat(0.8));
+        let (dims, solid) = solid_cells(&mesh, Vec3::ZERO, Vec3::ONE, 10, 0.5);
+        assert_eq!(dims, [10, 10, 10]);
+        assert_eq!(solid.iter().filter(|&&s| s).count(), 64);
+        for z in 0..10 {
+            for y in 0..10 {
+                for x in 0..10 {
+                    let inner = [x, y, z].iter().all(|c| (3..=6).contains(c));
+                    assert_eq!(solid[x + 10 * (y + 10 * z)], inner, "cell {x} {y} {z}");
+                }
+            }
+        }
+        // Open it (drop the top face): the flood reaches in and nothing is solid.
+        let open = Mesh::new(mesh.positions.clone(), mesh.indices[..10].to_vec());
+        let (_, solid) = solid_cells(&open, Vec3::ZERO, Vec3::ONE, 10, 0.5);
+        assert!(solid.iter().all(|&s| !s));
+        // A flat square encloses nothing.
+        let (_, solid) = solid_cells(&square_at_half_height(), Vec3::ZERO, Vec3::ONE, 8, 0.5);
+        assert!(solid.iter().all(|&s| !s));
     }
 
     #[test]

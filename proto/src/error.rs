@@ -112,4 +112,6 @@ pub enum ValidationError {
     Count { field: &'static str, len: usize, min: usize, max: usize },
     #[error("{field} {value:?} is invalid: {reason}")]
     BadString { field: &'static str, value: String, reason: &'static str },
+    #[error("occluder: {0}")]
+    Occluder(#[from] nephele_geometry::SolidGridError),
 }

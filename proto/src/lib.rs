@@ -44,7 +44,9 @@ pub const MAGIC: [u8; 4] = *b"NPHL";
 /// 7: derived views ride on ray batches (`RayBatch::derived`, `RayBatch::reuse`).
 /// 8: a worker may take a batch from its previous render of the user's view
 ///    (`ReuseLimits::previous_frames`).
-pub const PROTOCOL_VERSION: u16 = 8;
+/// 9: an environment's batch carries the solid matter of the objects standing in it
+///    (`RayBatch::occluders`).
+pub const PROTOCOL_VERSION: u16 = 9;
 
 /// The [`ErrorMessage`] that tells a peer why its connection is being closed.
 pub fn error_message(error: &ProtoError) -> Message {

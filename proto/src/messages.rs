@@ -28,6 +28,8 @@
 
 use std::fmt;
 
+/// Cells wholly inside an object's matter (`RayBatch::occluders`).
+pub use nephele_geometry::SolidGrid;
 /// The one view type, from the browser to the kernels (`nephele_geometry::view`).
 pub use nephele_geometry::ViewProjection;
 use serde::{Deserialize, Serialize};
@@ -186,6 +188,15 @@ pub struct RayBatch {
     /// How strict that reuse is, and whether the worker may also take this batch's own
     /// pixels from its previous render of the same user's view of the asset.
     pub reuse: ReuseLimits,
+    /// For an environment (issue 13): the solid matter of the objects fused in front of it,
+    /// in the asset's coordinates; the kernel need not light what they hide. Empty for an
+    /// object; at most [`RayBatch::MAX_OCCLUDERS`].
+    pub occluders: Vec<SolidGrid>,
+}
+
+impl RayBatch {
+    /// Most occluders a batch may carry.
+    pub const MAX_OCCLUDERS: usize = 16;
 }
 
 /// A view taken from a batch's rendered pixels (the eyes of a headset, the neighbours in a
@@ -252,6 +263,9 @@ pub struct KernelStats {
     pub rays: u64,
     pub rays_hit: u64,
     pub queries: u64,
+    /// Samples an environment kernel traced but did not light: the objects' solid matter
+    /// ([`RayBatch::occluders`]) hides them.
+    pub hidden: u64,
 }
 
 /// The pixels of one batch, worker → composer. Arrays are parallel to `pixels`; each travels

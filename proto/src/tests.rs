@@ -62,10 +62,11 @@ fn address() -> impl Strategy<Value = String> {
 }
 
 fn stats() -> impl Strategy<Value = KernelStats> {
-    (any::<u64>(), any::<u64>(), any::<u64>()).prop_map(|(rays, rays_hit, queries)| KernelStats {
+    (any::<u64>(), any::<u64>(), any::<u64>(), any::<u64>()).prop_map(|(rays, rays_hit, queries, hidden)| KernelStats {
         rays,
         rays_hit,
         queries,
+        hidden,
     })
 }
 
@@ -103,16 +104,23 @@ fn ray_batch() -> impl Strategy<Value = RayBatch> {
         address(),
         proptest::collection::vec(derived_view(), 0..3),
         reuse_limits(),
+        proptest::collection::vec(solid_grid(), 0..3),
     )
-        .prop_map(|(ids, asset_id, (camera, pixels), deadline_in_us, composer, derived, reuse)| RayBatch {
-            ids,
-            asset_id,
-            camera,
-            pixels,
-            deadline_in_us,
-            composer,
-            derived,
-            reuse,
+        .prop_map(|(ids, asset_id, (camera, pixels), deadline_in_us, composer, derived, reuse, occluders)| {
+            RayBatch { ids, asset_id, camera, pixels, deadline_in_us, composer, derived, reuse, occluders }
+        })
+}
+
+fn solid_grid() -> impl Strategy<Value = SolidGrid> {
+    (prop::array::uniform3(-10.0f32..10.0), prop::array::uniform3(0.01f32..5.0), prop::array::uniform3(1u32..12))
+        .prop_flat_map(|(min, size, dims)| {
+            let words = (dims.iter().product::<u32>() as usize).div_ceil(64);
+            prop::collection::vec(any::<u64>(), words).prop_map(move |bits| SolidGrid {
+                min,
+                max: [min[0] + size[0], min[1] + size[1], min[2] + size[2]],
+                dims,
+                bits,
+            })
         })
 }
 
@@ -296,6 +304,7 @@ fn good_batch() -> RayBatch {
         composer: "127.0.0.1:7000".into(),
         derived: Vec::new(),
         reuse: ReuseLimits::default(),
+        occluders: Vec::new(),
     }
 }
 
@@ -311,7 +320,7 @@ fn good_result(n: usize) -> BatchResult {
         depth: pixels.iter().map(|&p| (p % 7) as f32).collect(),
         pixels,
         render_time_us: 1234,
-        stats: KernelStats { rays: 10, rays_hit: 5, queries: 40 },
+        stats: KernelStats { rays: 10, rays_hit: 5, queries: 40, hidden: 0 },
         encoding: crate::ResultEncoding::F32,
     }
 }
@@ -625,6 +634,29 @@ fn derived_views_and_reuse_limits_are_checked() {
     let mut bad = batch;
     bad.derived = vec![bad.derived[0].clone(); validate::MAX_VIEWS as usize + 1];
     assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::Count { .. }));
+}
+
+#[test]
+fn occluders_are_checked() {
+    let mut batch = good_batch();
+    let grid = SolidGrid { min: [0.0; 3], max: [1.0; 3], dims: [4, 4, 4], bits: vec![u64::MAX] };
+    batch.occluders = vec![grid.clone()];
+    assert!(decode_one(&unchecked(MessageKind::RayBatch, &batch)).expect("decodes").is_ok());
+    for bad in [
+        SolidGrid { bits: vec![0; 2], ..grid.clone() },
+        SolidGrid { dims: [0, 4, 4], ..grid.clone() },
+        SolidGrid { dims: [64, 64, 65], bits: vec![0; 64 * 65], ..grid.clone() },
+        SolidGrid { max: [1.0, 0.0, 1.0], ..grid.clone() },
+        SolidGrid { min: [f32::NEG_INFINITY, 0.0, 0.0], ..grid.clone() },
+    ] {
+        batch.occluders = vec![bad];
+        assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &batch)).error, ValidationError::Occluder(_)));
+    }
+    batch.occluders = vec![grid; RayBatch::MAX_OCCLUDERS + 1];
+    assert!(matches!(
+        rejected(&unchecked(MessageKind::RayBatch, &batch)).error,
+        ValidationError::Count { field: "occluders", .. }
+    ));
 }
 
 #[test]
@@ -1067,7 +1099,7 @@ async fn async_handshake_refuses_wrong_roles_and_versions() {
         let mut conn = stream::framed(s, cfg());
         let err =
             stream::handshake(&mut conn, Role::Master, &[Role::Worker], None, timeout).await.expect_err("version");
-        assert!(matches!(err, ProtoError::VersionMismatch { theirs: 9, .. }));
+        assert!(matches!(err, ProtoError::VersionMismatch { theirs, .. } if theirs == PROTOCOL_VERSION + 1));
     });
     let mut conn = stream::framed(tokio::net::TcpStream::connect(addr).await.expect("connect"), cfg());
     // We accept the master's Hello; it refuses ours, and says why instead of a challenge.
@@ -1077,7 +1109,7 @@ async fn async_handshake_refuses_wrong_roles_and_versions() {
     // A peer from the future.
     let mut raw = tokio::net::TcpStream::connect(addr).await.expect("connect");
     let mut body = MAGIC.to_vec();
-    body.extend(9u16.to_le_bytes());
+    body.extend((PROTOCOL_VERSION + 1).to_le_bytes());
     body.push(Role::Worker.to_byte());
     raw.write_all(&raw_frame(MessageKind::Hello.tag(), &body)).await.expect("send");
     let mut conn = stream::framed(raw, cfg());

@@ -168,6 +168,10 @@ fn ray_batch(m: &RayBatch) -> Result<(), ValidationError> {
         camera(&view.camera)?;
         pixel_set(&view.pixels, view.camera.width, view.camera.height)?;
     }
+    count("occluders", m.occluders.len(), 0, RayBatch::MAX_OCCLUDERS)?;
+    for grid in &m.occluders {
+        grid.validate()?;
+    }
     let ReuseLimits { max_angle_deg, max_contrast, previous_frames, .. } = m.reuse;
     count("reuse previous_frames", previous_frames as usize, 0, ReuseLimits::MAX_PREVIOUS_FRAMES as usize)?;
     if !(0.0..=90.0).contains(&max_angle_deg) {

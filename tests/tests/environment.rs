@@ -3,7 +3,9 @@
 //! student (`--bake quick`: seconds, barely trained); the workers shade every view of the
 //! room with them and the composer fuses the knot into it by depth. A flat WebRTC client gets
 //! frames the room fills (no black background left); a stereo `loadgen` user streams, the
-//! room's two eyes in one batch (the scheduler's `views_derived`), shaded in one stereo pass.
+//! room's two eyes in one batch (the scheduler's `views_derived`), shaded in one stereo pass;
+//! the G-buffer samples behind the knot's solid matter are not lit (the master's
+//! `samples_hidden`).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -86,6 +88,9 @@ async fn a_room_is_shaded_by_its_gi_model_on_the_farm_and_fused_with_the_knot_fo
     let farm: serde_json::Value = serde_json::from_str(&farm).expect("JSON");
     let derived = farm["scheduler"]["stats"]["views_derived"].as_u64().unwrap_or(0);
     assert!(derived >= 1, "no view of the room was paired: {}", farm["scheduler"]["stats"]);
+    // The knot's solid matter rode on the room's batches: samples behind it were not lit.
+    let (traced, hidden) = (farm["live"]["rays_traced"].as_u64(), farm["live"]["samples_hidden"].as_u64());
+    assert!(hidden.is_some_and(|h| h > 0 && Some(h) < traced), "hidden {hidden:?} of {traced:?}: {}", farm["live"]);
     let log = up.log_text();
     assert!(log.contains("room-day.ngi"), "no worker loaded the GI model");
     // A loaded machine sheds batches that waited past their deadline or found a full queue,

@@ -318,6 +318,7 @@ fn batches(frame: &Frame, count: usize, composer: SocketAddr) -> Vec<RayBatch> {
             composer: composer.to_string(),
             derived: Vec::new(),
             reuse: ReuseLimits::default(),
+            occluders: Vec::new(),
         })
         .collect()
 }
@@ -547,6 +548,7 @@ fn a_derived_view_rides_on_a_batch_and_only_its_leftovers_are_rendered() {
         composer: composer.addr.to_string(),
         derived: vec![DerivedView { ids: derived_ids, camera: right, pixels: asked.clone() }],
         reuse: ReuseLimits::default(),
+        occluders: Vec::new(),
     };
     master.send(w, &Message::RayBatch(batch.clone()));
     let done = match master.next() {
@@ -615,6 +617,7 @@ fn a_users_next_frames_come_from_the_previous_render_until_it_is_renewed() {
             composer: composer.addr.to_string(),
             derived: Vec::new(),
             reuse: ReuseLimits { previous_frames, ..ReuseLimits::default() },
+            occluders: Vec::new(),
         };
         master.send(w, &Message::RayBatch(batch.clone()));
         let done = match master.next() {
@@ -703,6 +706,7 @@ fn bad_batches_are_answered_and_the_worker_carries_on() {
         composer: composer.addr.to_string(),
         derived: Vec::new(),
         reuse: ReuseLimits::default(),
+        occluders: Vec::new(),
     };
     let with = |id: u64, change: &dyn Fn(&mut RayBatch)| {
         let mut b = good.clone();
@@ -849,6 +853,7 @@ fn garbage_oversized_frames_and_wrong_versions_close_the_connection_without_a_cr
         composer: composer.addr.to_string(),
         derived: Vec::new(),
         reuse: ReuseLimits::default(),
+        occluders: Vec::new(),
     };
     master.send(w, &Message::RayBatch(batch.clone()));
     assert!(matches!(master.next(), Event::Message(_, Message::BatchDone(_))));

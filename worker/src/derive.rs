@@ -203,7 +203,7 @@ mod tests {
                     out.depth[k] = t * camera.depth_per_distance(&ray);
                 }
             }
-            let stats = KernelStats { rays: pixels.len() as u64, rays_hit: 0, queries: 0 };
+            let stats = KernelStats { rays: pixels.len() as u64, ..KernelStats::default() };
             Ok((out, stats))
         }
     }

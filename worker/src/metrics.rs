@@ -39,6 +39,8 @@ pub struct WorkerMetrics {
     pub(crate) derived_pixels_rendered: Counter,
     pub(crate) previous_frame_pixels: Counter,
     pub(crate) previous_frame_pixels_rendered: Counter,
+    pub(crate) environment_samples: Counter,
+    pub(crate) environment_samples_hidden: Counter,
 }
 
 impl WorkerMetrics {
@@ -104,6 +106,18 @@ impl WorkerMetrics {
             "Pixels of those batches that reprojection could not vouch for, rendered by the kernel",
             Counter::default(),
         );
+        let environment_samples = register(
+            &mut registry,
+            "environment_samples",
+            "G-buffer samples an environment kernel traced (camera rays)",
+            Counter::default(),
+        );
+        let environment_samples_hidden = register(
+            &mut registry,
+            "environment_samples_hidden",
+            "Of those, samples an object's solid matter hides: traced for the G-buffer, not lit",
+            Counter::default(),
+        );
         WorkerMetrics {
             registry: Arc::new(registry),
             phase: AtomicU8::new(Phase::Calibrating as u8),
@@ -120,6 +134,8 @@ impl WorkerMetrics {
             derived_pixels_rendered,
             previous_frame_pixels,
             previous_frame_pixels_rendered,
+            environment_samples,
+            environment_samples_hidden,
         }
     }
 

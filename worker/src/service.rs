@@ -545,12 +545,13 @@ async fn flush(conn: &mut Connection<FarmStream>, outbox: &mut Vec<Message>) -> 
 
 /// A kernel's work as the protocol carries it.
 fn wire_stats(stats: nephele_kernels::kernel::KernelStats) -> KernelStats {
-    KernelStats { rays: stats.rays, rays_hit: stats.rays_hit, queries: stats.queries }
+    KernelStats { rays: stats.rays, rays_hit: stats.rays_hit, queries: stats.queries, hidden: stats.hidden }
 }
 
 /// Renders a batch's own pixels, or takes them from this worker's previous render of the same
 /// session's view of the asset where the batch allows it and that pays ([`crate::temporal`]).
-/// Runs on the caller's rayon pool.
+/// Runs on the caller's rayon pool. `occluders`: see [`RayBatch::occluders`].
+#[allow(clippy::too_many_arguments)]
 fn render_or_reuse(
     worker: &Shared,
     kernel: &dyn nephele_kernels::kernel::RayKernel,
@@ -559,6 +560,7 @@ fn render_or_reuse(
     pixels: &[u32],
     reuse: &nephele_proto::ReuseLimits,
     settings: &nephele_share::Settings,
+    occluders: &[nephele_proto::SolidGrid],
 ) -> Result<(nephele_kernels::kernel::PixelResults, nephele_kernels::kernel::KernelStats), String> {
     let previous_frames = if kernel.shades_whole_views() { 0 } else { reuse.previous_frames };
     let centre = kernel.bounds().center();
@@ -576,7 +578,7 @@ fn render_or_reuse(
         }
         Plan::Render(why) => {
             tracing::trace!(asset = %slot.1, ?why, "rendered in full");
-            let (results, stats) = kernel.render_pixels(camera, pixels).map_err(|e| e.to_string())?;
+            let (results, stats) = kernel.render_pixels_behind(camera, pixels, occluders).map_err(|e| e.to_string())?;
             if previous_frames > 0 {
                 worker.previous.record(slot.1, Made::Full, pixels.len(), begun.elapsed());
                 let absent = if reuse.rows_complete { Absent::Empty } else { Absent::Unknown };
@@ -594,7 +596,7 @@ async fn render_and_deliver(
     batch: RayBatch,
     cancelled: &AtomicBool,
 ) -> Result<BatchDone, (ErrorCode, String)> {
-    let RayBatch { ids, asset_id, camera: wire, pixels, composer, derived, reuse, .. } = batch;
+    let RayBatch { ids, asset_id, camera: wire, pixels, composer, derived, reuse, occluders, .. } = batch;
     let camera = wire.camera().map_err(|e| (ErrorCode::InvalidField, format!("camera: {e}")))?;
     let derived_cameras = derived
         .iter()
@@ -608,16 +610,16 @@ async fn render_and_deliver(
     };
     let worker = shared.clone();
     let asset = asset_id.clone();
-    let (pixels, derived, rendered, render_time) = tokio::task::spawn_blocking(move || {
+    let (pixels, derived, rendered, render_time, whole_views) = tokio::task::spawn_blocking(move || {
         let kernel = match worker.loader.load(&asset_id) {
             Ok(kernel) => kernel,
-            Err(e) => return (pixels, derived, Err((e.code(), e.to_string())), Duration::ZERO),
+            Err(e) => return (pixels, derived, Err((e.code(), e.to_string())), Duration::ZERO, false),
         };
         let start = Instant::now();
         let rendered = worker.pool.install(|| {
             // A headset's other eye in the same pass, where the kernel has one (stereo GI).
             if let ([view], [target]) = (derived.as_slice(), derived_cameras.as_slice())
-                && let Some(pair) = kernel.render_pair((&camera, &pixels), (target, &view.pixels))
+                && let Some(pair) = kernel.render_pair_behind((&camera, &pixels), (target, &view.pixels), &occluders)
             {
                 let ([results, other], stats) = pair.map_err(|e| e.to_string())?;
                 let rendered = view.pixels.len();
@@ -627,12 +629,13 @@ async fn render_and_deliver(
             }
             let slot = (ids.session_id, asset_id.as_str());
             let (results, stats) =
-                render_or_reuse(&worker, kernel.as_ref(), slot, &camera, &pixels, &reuse, &settings)?;
+                render_or_reuse(&worker, kernel.as_ref(), slot, &camera, &pixels, &reuse, &settings, &occluders)?;
             let mut views = Vec::with_capacity(derived.len());
             for (view, target) in derived.iter().zip(&derived_cameras) {
                 let view = if kernel.shades_whole_views() {
                     // Reprojection would save nothing: what it leaves costs a whole pass.
-                    let (results, stats) = kernel.render_pixels(target, &view.pixels).map_err(|e| e.to_string())?;
+                    let (results, stats) =
+                        kernel.render_pixels_behind(target, &view.pixels, &occluders).map_err(|e| e.to_string())?;
                     Derived { results, stats, reused: 0, empty: 0, rendered: view.pixels.len() }
                 } else {
                     derive_view(kernel.as_ref(), &camera, &pixels, &results, target, &view.pixels, &settings)
@@ -645,11 +648,17 @@ async fn render_and_deliver(
         let rendered = rendered.map_err(|e| (ErrorCode::RenderFailed, e));
         let elapsed = start.elapsed();
         worker.metrics.render_ms.observe(elapsed.as_secs_f64() * 1e3);
-        (pixels, derived, rendered, elapsed)
+        (pixels, derived, rendered, elapsed, kernel.shades_whole_views())
     })
     .await
     .map_err(|e| (ErrorCode::Internal, format!("render task: {e}")))?;
     let (results, stats, views) = rendered?;
+    let hidden = stats.hidden + views.iter().map(|v| v.stats.hidden).sum::<u64>();
+    if whole_views {
+        let samples = stats.rays + views.iter().map(|v| v.stats.rays).sum::<u64>();
+        shared.metrics.environment_samples.inc_by(samples);
+        shared.metrics.environment_samples_hidden.inc_by(hidden);
+    }
     if cancelled.load(Ordering::Acquire) {
         return Err((ErrorCode::Cancelled, "cancelled while rendering".into()));
     }
@@ -662,6 +671,7 @@ async fn render_and_deliver(
         stats.rays += made.stats.rays;
         stats.rays_hit += made.stats.rays_hit;
         stats.queries += made.stats.queries;
+        stats.hidden += made.stats.hidden;
         count = count.saturating_add(view.pixels.len() as u32);
         shared.metrics.derived_pixels.inc_by(view.pixels.len() as u64);
         shared.metrics.derived_pixels_rendered.inc_by(made.rendered as u64);
@@ -708,6 +718,6 @@ async fn render_and_deliver(
         .await
         .map_err(|e| (ErrorCode::ComposerUnreachable, format!("composer {composer}: {e}")))?;
     shared.metrics.deliver_ms.observe(delivering.elapsed().as_secs_f64() * 1e3);
-    tracing::debug!(batch = ids.batch_id, %asset, pixels = count, rays = stats.rays, render_us = render_time_us, "batch delivered");
+    tracing::debug!(batch = ids.batch_id, %asset, pixels = count, rays = stats.rays, hidden, render_us = render_time_us, "batch delivered");
     Ok(BatchDone { ids, pixels: count, render_time_us, stats })
 }

@@ -412,6 +412,6 @@ impl RayKernel for InolfKernel {
         }
         // One heads query per hitting ray, plus the density network's samples if it gives
         // the hit point.
-        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries: rays_hit + network_samples }))
+        Ok((out, KernelStats { rays: pixels.len() as u64, rays_hit, queries: rays_hit + network_samples, hidden: 0 }))
     }
 }

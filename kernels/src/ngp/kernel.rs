@@ -141,6 +141,6 @@ impl RayKernel for NgpKernel {
     /// the subset of samples whose blending weight matters.
     fn render_pixels(&self, camera: &Camera, pixels: &[u32]) -> Result<(PixelResults, KernelStats), KernelError> {
         let (out, s) = self.render_pixels_with_stats(camera, pixels)?;
-        Ok((out, KernelStats { rays: s.rays, rays_hit: s.rays_hit, queries: s.samples }))
+        Ok((out, KernelStats { rays: s.rays, rays_hit: s.rays_hit, queries: s.samples, hidden: 0 }))
     }
 }

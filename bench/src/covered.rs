@@ -1,0 +1,254 @@
+//! `nephele bench covered`: what the environment kernel saves by not lighting the room behind
+//! the objects' solid matter (issue 13, "pixels the objects cover fully are not shaded"), and
+//! what it costs the pixels that stay visible.
+//!
+//! The room scene as the master serves it (`Catalog::builtin`, its `occluders`), from views
+//! orbiting the scene's first view as a scripted user does: per view the kernel with and
+//! without the knot's solid cells, alternated, flat and as a stereo pair. Counts: the share
+//! of G-buffer samples hidden, against the share of pixels whose centre ray meets the knot's
+//! mesh. Error: PSNR of the served room with occluders against without, over the pixels the
+//! knot does not cover (their G-buffer samples are the same; only the network's
+//! neighbourhood differs), and over those of them within 8 pixels of the knot.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, ensure};
+use glam::Vec3;
+use nephele_geometry::camera::{Camera, stereo_pair};
+use nephele_kernels::environment::{GiKernel, GiServeSettings};
+use nephele_kernels::kernel::{RayKernel, all_pixels};
+use nephele_master::scenes::{Catalog, ROOM_VIEW};
+use nephele_pathtracer::bvh::{Bvh, TraversalStats};
+use nephele_pathtracer::{Background, RenderOptions, Renderer, scenes};
+
+use crate::Progress;
+
+#[derive(Debug, clap::Args)]
+pub struct CoveredArgs {
+    /// The environment's single-eye model as `nephele up` serves it (its `.stereo.ngi` twin
+    /// beside it is used for the stereo rows).
+    #[arg(long)]
+    model: PathBuf,
+    /// The room scene (`room-day` or `room-night`, matching the model).
+    #[arg(long, default_value = "room-day")]
+    scene: String,
+    /// View size.
+    #[arg(long, default_value = "640x480", value_parser = nephele_geometry::camera::parse_size)]
+    size: (u32, u32),
+    /// Views around the orbit.
+    #[arg(long, default_value_t = 6)]
+    views: usize,
+    /// Timed repetitions of each (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    repeats: usize,
+}
+
+/// PSNR of `a` against `b` (linear, clamped to [0, 1]) over the pixels `keep` selects.
+fn psnr(a: &[[f32; 3]], b: &[[f32; 3]], keep: impl Fn(usize) -> bool) -> f64 {
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for (_, (x, y)) in a.iter().zip(b).enumerate().filter(|(i, _)| keep(*i)) {
+        for c in 0..3 {
+            let d = f64::from(x[c].clamp(0.0, 1.0) - y[c].clamp(0.0, 1.0));
+            sum += d * d;
+        }
+        n += 3;
+    }
+    10.0 * (1.0 / (sum / n.max(1) as f64).max(1e-12)).log10()
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
+    let catalog = Catalog::builtin().context("the scene catalog")?;
+    let scene = catalog.scene(&args.scene).with_context(|| format!("no scene {:?}", args.scene))?;
+    let environment = scene
+        .objects
+        .iter()
+        .filter_map(|id| catalog.object(*id))
+        .find(|o| catalog.is_environment(&o.asset))
+        .with_context(|| format!("{} has no environment", args.scene))?;
+    let occluders = catalog.occluders(environment, &[args.scene.as_str()]);
+    ensure!(!occluders.is_empty(), "nothing in {} hides the room", args.scene);
+    let objects: Vec<_> = scene
+        .objects
+        .iter()
+        .filter_map(|id| catalog.object(*id))
+        .filter(|o| !catalog.is_environment(&o.asset))
+        .map(|o| {
+            let mesh = scenes::builtin(&o.asset).map(|s| s.scene.mesh).context("a built-in object")?;
+            Ok((Bvh::build(&mesh), o.translation - environment.translation))
+        })
+        .collect::<Result<_>>()?;
+    let kernel = GiKernel::load(&args.model, GiServeSettings::default())
+        .with_context(|| format!("loading {}", args.model.display()))?;
+    // The kernel's G-buffer alone: the room's path tracer in its direct-light mode.
+    let room = scenes::builtin_at(&environment.asset, 0.0).context("the room scene")?;
+    let renderer = Renderer::new(room.scene)?;
+    let serve = GiServeSettings::default();
+    let g_buffer = RenderOptions {
+        samples_per_pixel: serve.samples_per_pixel,
+        max_bounces: 1,
+        seed: 0,
+        background: Background::Environment,
+        direct_only: true,
+    };
+    let solid: u64 = occluders.iter().map(|g| g.solid_count()).sum();
+    println!(
+        "{}: {} occluder(s), {solid} solid cells; served at {:?}, network on {}; stereo model: {}",
+        args.scene,
+        occluders.len(),
+        GiServeSettings::default(),
+        kernel.network_device(),
+        kernel.has_stereo()
+    );
+    let (w, h) = args.size;
+    let view = ROOM_VIEW;
+    let (target, eye) = (Vec3::from(view.target), Vec3::from(view.eye));
+    let radius = (eye - target).truncate().length();
+    let start = (eye - target).y.atan2((eye - target).x);
+    let mut totals = [0.0f64; 4]; // plain and behind ms, flat then stereo
+    let bar = progress.bar(args.views.max(1) as u64, "views", "views");
+    for k in 0..args.views.max(1) {
+        let a = start + k as f32 * std::f32::consts::TAU / args.views.max(1) as f32;
+        let at = Vec3::new(target.x + radius * a.cos(), target.y + radius * a.sin(), eye.z);
+        let camera = Camera::look_at(w, h, view.fov_y_deg.to_radians(), at, target, Vec3::Z)?;
+        let all = all_pixels(&camera);
+        // Pixels whose centre ray meets an object's mesh (what the fused objects cover).
+        let mut stats = TraversalStats::default();
+        let covered: Vec<bool> = all
+            .iter()
+            .map(|&p| {
+                let ray = camera.pixel_center_ray(p % w, p / w);
+                objects.iter().any(|(bvh, offset)| {
+                    let mut local = ray;
+                    local.origin -= *offset;
+                    bvh.intersect(&local, 1e-4, f32::INFINITY, &mut stats).is_some()
+                })
+            })
+            .collect();
+        let near = dilate(&covered, w as usize, h as usize, 8);
+        let [left, right] = stereo_pair(&camera, 0.063)?;
+        let (fx, fy, cx, cy) = camera.intrinsics();
+        let s = serve.scale;
+        let shaded = Camera::from_intrinsics(
+            (w as f32 * s).ceil() as u32,
+            (h as f32 * s).ceil() as u32,
+            fx * s,
+            fy * s,
+            cx * s,
+            cy * s,
+            camera.camera_to_world(),
+        )?;
+        let (mut g_plain, mut g_behind) = (Vec::new(), Vec::new());
+        let mut rays = (0, 0);
+        for _ in 0..args.repeats.max(1) {
+            let t = Instant::now();
+            let out = renderer.render(&shaded, &g_buffer, &|_| {})?;
+            g_plain.push(t.elapsed().as_secs_f64() * 1e3);
+            let t = Instant::now();
+            let hid = renderer.render_behind(&shaded, &g_buffer, &occluders, &|_| {})?;
+            g_behind.push(t.elapsed().as_secs_f64() * 1e3);
+            rays = (out.stats.traversal.rays, hid.stats.traversal.rays);
+        }
+        let (g_plain, g_behind) = (median(g_plain), median(g_behind));
+        // A warm-up round, then rounds that rotate the order of the four renders (so that
+        // none always follows the same one).
+        let mut times = [(); 4].map(|_| Vec::new());
+        let (mut plain, mut behind) = (None, None);
+        let jobs = if kernel.has_stereo() { 4 } else { 2 };
+        for round in 0..=args.repeats.max(1) {
+            for job in (0..jobs).map(|j| (j + round) % jobs) {
+                let t = Instant::now();
+                match job {
+                    0 => plain = Some(kernel.render_pixels(&camera, &all)?),
+                    1 => behind = Some(kernel.render_pixels_behind(&camera, &all, &occluders)?),
+                    2 => {
+                        kernel.render_pair((&left, &all), (&right, &all)).context("a stereo pass")??;
+                    }
+                    _ => {
+                        kernel
+                            .render_pair_behind((&left, &all), (&right, &all), &occluders)
+                            .context("a stereo pass")??;
+                    }
+                }
+                if round > 0 {
+                    times[job].push(t.elapsed().as_secs_f64() * 1e3);
+                }
+            }
+        }
+        let last = plain.zip(behind);
+        let ((plain, plain_stats), (behind, behind_stats)) = last.context("one repetition")?;
+        let ms = times.map(|t| if t.is_empty() { 0.0 } else { median(t) });
+        for (total, m) in totals.iter_mut().zip(ms) {
+            *total += m;
+        }
+        let knot_share = covered.iter().filter(|&&c| c).count() as f64 / all.len() as f64;
+        println!(
+            "view {k}: G-buffer alone ({}x{}): {g_plain:.1} -> {g_behind:.1} ms ({:.3}), rays traced {} -> {} ({:.3})",
+            shaded.width(),
+            shaded.height(),
+            g_behind / g_plain,
+            rays.0,
+            rays.1,
+            rays.1 as f64 / rays.0 as f64
+        );
+        println!(
+            "view {k}: objects cover {:.1} % of the pixels; samples hidden {:.1} % ({} of {}); flat {:.1} -> {:.1} ms ({:.3}){}; visible pixels: PSNR {:.2} dB against no occluders, {:.2} dB within 8 px of an object",
+            100.0 * knot_share,
+            100.0 * behind_stats.hidden as f64 / behind_stats.rays.max(1) as f64,
+            behind_stats.hidden,
+            behind_stats.rays,
+            ms[0],
+            ms[1],
+            ms[1] / ms[0],
+            if kernel.has_stereo() {
+                format!("; stereo pair {:.1} -> {:.1} ms ({:.3})", ms[2], ms[3], ms[3] / ms[2])
+            } else {
+                String::new()
+            },
+            psnr(&behind.color, &plain.color, |i| !covered[i]),
+            psnr(&behind.color, &plain.color, |i| !covered[i] && near[i]),
+        );
+        ensure!(plain_stats.hidden == 0, "a render without occluders hid samples");
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    println!(
+        "all views: flat {:.1} -> {:.1} ms per view ({:.3}){}",
+        totals[0] / args.views as f64,
+        totals[1] / args.views as f64,
+        totals[1] / totals[0],
+        if kernel.has_stereo() {
+            format!(
+                "; stereo pair {:.1} -> {:.1} ms ({:.3})",
+                totals[2] / args.views as f64,
+                totals[3] / args.views as f64,
+                totals[3] / totals[2]
+            )
+        } else {
+            String::new()
+        }
+    );
+    Ok(())
+}
+
+/// `mask` grown by `radius` pixels (a square neighbourhood).
+fn dilate(mask: &[bool], w: usize, h: usize, radius: usize) -> Vec<bool> {
+    let mut out = vec![false; mask.len()];
+    for y in 0..h {
+        for x in 0..w {
+            if mask[y * w + x] {
+                for yy in y.saturating_sub(radius)..(y + radius + 1).min(h) {
+                    for xx in x.saturating_sub(radius)..(x + radius + 1).min(w) {
+                        out[yy * w + xx] = true;
+                    }
+                }
+            }
+        }
+    }
+    out
+}
