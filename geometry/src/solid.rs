@@ -139,18 +139,26 @@ impl SolidGrid {
     pub fn traversal(&self) -> SolidTraversal<'_> {
         let blocks = (self.dims_i() + IVec3::splat(BLOCK - 1)) / BLOCK;
         let mut occupied = vec![false; (blocks.x * blocks.y * blocks.z) as usize];
-        let [nx, ny] = [self.dims[0] as usize, self.dims[1] as usize];
-        for (w, &word) in self.bits.iter().enumerate() {
-            let mut word = word;
-            while word != 0 {
-                let i = w * 64 + word.trailing_zeros() as usize;
-                word &= word - 1;
-                let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
-                let b = IVec3::new(x as i32, y as i32, z as i32) / BLOCK;
-                occupied[(b.x + blocks.x * (b.y + blocks.y * b.z)) as usize] = true;
-            }
+        for [x, y, z] in self.solid_cells() {
+            let b = IVec3::new(x as i32, y as i32, z as i32) / BLOCK;
+            occupied[(b.x + blocks.x * (b.y + blocks.y * b.z)) as usize] = true;
         }
         SolidTraversal { grid: self, blocks, occupied }
+    }
+
+    /// The solid cells, in bit order.
+    fn solid_cells(&self) -> impl Iterator<Item = [u32; 3]> + '_ {
+        let [nx, ny] = [self.dims[0] as usize, self.dims[1] as usize];
+        self.bits.iter().enumerate().flat_map(move |(w, &word)| {
+            std::iter::successors((word != 0).then_some(word), |&rest| {
+                let rest = rest & (rest - 1);
+                (rest != 0).then_some(rest)
+            })
+            .map(move |rest| {
+                let i = w * 64 + rest.trailing_zeros() as usize;
+                [(i % nx) as u32, ((i / nx) % ny) as u32, (i / (nx * ny)) as u32]
+            })
+        })
     }
 
     /// The pixels of `camera`'s image whose rays may enter a solid cell (x fastest): the
@@ -162,35 +170,28 @@ impl SolidGrid {
         if out.len() != w * h {
             return;
         }
-        let [nx, ny] = [self.dims[0] as usize, self.dims[1] as usize];
-        for (word_index, &word) in self.bits.iter().enumerate() {
-            let mut word = word;
-            while word != 0 {
-                let i = word_index * 64 + word.trailing_zeros() as usize;
-                word &= word - 1;
-                let cell = [(i % nx) as u32, ((i / nx) % ny) as u32, (i / (nx * ny)) as u32];
-                let (lo, hi) = self.cell_box(cell);
-                let mut rect = (f32::INFINITY, f32::INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY);
-                for corner in 0..8 {
-                    let p = Vec3::new(
-                        if corner & 1 == 0 { lo.x } else { hi.x },
-                        if corner & 2 == 0 { lo.y } else { hi.y },
-                        if corner & 4 == 0 { lo.z } else { hi.z },
-                    );
-                    let Some(q) = camera.project(p) else {
-                        out.fill(true);
-                        return;
-                    };
-                    rect = (rect.0.min(q.x), rect.1.min(q.y), rect.2.max(q.x), rect.3.max(q.y));
-                }
-                let (x0, y0) = (rect.0.floor().max(0.0) as usize, rect.1.floor().max(0.0) as usize);
-                let (x1, y1) = (
-                    (rect.2.floor() + 1.0).clamp(0.0, w as f32) as usize,
-                    (rect.3.floor() + 1.0).clamp(0.0, h as f32) as usize,
+        for cell in self.solid_cells() {
+            let (lo, hi) = self.cell_box(cell);
+            let mut rect = (f32::INFINITY, f32::INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY);
+            for corner in 0..8 {
+                let p = Vec3::new(
+                    if corner & 1 == 0 { lo.x } else { hi.x },
+                    if corner & 2 == 0 { lo.y } else { hi.y },
+                    if corner & 4 == 0 { lo.z } else { hi.z },
                 );
-                for y in y0..y1 {
-                    out[y * w..][x0.min(x1)..x1].fill(true);
-                }
+                let Some(q) = camera.project(p) else {
+                    out.fill(true);
+                    return;
+                };
+                rect = (rect.0.min(q.x), rect.1.min(q.y), rect.2.max(q.x), rect.3.max(q.y));
+            }
+            let (x0, y0) = (rect.0.floor().max(0.0) as usize, rect.1.floor().max(0.0) as usize);
+            let (x1, y1) = (
+                (rect.2.floor() + 1.0).clamp(0.0, w as f32) as usize,
+                (rect.3.floor() + 1.0).clamp(0.0, h as f32) as usize,
+            );
+            for y in y0..y1 {
+                out[y * w..][x0.min(x1)..x1].fill(true);
             }
         }
     }
