@@ -20,7 +20,7 @@ use nephele_kernels::environment::{GiKernel, GiServeSettings};
 use nephele_kernels::kernel::{RayKernel, all_pixels};
 use nephele_master::scenes::{Catalog, ROOM_VIEW};
 use nephele_pathtracer::bvh::{Bvh, TraversalStats};
-use nephele_pathtracer::{Background, RenderOptions, Renderer, scenes};
+use nephele_pathtracer::scenes;
 
 use crate::Progress;
 
@@ -85,17 +85,6 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
         .collect::<Result<_>>()?;
     let kernel = GiKernel::load(&args.model, GiServeSettings::default())
         .with_context(|| format!("loading {}", args.model.display()))?;
-    // The kernel's G-buffer alone: the room's path tracer in its direct-light mode.
-    let room = scenes::builtin_at(&environment.asset, 0.0).context("the room scene")?;
-    let renderer = Renderer::new(room.scene)?;
-    let serve = GiServeSettings::default();
-    let g_buffer = RenderOptions {
-        samples_per_pixel: serve.samples_per_pixel,
-        max_bounces: 1,
-        seed: 0,
-        background: Background::Environment,
-        direct_only: true,
-    };
     let solid: u64 = occluders.iter().map(|g| g.solid_count()).sum();
     println!(
         "{}: {} occluder(s), {solid} solid cells; served at {:?}, network on {}; stereo model: {}",
@@ -132,27 +121,17 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
             .collect();
         let near = dilate(&covered, w as usize, h as usize, 8);
         let [left, right] = stereo_pair(&camera, 0.063)?;
-        let (fx, fy, cx, cy) = camera.intrinsics();
-        let s = serve.scale;
-        let shaded = Camera::from_intrinsics(
-            (w as f32 * s).ceil() as u32,
-            (h as f32 * s).ceil() as u32,
-            fx * s,
-            fy * s,
-            cx * s,
-            cy * s,
-            camera.camera_to_world(),
-        )?;
         let (mut g_plain, mut g_behind) = (Vec::new(), Vec::new());
-        let mut rays = (0, 0);
+        let (mut rays, mut shaded) = ((0, 0), (0, 0));
         for _ in 0..args.repeats.max(1) {
             let t = Instant::now();
-            let out = renderer.render(&shaded, &g_buffer, &|_| {})?;
+            let out = kernel.trace_g_buffer(&camera, &[])?;
             g_plain.push(t.elapsed().as_secs_f64() * 1e3);
             let t = Instant::now();
-            let hid = renderer.render_behind(&shaded, &g_buffer, &occluders, &|_| {})?;
+            let hid = kernel.trace_g_buffer(&camera, &occluders)?;
             g_behind.push(t.elapsed().as_secs_f64() * 1e3);
             rays = (out.stats.traversal.rays, hid.stats.traversal.rays);
+            shaded = (out.width, out.height);
         }
         let (g_plain, g_behind) = (median(g_plain), median(g_behind));
         // A warm-up round, then rounds that rotate the order of the four renders (so that
@@ -189,8 +168,8 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
         let knot_share = covered.iter().filter(|&&c| c).count() as f64 / all.len() as f64;
         println!(
             "view {k}: G-buffer alone ({}x{}): {g_plain:.1} -> {g_behind:.1} ms ({:.3}), rays traced {} -> {} ({:.3})",
-            shaded.width(),
-            shaded.height(),
+            shaded.0,
+            shaded.1,
             g_behind / g_plain,
             rays.0,
             rays.1,

@@ -206,15 +206,19 @@ impl SolidGrid {
         if !(origin.is_finite() && direction.is_finite()) || direction == Vec3::ZERO || t_max.is_nan() {
             return None;
         }
-        let (lo, hi) = (Vec3::from(self.min), Vec3::from(self.max));
-        // Slab test; an axis the ray runs parallel to gives +-inf (or NaN on the plane, which
-        // min/max skip), never a false hit.
         let inv = direction.recip();
-        let (t0, t1) = ((lo - origin) * inv, (hi - origin) * inv);
-        let t_enter = t0.min(t1).max_element().max(0.0);
-        let t_exit = t0.max(t1).min_element().min(t_max);
+        let (t_enter, t_exit) = slab(Vec3::from(self.min), Vec3::from(self.max), origin, inv);
+        let t_exit = t_exit.min(t_max);
         (t_enter < t_exit).then_some((inv, t_enter, t_exit))
     }
+}
+
+/// Where a ray (`origin`, `inv` = 1 / direction) is inside the box `[lo, hi]`: `(enter,
+/// exit)` from `t = 0` on, empty when `enter > exit`. An axis the ray runs parallel to gives
+/// +-inf (or NaN on the plane, which min/max skip), never a false hit.
+fn slab(lo: Vec3, hi: Vec3, origin: Vec3, inv: Vec3) -> (f32, f32) {
+    let (t0, t1) = ((lo - origin) * inv, (hi - origin) * inv);
+    (t0.min(t1).max_element().max(0.0), t0.max(t1).min_element())
 }
 
 /// Side of the blocks [`SolidTraversal`] skips, in cells.
@@ -243,9 +247,7 @@ impl SolidTraversal<'_> {
     pub fn blocks_near(&self, origin: Vec3, direction: Vec3, t_max: f32, hint: &mut Option<[u32; 3]>) -> bool {
         if let Some(cell) = *hint {
             let (lo, hi) = self.grid.cell_box(cell);
-            let inv = direction.recip();
-            let (t0, t1) = ((lo - origin) * inv, (hi - origin) * inv);
-            let (enter, exit) = (t0.min(t1).max_element().max(0.0), t0.max(t1).min_element());
+            let (enter, exit) = slab(lo, hi, origin, direction.recip());
             if enter <= exit && enter < t_max {
                 return true;
             }
@@ -421,10 +423,8 @@ mod tests {
         assert!(SolidGrid::new(Vec3::ZERO, Vec3::ONE, [2, 2, 2], &[true; 7]).is_err());
     }
 
-    fn slab(lo: Vec3, hi: Vec3, origin: Vec3, direction: Vec3) -> Option<(f32, f32)> {
-        let inv = direction.recip();
-        let (t0, t1) = ((lo - origin) * inv, (hi - origin) * inv);
-        let (a, b) = (t0.min(t1).max_element().max(0.0), t0.max(t1).min_element());
+    fn met(lo: Vec3, hi: Vec3, origin: Vec3, direction: Vec3) -> Option<(f32, f32)> {
+        let (a, b) = slab(lo, hi, origin, direction.recip());
         (a <= b + 1e-5).then_some((a, b))
     }
 
@@ -499,7 +499,7 @@ mod tests {
                 prop_assert!(g.is_solid(cell));
                 prop_assert!(t < t_max);
                 let (lo, hi) = g.cell_box(cell);
-                let (a, b) = slab(lo, hi, origin, direction).expect("the ray meets the cell it reports");
+                let (a, b) = met(lo, hi, origin, direction).expect("the ray meets the cell it reports");
                 prop_assert!((a - t).abs() < 1e-4 && b >= t - 1e-4, "cell {cell:?} met on [{a}, {b}], reported {t}");
             }
             let end = found.map_or(t_max.min(12.0), |(t, _)| t);

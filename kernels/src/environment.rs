@@ -192,6 +192,14 @@ impl GiKernel {
             .map_err(|e| KernelError::Failed(e.to_string()))
     }
 
+    /// The G-buffer and direct light the kernel traces for the whole of `view` (at the shading
+    /// scale), behind `occluders`: what a pass costs before the network (`nephele bench
+    /// covered`).
+    pub fn trace_g_buffer(&self, view: &Camera, occluders: &[SolidGrid]) -> Result<RenderOutput, KernelError> {
+        let camera = self.shading_camera(view)?;
+        Ok(self.g_buffer(&camera, occluders)?.0)
+    }
+
     /// The G-buffer and direct light of `camera`'s image; samples behind `occluders` keep
     /// their G-buffer and get no light ([`Renderer::render_behind`]).
     fn g_buffer(
