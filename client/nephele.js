@@ -205,6 +205,11 @@
     channel.onclose = () => scheduleReconnect('data channel closed');
     pc.ontrack = (event) => {
       const video = $('video');
+      // The element keeps the session's picture size: on a narrow link the composer sends a
+      // smaller picture (its resolution follows its bitrate), which is scaled back up here
+      // rather than shown smaller. A headset's layer samples the video as a texture anyway.
+      const [columns, rows] = packing();
+      [video.width, video.height] = [columns * client.width, rows * client.height];
       video.srcObject = event.streams[0] || new MediaStream([event.track]);
       video.play().catch(() => {});
     };
@@ -441,12 +446,21 @@
         const seconds = (s.timestamp - lastStats.timestamp) / 1000;
         if (seconds > 0) {
           $('fps').textContent = ((s.framesDecoded - lastStats.framesDecoded) / seconds).toFixed(1);
-          $('bitrate').textContent = formatBitrate((8 * (s.bytesReceived - lastStats.bytesReceived)) / seconds);
+          const [columns, rows] = packing();
+          const smaller = s.frameWidth && s.frameWidth < columns * client.width ? ` at ${s.frameWidth}x${s.frameHeight}` : '';
+          $('bitrate').textContent = formatBitrate((8 * (s.bytesReceived - lastStats.bytesReceived)) / seconds) + smaller;
         }
       }
       lastStats = { timestamp: s.timestamp, framesDecoded: s.framesDecoded, bytesReceived: s.bytesReceived };
     });
     if (client.poseToFrameMs !== null) $('latency').textContent = `${client.poseToFrameMs.toFixed(0)} ms`;
+  }
+
+  // Views per row and rows of the stream's picture (the composer's packing).
+  function packing() {
+    if (client.views === 1) return [1, 1];
+    if (client.views === 2) return [2, 1];
+    return [QUILT.columns, QUILT.rows];
   }
 
   // An unchanging picture encodes to a few kbit/s: in Mbit/s with two decimals it read 0.00.

@@ -18,6 +18,21 @@
 //! The divisor comes first on the way up because the picture of a frame at the floor
 //! rate is already the coarsest worth sending; fewer such frames keep it.
 //!
+//! Before the frame rate, the resolution falls ([`RateController::with_resolution_levels`]):
+//! a picture coded at too few bits per pixel breaks into blocks, and a quarter of the pixels
+//! (half each side) at the same rate is the better picture (libwebrtc's degradation does
+//! the same, down to 320x180). Level `L` codes `1 / 2^L` of each side:
+//!
+//! * down one level when the target gives the current level's picture fewer than
+//!   [`SCALE_DOWN_BITS_PER_PIXEL`] bits per pixel (0.025: a quarter of the encoder's
+//!   default 0.1; a 640x480 stream at 30 fps below 230 kbit/s);
+//! * up one level when it would give the larger picture at least
+//!   [`SCALE_UP_BITS_PER_PIXEL`] (twice the threshold down, so the two never alternate);
+//! * at most once per [`SCALE_EVERY_S`] (each change re-creates the encoder, with an IDR);
+//! * each level down divides the floor by four (the same bits per pixel as the full
+//!   picture's floor), so that a link narrower than the full picture's floor gets a smaller
+//!   picture before it gets fewer frames.
+//!
 //! Pure: the caller feeds [`Feedback`] with times in seconds and reads [`RateController::target_bps`].
 
 /// What a receiver reported.
@@ -41,6 +56,12 @@ const ESTIMATE_LIFETIME_S: f64 = 5.0;
 pub const MAX_FRAME_DIVISOR: u32 = 8;
 const DIVISOR_UP_EVERY_S: f64 = 1.0;
 const DIVISOR_DOWN_EVERY_S: f64 = 1.0;
+/// Bits per pixel and frame below which the picture's resolution falls one level.
+pub const SCALE_DOWN_BITS_PER_PIXEL: f64 = 0.025;
+/// Bits per pixel and frame the larger picture must get before the resolution rises a level.
+pub const SCALE_UP_BITS_PER_PIXEL: f64 = 0.05;
+/// Least time between two changes of resolution, seconds.
+pub const SCALE_EVERY_S: f64 = 2.0;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct RateController {
@@ -54,6 +75,14 @@ pub struct RateController {
     /// One frame in `divisor` is sent (1: all).
     divisor: u32,
     last_divisor_change: f64,
+    /// The floor of the full picture (level 0).
+    full_floor: f64,
+    /// Pixels per second of the full picture (`None`: the resolution never falls).
+    full_pixel_rate: Option<f64>,
+    /// Deepest level allowed, and the current one.
+    max_level: u32,
+    level: u32,
+    last_level_change: f64,
 }
 
 impl RateController {
@@ -70,7 +99,51 @@ impl RateController {
             last_decrease: f64::NEG_INFINITY,
             divisor: 1,
             last_divisor_change: f64::NEG_INFINITY,
+            full_floor: floor,
+            full_pixel_rate: None,
+            max_level: 0,
+            level: 0,
+            last_level_change: f64::NEG_INFINITY,
         }
+    }
+
+    /// Lets the resolution fall down to `max_level` (each level half of each side) for a
+    /// picture of `pixels` per frame at `fps` frames per second.
+    pub fn with_resolution_levels(mut self, pixels: u64, fps: f64, max_level: u32) -> RateController {
+        let rate = pixels as f64 * fps;
+        if rate.is_finite() && rate > 0.0 {
+            self.full_pixel_rate = Some(rate);
+            self.max_level = max_level;
+        }
+        self
+    }
+
+    /// The resolution level to code at: each side `1 / 2^level` of the full picture's.
+    pub fn resolution_level(&self) -> u32 {
+        self.level
+    }
+
+    /// Moves the resolution level by the rules of the module's header at `now`; returns the
+    /// previous level when it changed.
+    pub fn update_resolution(&mut self, now: f64) -> Option<u32> {
+        let full_rate = self.full_pixel_rate?;
+        if now - self.last_level_change < SCALE_EVERY_S {
+            return None;
+        }
+        let target = self.target_bps(now);
+        let bits_per_pixel = |level: u32| target / (full_rate / 4f64.powi(level as i32));
+        let from = self.level;
+        if self.level < self.max_level && bits_per_pixel(self.level) < SCALE_DOWN_BITS_PER_PIXEL {
+            self.level += 1;
+        } else if self.level > 0 && bits_per_pixel(self.level - 1) >= SCALE_UP_BITS_PER_PIXEL {
+            self.level -= 1;
+        } else {
+            return None;
+        }
+        self.last_level_change = now;
+        self.floor = (self.full_floor / 4f64.powi(self.level as i32)).min(self.ceiling);
+        self.rate = self.rate.clamp(self.floor, self.ceiling);
+        Some(from)
     }
 
     /// Takes one report received at `now` (seconds). Non-finite or out-of-range values are
@@ -189,6 +262,66 @@ mod tests {
         }
         c.on_feedback(Feedback::Loss(0.0), t + 3.0);
         assert!(c.target_bps(t + 3.0) > 0.5e6, "then the rate grows");
+    }
+
+    #[test]
+    fn the_resolution_falls_before_the_frame_rate_and_rises_last() {
+        // A 640x480 stream at 30 fps: the encoder's default ceiling (0.1 bit per pixel) and
+        // the media thread's floor; one level (320x240) allowed.
+        let (pixels, fps) = (640u32 * 480, 30.0);
+        let full_rate = f64::from(pixels) * fps;
+        let mut c = RateController::new(921_600.0, 150_000.0, 921_600.0).with_resolution_levels(pixels.into(), fps, 1);
+        assert_eq!((c.resolution_level(), c.update_resolution(0.0)), (0, None), "the ceiling needs no fall");
+        // Heavy loss: the rate falls; the level drops as soon as the picture gets fewer than
+        // 0.025 bits per pixel, while every frame is still sent.
+        let mut t = 0.0;
+        let mut fell_at = None;
+        while t < 60.0 && c.frame_divisor() == 1 {
+            c.on_feedback(Feedback::Loss(0.3), t);
+            if let Some(from) = c.update_resolution(t) {
+                assert_eq!((from, c.resolution_level()), (0, 1));
+                assert!(fell_at.is_none(), "one level allowed, one fall");
+                assert!(c.target_bps(t) < SCALE_DOWN_BITS_PER_PIXEL * full_rate);
+                fell_at = Some(t);
+            }
+            t += 0.1;
+        }
+        let fell_at = fell_at.expect("the resolution fell");
+        assert_eq!(c.resolution_level(), 1);
+        // The frame rate fell only at the lowered floor: a quarter of the full picture's.
+        assert_eq!(c.frame_divisor(), 2);
+        assert!((c.target_bps(t) - 150_000.0 / 4.0).abs() < 1.0, "floor {}", c.target_bps(t));
+        assert!(t > fell_at);
+        // Clean reports: the divisor comes back first, then the rate grows, and the level
+        // rises only once the full picture would get 0.05 bits per pixel; no flapping.
+        let mut rose_at = None;
+        let mut changes = 0;
+        for _ in 0..1200 {
+            t += 0.1;
+            c.on_feedback(Feedback::Loss(0.0), t);
+            if c.update_resolution(t).is_some() {
+                changes += 1;
+                assert_eq!(c.frame_divisor(), 1);
+                assert!(c.target_bps(t) >= SCALE_UP_BITS_PER_PIXEL * full_rate);
+                rose_at.get_or_insert(t);
+            }
+        }
+        assert_eq!((c.resolution_level(), changes), (0, 1));
+        assert!(rose_at.is_some());
+        // A rate held below the threshold down falls once, and then stays: the full picture
+        // would get under 0.05 bits per pixel.
+        let mut held =
+            RateController::new(200_000.0, 150_000.0, 200_000.0).with_resolution_levels(pixels.into(), fps, 1);
+        for k in 0..50 {
+            assert_eq!(held.update_resolution(f64::from(k)), if k == 0 { Some(0) } else { None });
+        }
+        // Without levels, or with level 0 the deepest, it never moves.
+        let mut plain = RateController::new(150_000.0, 150_000.0, 921_600.0);
+        let mut zero = plain.clone().with_resolution_levels(pixels.into(), fps, 0);
+        assert_eq!((plain.update_resolution(10.0), zero.update_resolution(10.0)), (None, None));
+        // A degenerate picture leaves it off.
+        let mut empty = plain.clone().with_resolution_levels(0, fps, 2);
+        assert_eq!(empty.update_resolution(10.0), None);
     }
 
     #[test]

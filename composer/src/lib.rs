@@ -28,6 +28,7 @@ pub mod metrics;
 pub mod pacer;
 pub mod pose;
 pub mod retransmit;
+pub mod scale;
 pub mod service;
 mod sessions;
 mod signalling;

@@ -2,7 +2,7 @@
 //! encode H.264 and send on the video track. A frame that arrives while the previous one is
 //! still being encoded is dropped (counted): the stream never queues up latency.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, mpsc as std_mpsc};
 use std::time::{Duration, Instant};
 
@@ -11,6 +11,7 @@ use nephele_shutdown::Shutdown;
 use crate::congestion::RateController;
 use crate::encode::{EncoderSettings, EncoderStats, H264Encoder};
 use crate::fusion::FusedFrame;
+use crate::scale;
 use crate::state::{MediaCounters, Shared, lock};
 use crate::webrtc::Viewer;
 use crate::yuv::Yuv420;
@@ -18,15 +19,24 @@ use crate::yuv::Yuv420;
 /// Lowest bitrate the receiver's feedback may bring a stream to.
 const MIN_BITRATE_BPS: f64 = 150_000.0;
 
+/// What a session's media thread shares with the rest of the session.
+pub(crate) struct MediaHandles {
+    /// Set to ask for an IDR.
+    pub(crate) keyframe: Arc<AtomicBool>,
+    pub(crate) media: Arc<StdMutex<(MediaCounters, EncoderStats)>>,
+    /// The stream's resolution level, written here, read by the pose path.
+    pub(crate) scale_level: Arc<AtomicU32>,
+}
+
 /// The session's media path on its own thread: YUV conversion and encoding are CPU work
 /// that must not stall the async runtime.
 pub(crate) fn spawn_media_thread(
     shared: &Arc<Shared>,
     viewer: Arc<Viewer>,
     frames: std_mpsc::Receiver<FusedFrame>,
-    keyframe: Arc<AtomicBool>,
-    media: Arc<StdMutex<(MediaCounters, EncoderStats)>>,
+    handles: MediaHandles,
 ) {
+    let MediaHandles { keyframe, media, scale_level } = handles;
     let runtime = shared.runtime.clone();
     let shared = Arc::clone(shared);
     let fps = shared.config.fps;
@@ -40,48 +50,58 @@ pub(crate) fn spawn_media_thread(
         // The bitrate follows the receiver's feedback between a floor and the configured (or
         // picture-size) rate; a new target re-creates the encoder (OpenH264 takes its rate at
         // creation; the new one starts with an IDR), so only a change of a fifth or more,
-        // at most every two seconds.
-        let mut rate: Option<RateController> = None;
+        // at most every two seconds. Below a rate too low for the picture the picture gets
+        // smaller (`crate::scale`): also a new encoder. The level goes to the session's pose
+        // path (`scale_level`), which asks the farm for pictures that small; frames rendered
+        // before that arrive larger and are brought to the level here. The controller
+        // belongs to the full picture's size: a frame of a size that is no level of it
+        // (another session shape) starts a new one.
+        let mut rate: Option<(RateController, (u32, u32))> = None;
         let mut last_rebuild = Instant::now();
         let mut frame_index = 0u64;
+        let mut scaled: Vec<[f32; 3]> = Vec::new();
         while let Ok(frame) = frames.recv() {
             // Below the floor bitrate the frame rate falls: one frame in `divisor`.
             frame_index += 1;
-            let divisor = rate.as_ref().map_or(1, RateController::frame_divisor);
+            let divisor = rate.as_ref().map_or(1, |(c, _)| c.frame_divisor());
             if divisor > 1 && !frame_index.is_multiple_of(u64::from(divisor)) {
                 lock(&media).0.frames_skipped_for_rate += 1;
                 shared.metrics.frames_skipped_for_rate.inc();
                 continue;
             }
-            let (w, h) = (frame.layout.width(), frame.layout.height());
-            let t0 = Instant::now();
-            let picture = match yuv.take() {
-                Some(mut p) if p.width() == w && p.height() == h => p.fill_from_linear_rgb(&frame.rgb).map(|_| p),
-                _ => Yuv420::from_linear_rgb(w, h, &frame.rgb),
-            };
-            let picture = match picture {
-                Ok(p) => p,
-                Err(e) => {
-                    tracing::warn!(session, "colour conversion: {e}");
-                    lock(&media).0.encode_errors += 1;
-                    shared.metrics.encode_errors.inc();
-                    continue;
+            let frame_size = (frame.layout.width(), frame.layout.height());
+            let level_of_frame = rate.as_ref().and_then(|(_, (w, h))| {
+                (0..=scale::MAX_LEVEL).find(|&l| nephele_proto::pose::scaled_view_size(*w, *h, l) == Some(frame_size))
+            });
+            let frame_level = match level_of_frame {
+                Some(level) => level,
+                None => {
+                    let (w, h) = frame_size;
+                    let mut settings = EncoderSettings::low_latency(w, h);
+                    if let Some(b) = bitrate {
+                        settings.bitrate_bps = b;
+                    }
+                    let ceiling = f64::from(settings.bitrate_bps);
+                    let controller = RateController::new(ceiling, (ceiling / 8.0).max(MIN_BITRATE_BPS), ceiling)
+                        .with_resolution_levels(
+                            u64::from(w) * u64::from(h),
+                            f64::from(fps),
+                            scale::deepest_level(&frame.layout),
+                        );
+                    rate = Some((controller, frame_size));
+                    scale_level.store(0, Ordering::Relaxed);
+                    encoder = None;
+                    0
                 }
             };
-            let t1 = Instant::now();
-            let resized = encoder.as_ref().is_none_or(|e| e.settings().width != w || e.settings().height != h);
-            let mut settings = EncoderSettings::low_latency(w, h);
+            let Some((controller, (full_w, full_h))) = rate.as_mut() else { continue };
+            let (full_w, full_h) = (*full_w, *full_h);
+            let mut settings = EncoderSettings::low_latency(full_w, full_h);
             settings.fps = fps;
-            if let Some(b) = bitrate {
-                settings.bitrate_bps = b;
-            }
-            if resized {
-                let ceiling = f64::from(settings.bitrate_bps);
-                rate = Some(RateController::new(ceiling, (ceiling / 8.0).max(MIN_BITRATE_BPS), ceiling));
-            }
+            let now = started.elapsed().as_secs_f64();
             let feedback = viewer.take_feedback();
             let mut retarget = None;
-            if let (Some(controller), Some(enc)) = (rate.as_mut(), encoder.as_ref()) {
+            if let Some(enc) = encoder.as_ref() {
                 let divisor = controller.frame_divisor();
                 for (report, at) in feedback {
                     controller.on_feedback(report, at.saturating_duration_since(started).as_secs_f64());
@@ -94,12 +114,52 @@ pub(crate) fn spawn_media_thread(
                         "the stream sends one frame in this many (below its floor bitrate)"
                     );
                 }
-                let target = controller.target_bps(started.elapsed().as_secs_f64());
+                if let Some(from) = controller.update_resolution(now) {
+                    let to = controller.resolution_level();
+                    tracing::info!(
+                        session,
+                        from = %format!("{}x{}", full_w >> from, full_h >> from),
+                        to = %format!("{}x{}", full_w >> to, full_h >> to),
+                        bitrate = controller.target_bps(now) as u64,
+                        "the stream's resolution follows its bitrate"
+                    );
+                    lock(&media).0.resolution_changes += 1;
+                    shared.metrics.resolution_changes.inc();
+                    scale_level.store(to, Ordering::Relaxed);
+                }
+                let target = controller.target_bps(now);
                 let current = f64::from(enc.settings().bitrate_bps);
                 if (target - current).abs() >= 0.2 * current && last_rebuild.elapsed() >= Duration::from_secs(2) {
                     retarget = Some((current as u32, target as u32));
                 }
             }
+            let level = controller.resolution_level();
+            let (w, h) = (full_w >> level, full_h >> level);
+            let t0 = Instant::now();
+            let rgb: &[[f32; 3]] = if level == frame_level {
+                &frame.rgb
+            } else {
+                scale::relevel_into(frame_size.0, frame_size.1, &frame.rgb, frame_level, level, &mut scaled);
+                &scaled
+            };
+            let picture = match yuv.take() {
+                Some(mut p) if p.width() == w && p.height() == h => p.fill_from_linear_rgb(rgb).map(|_| p),
+                _ => Yuv420::from_linear_rgb(w, h, rgb),
+            };
+            let picture = match picture {
+                Ok(p) => p,
+                Err(e) => {
+                    tracing::warn!(session, "colour conversion: {e}");
+                    lock(&media).0.encode_errors += 1;
+                    shared.metrics.encode_errors.inc();
+                    continue;
+                }
+            };
+            let t1 = Instant::now();
+            let resized = encoder.as_ref().is_none_or(|e| e.settings().width != w || e.settings().height != h);
+            (settings.width, settings.height) = (w, h);
+            // A new encoder (first, or at a new resolution) starts at the controller's rate.
+            settings.bitrate_bps = controller.target_bps(now) as u32;
             if resized || retarget.is_some() {
                 if let Some((current, target)) = retarget {
                     tracing::info!(
@@ -167,6 +227,11 @@ pub(crate) fn spawn_media_thread(
             let mut m = lock(&media);
             m.1 = enc.stats();
             let c = &mut m.0;
+            c.resolution_level = level;
+            if level > 0 {
+                c.frames_downscaled += 1;
+                shared.metrics.frames_downscaled.inc();
+            }
             c.last_yuv_ms = (t1 - t0).as_secs_f64() * 1e3;
             c.last_encode_ms = (t2 - t1).as_secs_f64() * 1e3;
             c.last_send_ms = (t3 - t2).as_secs_f64() * 1e3;

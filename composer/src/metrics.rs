@@ -33,6 +33,8 @@ pub struct ComposerMetrics {
     pub(crate) nack_refused: Counter,
     pub(crate) packets_paced: Counter,
     pub(crate) frames_skipped_for_rate: Counter,
+    pub(crate) resolution_changes: Counter,
+    pub(crate) frames_downscaled: Counter,
     pub(crate) pacing_wait_ms: Counter,
     pub(crate) master_linked: Gauge,
     pub(crate) results_after_release: Counter,
@@ -82,6 +84,16 @@ impl ComposerMetrics {
             "frames_skipped_for_rate",
             "Frames left out because the stream sends one in several below its floor bitrate (a link narrower than the floor)",
         );
+        let resolution_changes = counter(
+            &mut registry,
+            "resolution_changes",
+            "Times a stream's resolution moved with its bitrate (half of each side per level, below 0.025 bits per pixel)",
+        );
+        let frames_downscaled = counter(
+            &mut registry,
+            "frames_downscaled",
+            "Frames sent at a smaller resolution than fused (a narrow link)",
+        );
         let packets_paced = counter(
             &mut registry,
             "packets_paced",
@@ -129,6 +141,8 @@ impl ComposerMetrics {
             nack_refused,
             packets_paced,
             frames_skipped_for_rate,
+            resolution_changes,
+            frames_downscaled,
             pacing_wait_ms,
             master_linked,
             results_after_release,

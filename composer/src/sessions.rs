@@ -2,7 +2,7 @@
 //! ending a session, and the viewers' events (connection state, poses and control messages
 //! on the data channel). Accepted poses go to the master as `ClientPose`s.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex as StdMutex, mpsc as std_mpsc};
 use std::time::Instant;
 
@@ -13,7 +13,7 @@ use tokio::sync::mpsc;
 
 use crate::encode::{EncoderStats, MAX_LONG_SIDE, MAX_SHORT_SIDE, MIN_SIDE};
 use crate::fusion::{FrameLayout, SessionId};
-use crate::media::spawn_media_thread;
+use crate::media::{MediaHandles, spawn_media_thread};
 use crate::pose::{Control, Pose, PoseDrop, PoseInbox};
 use crate::state::{MediaCounters, SessionEntry, Shared, lock};
 use crate::webrtc::{RtcError, ViewerEvent};
@@ -67,7 +67,13 @@ pub(crate) async fn open_viewer(
     let (frames_tx, frames_rx) = std_mpsc::sync_channel(1);
     let keyframe = Arc::new(AtomicBool::new(true));
     let media = Arc::new(StdMutex::new((MediaCounters::default(), EncoderStats::default())));
-    spawn_media_thread(shared, Arc::clone(&viewer), frames_rx, Arc::clone(&keyframe), Arc::clone(&media));
+    let scale_level = Arc::new(AtomicU32::new(0));
+    let handles = MediaHandles {
+        keyframe: Arc::clone(&keyframe),
+        media: Arc::clone(&media),
+        scale_level: Arc::clone(&scale_level),
+    };
+    spawn_media_thread(shared, Arc::clone(&viewer), frames_rx, handles);
     lock(&shared.sessions).insert(
         id,
         SessionEntry {
@@ -79,6 +85,7 @@ pub(crate) async fn open_viewer(
             inbox: PoseInbox::default(),
             last_pose: None,
             media,
+            scale_level,
             control_malformed: 0,
             created: Instant::now(),
             next_frame: 0,
@@ -135,7 +142,7 @@ pub(crate) async fn event_loop(shared: Arc<Shared>, mut events: mpsc::Receiver<V
                         }
                         let pose = Arc::new(pose);
                         e.last_pose = Some(Arc::clone(&pose));
-                        forward_pose(&shared, id, &pose);
+                        forward_pose(&shared, id, &pose, e.scale_level.load(Ordering::Relaxed));
                         let _ = shared.poses.send((id, pose));
                     }
                     Err(PoseDrop::Malformed(err)) => tracing::debug!(session = id, "pose dropped: {err}"),
@@ -168,12 +175,20 @@ pub(crate) async fn event_loop(shared: Arc<Shared>, mut events: mpsc::Receiver<V
     }
 }
 
-/// An accepted data-channel pose, as the master's `ClientPose`.
-pub(crate) fn forward_pose(shared: &Shared, session: SessionId, pose: &Pose) {
+/// An accepted data-channel pose, as the master's `ClientPose`, its views `1 / 2^level` of
+/// each side while the stream is coded that much smaller (the projection matrices hold for
+/// any size: the same rays, fewer of them).
+pub(crate) fn forward_pose(shared: &Shared, session: SessionId, pose: &Pose, level: u32) {
     if shared.config.master.is_none() {
         return;
     }
-    let views = pose.views.clone();
+    let mut views = pose.views.clone();
+    let (w, h) = pose.view_size();
+    if let Some((w, h)) = nephele_proto::pose::scaled_view_size(w, h, level) {
+        for v in &mut views {
+            (v.width, v.height) = (w, h);
+        }
+    }
     lock(&shared.latency).pose_received(session, pose.seq, Instant::now());
     shared.to_master(Message::ClientPose(ClientPose {
         session_id: session,

@@ -27,6 +27,11 @@ pub struct MediaCounters {
     /// Fused frames left out because the stream sends one frame in several at its floor
     /// bitrate ([`crate::congestion::RateController::frame_divisor`]).
     pub frames_skipped_for_rate: u64,
+    /// Times the stream's resolution moved with its bitrate (`crate::scale`), and frames
+    /// sent smaller than fused; the level of the last frame (each side `1 / 2^level`).
+    pub resolution_changes: u64,
+    pub frames_downscaled: u64,
+    pub resolution_level: u32,
     pub encode_errors: u64,
     pub send_errors: u64,
     pub keyframes_requested: u64,
@@ -62,6 +67,9 @@ pub(crate) struct SessionEntry {
     pub(crate) inbox: PoseInbox,
     pub(crate) last_pose: Option<Arc<Pose>>,
     pub(crate) media: Arc<StdMutex<(MediaCounters, EncoderStats)>>,
+    /// The stream's resolution level (`crate::scale`), set by the media thread; poses go to
+    /// the master with their views that much smaller.
+    pub(crate) scale_level: Arc<std::sync::atomic::AtomicU32>,
     pub(crate) control_malformed: u64,
     pub(crate) created: Instant,
     pub(crate) next_frame: u64,

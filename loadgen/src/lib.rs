@@ -204,6 +204,9 @@ pub struct UserReport {
     pub unfinished_frames: u64,
     pub lost_packets: u64,
     pub video_bytes: u64,
+    /// Frames per picture size ("640x480"), from the stream's sequence parameter sets: the
+    /// composer codes a smaller picture when the link is narrow.
+    pub frames_by_size: std::collections::BTreeMap<String, u64>,
     /// Frames per second between the first and the last frame.
     pub fps: f64,
     pub kbit_per_s: f64,
@@ -231,6 +234,7 @@ struct VideoStats {
     unfinished: u64,
     lost: u64,
     bytes: u64,
+    sizes: std::collections::BTreeMap<(u32, u32), u64>,
     first: Option<Instant>,
     last: Option<Instant>,
 }
@@ -400,6 +404,9 @@ impl UserRun {
         t.unfinished += v.unfinished;
         t.lost += v.lost;
         t.bytes += v.bytes;
+        for (size, n) in &v.sizes {
+            *t.sizes.entry(*size).or_default() += n;
+        }
         t.first = match (t.first, v.first) {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
@@ -417,6 +424,7 @@ impl UserRun {
         report.unfinished_frames = v.unfinished;
         report.lost_packets = v.lost;
         report.video_bytes = v.bytes;
+        report.frames_by_size = v.sizes.iter().map(|((w, h), n)| (format!("{w}x{h}"), *n)).collect();
         if let (Some(first), Some(last)) = (v.first, v.last) {
             let span = last.saturating_duration_since(first).as_secs_f64();
             if v.frames >= 2 && span > 0.0 {
@@ -688,6 +696,9 @@ async fn receive_video(track: Arc<TrackRemote>, stats: Arc<Mutex<VideoStats>>, f
             s.idr += u64::from(frame.idr);
             s.damaged += u64::from(frame.damaged);
             s.bytes += frame.bytes as u64;
+            if let Some(size) = frame.size {
+                *s.sizes.entry(size).or_default() += 1;
+            }
             s.first.get_or_insert(now);
             s.last = Some(now);
             frames_live.fetch_add(1, Ordering::Relaxed);
@@ -731,6 +742,11 @@ pub fn table(reports: &[UserReport]) -> String {
         mean,
         if fps.is_empty() { "-".into() } else { format!("{min:.1}") }
     ));
+    // A stream whose resolution moved (a narrow link): how many frames at each size.
+    for r in reports.iter().filter(|r| r.frames_by_size.len() > 1) {
+        let sizes: Vec<String> = r.frames_by_size.iter().map(|(size, n)| format!("{n} at {size}")).collect();
+        out.push_str(&format!("user {}: frames {}\n", r.user, sizes.join(", ")));
+    }
     out
 }
 

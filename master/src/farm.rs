@@ -773,8 +773,13 @@ impl Actor {
             return;
         };
         let r = &s.request;
-        if pose.views.len() != r.views as usize || pose.views.iter().any(|v| v.width != r.width || v.height != r.height)
-        {
+        // The session's view size, or the same divided by 2^level where the composer codes the
+        // stream smaller on a narrow link (`nephele_proto::pose::MAX_SCALE_LEVEL`).
+        let size_ok = |w: u32, h: u32| {
+            (0..=nephele_proto::pose::MAX_SCALE_LEVEL)
+                .any(|level| nephele_proto::pose::scaled_view_size(r.width, r.height, level) == Some((w, h)))
+        };
+        if pose.views.len() != r.views as usize || pose.views.iter().any(|v| !size_ok(v.width, v.height)) {
             s.poses_rejected += 1;
             tracing::debug!(session = %s.name, views = pose.views.len(), "pose of the wrong view count or size; dropped");
             return;
@@ -906,8 +911,8 @@ impl Actor {
                         .send(LinkCommand::Send(Message::Cancel(Cancel { target: CancelTarget::Batch(batch.0) })));
                 }
             }
-            Action::FrameComplete { session, frame, released, parts, .. } => {
-                self.plan(session, frame, released, &parts)
+            Action::FrameComplete { session, frame, released, view_size, parts, .. } => {
+                self.plan(session, frame, (released, view_size), &parts)
             }
             Action::FrameDropped { session, frame, reason } => {
                 if let Some(s) = self.sessions.get_mut(&session) {
@@ -998,7 +1003,15 @@ impl Actor {
         let _ = w.link.send(LinkCommand::Send(Message::RayBatch(message)));
     }
 
-    fn plan(&mut self, session: SessionId, frame: FrameId, released: Time, parts: &[FramePart]) {
+    /// The composer's plan of a completed frame, `released` at that time with views of
+    /// `view_size` (the session's, or smaller while the stream is coded smaller).
+    fn plan(
+        &mut self,
+        session: SessionId,
+        frame: FrameId,
+        (released, view_size): (Time, (u32, u32)),
+        parts: &[FramePart],
+    ) {
         let Some(s) = self.sessions.get_mut(&session) else { return };
         let Some(composer) = &self.composer else { return };
         // The pose the frame was released with: the newest received at or before its release.
@@ -1009,8 +1022,8 @@ impl Actor {
             frame_id: frame.0,
             pose_sequence: pose.map_or(0, |p| p.sequence),
             client_time_ms: pose.map_or(0.0, |p| p.client_time_ms),
-            width: s.request.width,
-            height: s.request.height,
+            width: view_size.0,
+            height: view_size.1,
             views: s.request.views,
             parts: parts
                 .iter()
@@ -1266,6 +1279,23 @@ mod tests {
         let planned: std::collections::BTreeSet<u64> = plan.parts.iter().map(|p| p.task_id).collect();
         assert_eq!(planned, tasks);
         assert!(plan.parts.iter().all(|p| p.view == 0));
+
+        // Poses the composer sends smaller while it codes the stream smaller (half or a
+        // quarter of each side) are taken; any other size is not.
+        for (sequence, (w, h)) in (8..).zip([(32, 24), (16, 12), (48, 36), (8, 6)]) {
+            let camera =
+                Camera::look_at(w, h, v.fov_y_deg.to_radians(), Vec3::from(v.eye), Vec3::from(v.target), Vec3::Z)
+                    .expect("camera");
+            let views = vec![ViewProjection::of_camera(&camera, 0.05, 100.0)];
+            let pose = ClientPose { session_id: open.session_id, sequence, client_time_ms: 150.0, views };
+            assert!(farm.send(Event::ComposerMessage(cid, Message::ClientPose(pose))));
+        }
+        let state = farm.farm_state().await;
+        assert_eq!(
+            (state["sessions"][0]["poses"].as_u64(), state["sessions"][0]["poses_rejected"].as_u64()),
+            (Some(3), Some(2)),
+            "{state:#}"
+        );
 
         let state = farm.farm_state().await;
         assert_eq!(state["workers"][0]["name"], "w");

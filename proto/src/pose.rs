@@ -88,6 +88,18 @@ pub fn quilt_slot_views(views: u16) -> Vec<usize> {
 pub const MAX_POSE_VIEWS: u16 = nephele_geometry::camera::MAX_VIEWS as u16;
 /// Largest frame side a pose may ask for.
 pub const MAX_POSE_SIDE: u32 = 3840;
+/// Deepest level of a stream coded smaller on a narrow link (issue 15): the composer may
+/// forward a viewer's pose to the master with each side of its views divided by `2^level`,
+/// `level <= MAX_SCALE_LEVEL`, so that the farm renders only the pixels it will code.
+pub const MAX_SCALE_LEVEL: u32 = 2;
+
+/// The size of a view `width x height` at scale `level` (each side `1 / 2^level`), if both
+/// sides divide; level 0 is the view itself.
+pub fn scaled_view_size(width: u32, height: u32, level: u32) -> Option<(u32, u32)> {
+    let factor = 1u32.checked_shl(level)?;
+    (level <= MAX_SCALE_LEVEL && width.is_multiple_of(factor) && height.is_multiple_of(factor))
+        .then(|| (width / factor, height / factor))
+}
 
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum PoseError {
@@ -226,6 +238,16 @@ mod tests {
 
     fn pose(seq: u32) -> Pose {
         look_at_pose(seq, 640, 480, 0.8, Vec3::new(3.0, -4.0, 2.0), Vec3::ZERO).expect("pose")
+    }
+
+    #[test]
+    fn scaled_views_halve_each_side_down_to_the_deepest_level() {
+        assert_eq!(scaled_view_size(640, 480, 0), Some((640, 480)));
+        assert_eq!(scaled_view_size(640, 480, 1), Some((320, 240)));
+        assert_eq!(scaled_view_size(640, 480, 2), Some((160, 120)));
+        assert_eq!(scaled_view_size(640, 480, 3), None, "deeper than MAX_SCALE_LEVEL");
+        assert_eq!(scaled_view_size(640, 480, 40), None);
+        assert_eq!(scaled_view_size(642, 480, 2), None, "642 is not a multiple of 4");
     }
 
     #[test]

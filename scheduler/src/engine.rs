@@ -189,6 +189,8 @@ pub enum Action {
         session: SessionId,
         frame: FrameId,
         released: Time,
+        /// Width and height of the frame's views (those of the pose it was released with).
+        view_size: (u32, u32),
         latency: Duration,
         /// `latency <= 1/FPS`.
         on_time: bool,
@@ -238,6 +240,8 @@ struct Worker {
 struct Frame {
     id: FrameId,
     released: Time,
+    /// Width and height of its views (the pose's; a stream coded smaller asks for smaller).
+    view_size: (u32, u32),
     first_dispatch: Option<Time>,
     parts: Vec<FramePart>,
     /// Parts whose task is not finished.
@@ -1022,6 +1026,7 @@ impl Scheduler {
             session: sid,
             frame: fid,
             released: frame.released,
+            view_size: frame.view_size,
             latency,
             on_time,
             parts: frame.parts.clone(),
@@ -1223,8 +1228,17 @@ impl Scheduler {
                 None => rendered_work,
             });
         }
-        let mut frame =
-            Frame { id: fid, released: now, first_dispatch: None, parts, remaining: 0, pending: 0, cursor: 0 };
+        let view_size = views.first().map_or((0, 0), |c| (c.width(), c.height()));
+        let mut frame = Frame {
+            id: fid,
+            released: now,
+            view_size,
+            first_dispatch: None,
+            parts,
+            remaining: 0,
+            pending: 0,
+            cursor: 0,
+        };
         let mut loaded = 0;
         for part in &frame.parts {
             if let Some(t) = self.tasks.get_mut(&part.task) {

@@ -191,6 +191,32 @@ fn the_two_eyes_of_a_user_are_two_tasks_and_baselines_never_share() {
 }
 
 #[test]
+fn a_frame_reports_the_view_size_of_the_pose_it_was_released_with() {
+    // A stream coded smaller asks for half of each side (the composer's smaller poses): the
+    // frames released from then on say so, for the composer's plan.
+    let mut s = scheduler(config(Policy::Nephele));
+    s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");
+    let id = open(&mut s, 50.0, &[camera_at(0.0)], ms(0));
+    let sizes = |actions: &[Action]| -> Vec<(u32, u32)> {
+        actions
+            .iter()
+            .filter_map(|a| match a {
+                Action::FrameComplete { session, view_size, .. } if *session == id => Some(*view_size),
+                _ => None,
+            })
+            .collect()
+    };
+    let actions = s.tick(ms(0));
+    assert_eq!(sizes(&run_to_quiet(&mut s, actions, ms(1))), vec![(64, 64)]);
+    let a = 10f32.to_radians();
+    let half = Camera::look_at(32, 32, 0.8, Vec3::new(4.0 * a.sin(), -4.0 * a.cos(), 0.0), Vec3::ZERO, Vec3::Z)
+        .expect("half-size camera");
+    s.pose(id, &[half], ms(20)).expect("pose");
+    let actions = s.tick(ms(20));
+    assert_eq!(sizes(&run_to_quiet(&mut s, actions, ms(21))), vec![(32, 32)]);
+}
+
+#[test]
 fn history_reuses_the_results_of_a_still_camera() {
     let mut s = scheduler(config(Policy::Nephele));
     s.add_worker(WorkerId(1), 1e8, ms(0)).expect("worker");

@@ -46,6 +46,8 @@ fn two_users_stream_and_report_frame_rate_and_pose_to_frame_latency() {
         assert!(r.frames >= 20 && r.idr_frames >= 1, "{table}");
         assert!(r.fps > 0.6 * f64::from(FPS) && r.fps < 1.5 * f64::from(FPS), "{table}");
         assert_eq!((r.lost_packets, r.damaged_frames), (0, 0), "{table}");
+        // Every frame at the asked size (loopback: the resolution never falls).
+        assert_eq!(r.frames_by_size, [("160x120".to_string(), r.frames)].into(), "{table}");
         assert!(r.rtt_ms.count >= 1 && r.pose_to_frame_ms.count >= 20, "{table}");
         let p50 = r.pose_to_frame_ms.p50.expect("latency");
         assert!(p50 > 0.0 && p50 < 500.0, "{table}");
@@ -236,5 +238,36 @@ fn the_https_listener_serves_others_while_a_client_stalls_or_sends_garbage() {
         let r = nephele_loadgen::http::request_blocking(&url, "GET", &[], "", std::time::Duration::from_secs(5))
             .expect("an answer while the others hang");
         assert_eq!((r.status, r.body.as_str()), (200, "ok"));
+    }
+}
+
+/// loadgen reads the picture size from the sequence parameter sets of the composer's own
+/// encoder (OpenH264), at the sizes the composer codes when its resolution falls (cropped
+/// ones included: 180 rows are 12 macroblocks less 12 rows).
+#[test]
+fn loadgen_reads_the_picture_size_of_the_composers_stream() {
+    use nephele_composer::encode::{EncoderSettings, H264Encoder};
+    use nephele_composer::yuv::Yuv420;
+    for (w, h) in [(640, 480), (320, 240), (1280, 720), (640, 360), (320, 180), (480, 270), (176, 144)] {
+        let mut encoder = H264Encoder::new(EncoderSettings::low_latency(w, h)).expect("encoder");
+        let grey = vec![[0.5f32; 3]; (w * h) as usize];
+        let picture = Yuv420::from_linear_rgb(w, h, &grey).expect("picture");
+        let frame = encoder.encode(&picture, 0).expect("encoded");
+        // Annex B: NAL units after 00 00 01 start codes, each sent as its own RTP payload.
+        let mut sizes = Vec::new();
+        let data = &frame.data;
+        let starts: Vec<usize> = (0..data.len().saturating_sub(3))
+            .filter(|&i| data[i] == 0 && data[i + 1] == 0 && data[i + 2] == 1)
+            .map(|i| i + 3)
+            .collect();
+        for (k, &start) in starts.iter().enumerate() {
+            let end = starts.get(k + 1).map_or(data.len(), |&next| next - 3);
+            let nal = &data[start..end];
+            let nal = nal.strip_suffix(&[0]).unwrap_or(nal); // a 4-byte start code's leading zero
+            if let Some(size) = nephele_loadgen::h264::sps_picture_size(nal) {
+                sizes.push(size);
+            }
+        }
+        assert_eq!(sizes, vec![(w, h)], "{w}x{h}");
     }
 }

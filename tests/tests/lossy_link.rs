@@ -351,6 +351,13 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
     // 2: a link narrower than the stream: the rate is cut, on the receiver's loss reports.
     let (_, target, changes) = &report[1];
     assert!(!changes.is_empty() && *target <= ceiling / 2, "phase 2 (32 kbit/s): targets {changes:?}");
+    // ...and below 0.025 bits per pixel the picture gets smaller (320x240) before the frame
+    // rate falls; the viewer's decoder reads the new size from the stream.
+    let log = up.log_text();
+    let fell = log.lines().find(|l| l.contains("the stream's resolution follows its bitrate"));
+    assert!(fell.is_some_and(|l| l.contains("to=320x240")), "no fall of the resolution in the composer's log");
+    let smaller = user.frames_by_size.get("320x240").copied().unwrap_or(0);
+    assert!(smaller > 0, "no frame of 320x240 reached the viewer: {:?}", user.frames_by_size);
     // 3: a wide link again: the rate climbs back and pictures arrive.
     let (frames, target, changes) = &report[2];
     assert!(*frames >= 3, "phase 3: {frames} frames");
