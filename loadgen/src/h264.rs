@@ -1,39 +1,16 @@
 //! Just enough of H.264 over RTP (RFC 6184, packetization mode 1) to count frames and find
 //! keyframes without decoding: the NAL unit types inside single-NAL, STAP-A and FU-A payloads.
 
-/// NAL unit types (H.264 Table 7-1) that matter here.
-pub mod nal {
-    pub const NON_IDR_SLICE: u8 = 1;
-    pub const IDR_SLICE: u8 = 5;
-    pub const SPS: u8 = 7;
-    pub const PPS: u8 = 8;
-    pub const STAP_A: u8 = 24;
-    pub const FU_A: u8 = 28;
-}
+pub use nephele_proto::h264::nal;
 
 /// The NAL unit types that start in one RTP payload (FU-A: only in its first fragment).
 pub fn nal_types(payload: &[u8]) -> Vec<u8> {
-    let Some(&first) = payload.first() else { return Vec::new() };
-    match first & 0x1f {
-        nal::STAP_A => {
-            let mut out = Vec::new();
-            let mut rest = &payload[1..];
-            while rest.len() >= 3 {
-                let size = usize::from(u16::from_be_bytes([rest[0], rest[1]]));
-                if size == 0 || rest.len() < 2 + size {
-                    break;
-                }
-                out.push(rest[2] & 0x1f);
-                rest = &rest[2 + size..];
-            }
-            out
-        }
-        nal::FU_A => match payload.get(1) {
+    match payload.first().map(|b| b & 0x1f) {
+        Some(nal::FU_A) => match payload.get(1) {
             Some(&header) if header & 0x80 != 0 => vec![header & 0x1f],
             _ => Vec::new(),
         },
-        0 | 30 | 31 => Vec::new(),
-        t => vec![t],
+        _ => whole_nal_units(payload).into_iter().filter_map(nephele_proto::h264::nal_type).collect(),
     }
 }
 
@@ -60,120 +37,10 @@ fn whole_nal_units(payload: &[u8]) -> Vec<&[u8]> {
     }
 }
 
-/// The picture size a sequence parameter set in `payload` announces (H.264 section 7.3.2.1.1,
-/// frame cropping applied), if the payload carries one that parses. The stream's resolution
-/// may change at any IDR (the composer's falls with its bitrate on a narrow link).
-pub fn sps_picture_size(payload: &[u8]) -> Option<(u32, u32)> {
-    whole_nal_units(payload).into_iter().find(|n| n.first().is_some_and(|b| b & 0x1f == nal::SPS)).and_then(parse_sps)
-}
-
-/// Reads Exp-Golomb and fixed-width fields from a NAL unit's payload, emulation prevention
-/// bytes (`00 00 03`) removed.
-struct BitReader {
-    bytes: Vec<u8>,
-    bit: usize,
-}
-
-impl BitReader {
-    fn new(rbsp_with_prevention: &[u8]) -> BitReader {
-        let mut bytes = Vec::with_capacity(rbsp_with_prevention.len());
-        let mut zeros = 0;
-        for &b in rbsp_with_prevention {
-            if zeros >= 2 && b == 3 {
-                zeros = 0;
-                continue;
-            }
-            zeros = if b == 0 { zeros + 1 } else { 0 };
-            bytes.push(b);
-        }
-        BitReader { bytes, bit: 0 }
-    }
-
-    fn bit(&mut self) -> Option<u32> {
-        let byte = *self.bytes.get(self.bit / 8)?;
-        let v = (byte >> (7 - self.bit % 8)) & 1;
-        self.bit += 1;
-        Some(u32::from(v))
-    }
-
-    fn bits(&mut self, n: u32) -> Option<u32> {
-        (0..n).try_fold(0u32, |acc, _| Some((acc << 1) | self.bit()?))
-    }
-
-    /// `ue(v)`, at most 31 leading zeros (a larger value is malformed here).
-    fn ue(&mut self) -> Option<u32> {
-        let mut zeros = 0;
-        while self.bit()? == 0 {
-            zeros += 1;
-            if zeros > 31 {
-                return None;
-            }
-        }
-        let rest = self.bits(zeros)?;
-        u32::try_from((1u64 << zeros) - 1 + u64::from(rest)).ok()
-    }
-
-    fn se(&mut self) -> Option<i64> {
-        let k = i64::from(self.ue()?);
-        Some(if k % 2 == 1 { (k + 1) / 2 } else { -(k / 2) })
-    }
-}
-
-fn parse_sps(nal_unit: &[u8]) -> Option<(u32, u32)> {
-    let mut r = BitReader::new(nal_unit.get(1..)?);
-    let profile = r.bits(8)?;
-    r.bits(16)?; // constraint flags, level
-    r.ue()?; // seq_parameter_set_id
-    let mut chroma_format = 1;
-    if matches!(profile, 100 | 110 | 122 | 244 | 44 | 83 | 86 | 118 | 128 | 138 | 139 | 134 | 135) {
-        chroma_format = r.ue()?;
-        if chroma_format == 3 {
-            r.bit()?; // separate_colour_plane_flag
-        }
-        r.ue()?; // bit depths
-        r.ue()?;
-        r.bit()?; // qpprime_y_zero_transform_bypass_flag
-        if r.bit()? == 1 {
-            return None; // scaling matrices: not sent by the composer's encoder; not parsed
-        }
-    }
-    r.ue()?; // log2_max_frame_num_minus4
-    match r.ue()? {
-        0 => {
-            r.ue()?;
-        }
-        1 => {
-            r.bit()?;
-            r.se()?;
-            r.se()?;
-            for _ in 0..r.ue()?.min(255) {
-                r.se()?;
-            }
-        }
-        _ => {}
-    }
-    r.ue()?; // max_num_ref_frames
-    r.bit()?; // gaps_in_frame_num_value_allowed_flag
-    let width_mbs = u64::from(r.ue()?) + 1;
-    let height_units = u64::from(r.ue()?) + 1;
-    let frame_mbs_only = u64::from(r.bit()?);
-    if frame_mbs_only == 0 {
-        r.bit()?; // mb_adaptive_frame_field_flag
-    }
-    r.bit()?; // direct_8x8_inference_flag
-    let (mut width, mut height) = (width_mbs * 16, (2 - frame_mbs_only) * height_units * 16);
-    if r.bit()? == 1 {
-        let (unit_x, unit_y) = match chroma_format {
-            0 => (1, 2 - frame_mbs_only),
-            1 => (2, 2 * (2 - frame_mbs_only)),
-            2 => (2, 2 - frame_mbs_only),
-            _ => (1, 2 - frame_mbs_only),
-        };
-        let (left, right, top, bottom) = (r.ue()?, r.ue()?, r.ue()?, r.ue()?);
-        width = width.checked_sub(unit_x * (u64::from(left) + u64::from(right)))?;
-        height = height.checked_sub(unit_y * (u64::from(top) + u64::from(bottom)))?;
-    }
-    Some((u32::try_from(width).ok()?, u32::try_from(height).ok()?)).filter(|&(w, h)| w > 0 && h > 0)
+/// The picture size announced by a sequence parameter set that `payload` carries whole, if
+/// one parses ([`nephele_proto::h264::sps_picture_size`]).
+pub fn picture_size_in_payload(payload: &[u8]) -> Option<(u32, u32)> {
+    whole_nal_units(payload).into_iter().find_map(nephele_proto::h264::sps_picture_size)
 }
 
 /// A complete access unit as seen on the wire.
@@ -229,7 +96,7 @@ impl FrameCounter {
             self.unfinished_frames += 1;
             self.current = None;
         }
-        if let Some(size) = sps_picture_size(payload) {
+        if let Some(size) = picture_size_in_payload(payload) {
             self.size = Some(size);
         }
         let frame = self.current.get_or_insert(FrameInfo {
@@ -243,7 +110,7 @@ impl FrameCounter {
         frame.size = self.size;
         // A gap before a frame's first packet may have taken its beginning too.
         frame.damaged |= gap;
-        frame.idr |= nal_types(payload).contains(&nal::IDR_SLICE);
+        frame.idr |= nal_types(payload).contains(&nal::IDR);
         frame.bytes += payload.len();
         frame.packets += 1;
         if marker { self.current.take() } else { None }
@@ -256,15 +123,15 @@ mod tests {
 
     #[test]
     fn nal_types_of_single_stap_a_and_fu_a_payloads() {
-        assert_eq!(nal_types(&[0x65, 1, 2]), vec![nal::IDR_SLICE]);
-        assert_eq!(nal_types(&[0x41, 1]), vec![nal::NON_IDR_SLICE]);
+        assert_eq!(nal_types(&[0x65, 1, 2]), vec![nal::IDR]);
+        assert_eq!(nal_types(&[0x41, 1]), vec![nal::SLICE]);
         // STAP-A with SPS (3 bytes), PPS (2 bytes), IDR (2 bytes).
         let stap = [0x78, 0, 3, 0x67, 1, 2, 0, 2, 0x68, 1, 0, 2, 0x65, 9];
-        assert_eq!(nal_types(&stap), vec![nal::SPS, nal::PPS, nal::IDR_SLICE]);
+        assert_eq!(nal_types(&stap), vec![nal::SPS, nal::PPS, nal::IDR]);
         // A truncated aggregate stops at the damage.
         assert_eq!(nal_types(&stap[..10]), vec![nal::SPS, nal::PPS]);
         // FU-A: the start fragment names the type, later ones do not.
-        assert_eq!(nal_types(&[0x7c, 0x85, 1]), vec![nal::IDR_SLICE]);
+        assert_eq!(nal_types(&[0x7c, 0x85, 1]), vec![nal::IDR]);
         assert_eq!(nal_types(&[0x7c, 0x05, 1]), Vec::<u8>::new());
         assert_eq!(nal_types(&[]), Vec::<u8>::new());
     }
@@ -316,19 +183,19 @@ mod tests {
     #[test]
     fn the_sps_gives_the_picture_size_and_garbage_gives_none() {
         let nal = sps_nal(20, 12, 6);
-        assert_eq!(sps_picture_size(&nal), Some((320, 180)));
-        assert_eq!(sps_picture_size(&sps_nal(40, 30, 0)), Some((640, 480)));
+        assert_eq!(picture_size_in_payload(&nal), Some((320, 180)));
+        assert_eq!(picture_size_in_payload(&sps_nal(40, 30, 0)), Some((640, 480)));
         // Inside a STAP-A with a PPS, as webrtc-rs sends it before an IDR.
         let mut stap = vec![0x78, 0, nal.len() as u8];
         stap.extend_from_slice(&nal);
         stap.extend_from_slice(&[0, 2, 0x68, 0xce]);
-        assert_eq!(sps_picture_size(&stap), Some((320, 180)));
+        assert_eq!(picture_size_in_payload(&stap), Some((320, 180)));
         // No SPS, truncations, a crop larger than the picture, random bytes: none, no panic.
-        assert_eq!(sps_picture_size(&[0x65, 1, 2]), None);
+        assert_eq!(picture_size_in_payload(&[0x65, 1, 2]), None);
         for cut in 1..nal.len() {
-            assert_eq!(sps_picture_size(&nal[..cut]), None, "cut at {cut}");
+            assert_eq!(picture_size_in_payload(&nal[..cut]), None, "cut at {cut}");
         }
-        assert_eq!(sps_picture_size(&sps_nal(1, 1, 40)), None);
+        assert_eq!(picture_size_in_payload(&sps_nal(1, 1, 40)), None);
         let mut state = 0x2545_f491_4f6c_dd1du64;
         for len in 0..400 {
             let mut junk = vec![0x67];
@@ -338,7 +205,7 @@ mod tests {
                 state ^= state << 17;
                 state as u8
             }));
-            let _ = sps_picture_size(&junk);
+            let _ = picture_size_in_payload(&junk);
         }
     }
 

@@ -21,6 +21,7 @@ pub mod codec;
 pub mod compact;
 mod error;
 pub mod frame;
+pub mod h264;
 pub mod messages;
 mod packed;
 pub mod pose;

@@ -264,7 +264,7 @@ fn loadgen_reads_the_picture_size_of_the_composers_stream() {
             let end = starts.get(k + 1).map_or(data.len(), |&next| next - 3);
             let nal = &data[start..end];
             let nal = nal.strip_suffix(&[0]).unwrap_or(nal); // a 4-byte start code's leading zero
-            if let Some(size) = nephele_loadgen::h264::sps_picture_size(nal) {
+            if let Some(size) = nephele_loadgen::h264::picture_size_in_payload(nal) {
                 sizes.push(size);
             }
         }
