@@ -178,6 +178,12 @@ fn client_streams_poses_and_video_with_a_real_peer_and_a_second_tab_is_a_second_
         (Some(u64::from(WIDTH)), Some(u64::from(HEIGHT))),
         "{stats}"
     );
+    // The video element holds the session's size, so that a picture the composer codes
+    // smaller on a narrow link is scaled up rather than shown smaller.
+    let element = browser
+        .execute("const v = document.getElementById('video'); return [v.width, v.height];", Vec::new())
+        .expect("the video element's size");
+    assert_eq!(element, serde_json::json!([WIDTH, HEIGHT]));
     hud_shows_bitrate_and_latency(&browser);
     assert!(farm.frames_sent(&first) > 0);
     // Pings go out and pongs come back (the client measures the round trip).
