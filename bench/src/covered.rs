@@ -8,7 +8,8 @@
 //! of G-buffer samples hidden, against the share of pixels whose centre ray meets the knot's
 //! mesh. Error: PSNR of the served room with occluders against without, over the pixels the
 //! knot does not cover (their G-buffer samples are the same; only the network's
-//! neighbourhood differs), and over those of them within 8 pixels of the knot.
+//! neighbourhood differs, and the knot's shadow darkens the room), and over those of them
+//! within 8 pixels of the knot; the share of them the shadow darkens.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -16,6 +17,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, ensure};
 use glam::Vec3;
 use nephele_geometry::camera::{Camera, stereo_pair};
+use nephele_imaging::image::RgbaImage;
 use nephele_kernels::environment::{GiKernel, GiServeSettings};
 use nephele_kernels::kernel::{RayKernel, all_pixels};
 use nephele_master::scenes::{Catalog, ROOM_VIEW};
@@ -42,6 +44,10 @@ pub struct CoveredArgs {
     /// Timed repetitions of each (the median is reported).
     #[arg(long, default_value_t = 3)]
     repeats: usize,
+    /// Write each view's served room without and with the objects' solid matter (hidden
+    /// pixels, shadows) as `view-K-empty.png` and `view-K-objects.png` into this folder.
+    #[arg(long)]
+    images: Option<PathBuf>,
 }
 
 /// PSNR of `a` against `b` (linear, clamped to [0, 1]) over the pixels `keep` selects.
@@ -99,6 +105,9 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
     let (target, eye) = (Vec3::from(view.target), Vec3::from(view.eye));
     let radius = (eye - target).truncate().length();
     let start = (eye - target).y.atan2((eye - target).x);
+    if let Some(dir) = &args.images {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
     let mut totals = [0.0f64; 4]; // plain and behind ms, flat then stereo
     let bar = progress.bar(args.views.max(1) as u64, "views", "views");
     for k in 0..args.views.max(1) {
@@ -122,7 +131,7 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
         let near = dilate(&covered, w as usize, h as usize, 8);
         let [left, right] = stereo_pair(&camera, 0.063)?;
         let (mut g_plain, mut g_behind) = (Vec::new(), Vec::new());
-        let (mut rays, mut shaded) = ((0, 0), (0, 0));
+        let (mut rays, mut shaded, mut light_blocked) = ((0, 0), (0, 0), 0);
         for _ in 0..args.repeats.max(1) {
             let t = Instant::now();
             let out = kernel.trace_g_buffer(&camera, &[])?;
@@ -131,6 +140,7 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
             let hid = kernel.trace_g_buffer(&camera, &occluders)?;
             g_behind.push(t.elapsed().as_secs_f64() * 1e3);
             rays = (out.stats.traversal.rays, hid.stats.traversal.rays);
+            light_blocked = hid.stats.light_blocked;
             shaded = (out.width, out.height);
         }
         let (g_plain, g_behind) = (median(g_plain), median(g_behind));
@@ -167,7 +177,7 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
         }
         let knot_share = covered.iter().filter(|&&c| c).count() as f64 / all.len() as f64;
         println!(
-            "view {k}: G-buffer alone ({}x{}): {g_plain:.1} -> {g_behind:.1} ms ({:.3}), rays traced {} -> {} ({:.3})",
+            "view {k}: G-buffer alone ({}x{}): {g_plain:.1} -> {g_behind:.1} ms ({:.3}), rays traced {} -> {} ({:.3}), {light_blocked} shadow rays stopped by the objects",
             shaded.0,
             shaded.1,
             g_behind / g_plain,
@@ -175,8 +185,25 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
             rays.1,
             rays.1 as f64 / rays.0 as f64
         );
+        let luminance = |c: [f32; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
+        let visible = covered.iter().filter(|&&c| !c).count().max(1);
+        let darker = (0..all.len())
+            .filter(|&i| !covered[i] && luminance(behind.color[i]) < 0.9 * luminance(plain.color[i]))
+            .count();
+        if let Some(dir) = &args.images {
+            for (name, image) in [("empty", &plain.color), ("objects", &behind.color)] {
+                let path = dir.join(format!("view-{k}-{name}.png"));
+                let srgb = |v: f32| nephele_imaging::image::linear_to_srgb(v);
+                RgbaImage::from_fn(w, h, |x, y| {
+                    let c = image[(y * w + x) as usize];
+                    [srgb(c[0]), srgb(c[1]), srgb(c[2]), 1.0]
+                })
+                .save_png(&path)
+                .with_context(|| format!("writing {}", path.display()))?;
+            }
+        }
         println!(
-            "view {k}: objects cover {:.1} % of the pixels; samples hidden {:.1} % ({} of {}); flat {:.1} -> {:.1} ms ({:.3}){}; visible pixels: PSNR {:.2} dB against no occluders, {:.2} dB within 8 px of an object",
+            "view {k}: objects cover {:.1} % of the pixels; samples hidden {:.1} % ({} of {}); flat {:.1} -> {:.1} ms ({:.3}){}; visible pixels: PSNR {:.2} dB against no occluders, {:.2} dB within 8 px of an object, {:.1} % at least 10 % darker (shadows)",
             100.0 * knot_share,
             100.0 * behind_stats.hidden as f64 / behind_stats.rays.max(1) as f64,
             behind_stats.hidden,
@@ -191,6 +218,7 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
             },
             psnr(&behind.color, &plain.color, |i| !covered[i]),
             psnr(&behind.color, &plain.color, |i| !covered[i] && near[i]),
+            100.0 * darker as f64 / visible as f64,
         );
         ensure!(plain_stats.hidden == 0, "a render without occluders hid samples");
         bar.inc(1);

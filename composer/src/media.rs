@@ -70,9 +70,8 @@ pub(crate) fn spawn_media_thread(
                 continue;
             }
             let frame_size = (frame.layout.width(), frame.layout.height());
-            let level_of_frame = rate.as_ref().and_then(|(_, (w, h))| {
-                (0..=scale::MAX_LEVEL).find(|&l| nephele_proto::pose::scaled_view_size(*w, *h, l) == Some(frame_size))
-            });
+            let level_of_frame =
+                rate.as_ref().and_then(|(_, (w, h))| nephele_proto::pose::scale_level_of(*w, *h, frame_size));
             let frame_level = match level_of_frame {
                 Some(level) => level,
                 None => {

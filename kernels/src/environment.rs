@@ -27,10 +27,13 @@
 //! ([`RayKernel::render_pixels_behind`]): G-buffer samples whose first hit lies behind it are
 //! not lit (no shadow rays, no bounce), since the fused object covers them with full
 //! opacity; the network still runs over the whole window (those pixels enter it with their
-//! geometry and no direct light).
+//! geometry and no direct light). The same solid matter casts the objects' shadows: shadow
+//! rays to the room's lights that it stops bring no direct light, so the network, which
+//! turns direct light into global illumination, darkens the room under and behind them.
 //!
-//! Not yet: the objects' shadows and light on the room (the room is shaded as if empty), the
-//! ball's motion (the room is rendered at one moment, [`GiServeSettings::time_s`]).
+//! Not yet: the objects' light on the room (they absorb what reaches them; no bounce off
+//! them), shadows of the glass shell (no solid grid), the ball's motion (the room is
+//! rendered at one moment, [`GiServeSettings::time_s`]).
 
 use std::path::Path;
 use std::sync::{Arc, Mutex};
@@ -218,6 +221,13 @@ impl GiKernel {
             .renderer
             .render_behind(camera, &options, occluders, &|_| {})
             .map_err(|e| KernelError::Failed(e.to_string()))?;
+        if !occluders.is_empty() {
+            tracing::trace!(
+                hidden = out.stats.hidden_samples,
+                light_blocked = out.stats.light_blocked,
+                "G-buffer behind and in the shadow of the objects"
+            );
+        }
         let pixels = g_buffer_pixels(&out);
         Ok((out, pixels))
     }

@@ -775,10 +775,7 @@ impl Actor {
         let r = &s.request;
         // The session's view size, or the same divided by 2^level where the composer codes the
         // stream smaller on a narrow link (`nephele_proto::pose::MAX_SCALE_LEVEL`).
-        let size_ok = |w: u32, h: u32| {
-            (0..=nephele_proto::pose::MAX_SCALE_LEVEL)
-                .any(|level| nephele_proto::pose::scaled_view_size(r.width, r.height, level) == Some((w, h)))
-        };
+        let size_ok = |w: u32, h: u32| nephele_proto::pose::scale_level_of(r.width, r.height, (w, h)).is_some();
         if pose.views.len() != r.views as usize || pose.views.iter().any(|v| !size_ok(v.width, v.height)) {
             s.poses_rejected += 1;
             tracing::debug!(session = %s.name, views = pose.views.len(), "pose of the wrong view count or size; dropped");

@@ -99,6 +99,9 @@ pub struct RenderStats {
     /// Camera samples whose first hit lies behind an occluder's solid cells
     /// ([`Renderer::render_behind`]): traced for the G-buffer, not lit.
     pub hidden_samples: u64,
+    /// Shadow and bounce rays an occluder's solid cells stopped before they reached their
+    /// light or surface ([`Renderer::render_behind`]: the objects' shadows on the scene).
+    pub light_blocked: u64,
 }
 
 /// Per-pixel outputs of one render. Colours are linear; `color` and `direct` are
@@ -204,10 +207,16 @@ impl Renderer {
     /// sample whose first hit lies beyond the point where its ray enters a solid cell is
     /// traced for the G-buffer (position, normal, albedo, depth) but not lit (no shadow
     /// rays, no bounce; `color` and `direct` get nothing from it), and counted in
-    /// [`RenderStats::hidden_samples`]. Pixels none of whose samples an occluder hides render
-    /// exactly as [`Renderer::render`] renders them (a hidden sample draws fewer random
-    /// numbers, so the next sample of its pixel takes another path). Issue 13: the pixels the objects cover fully are
+    /// [`RenderStats::hidden_samples`]. Issue 13: the pixels the objects cover fully are
     /// not shaded for the environment.
+    ///
+    /// The same solid matter **casts shadows**: a shadow ray (to an area light, the sun or
+    /// the environment) or a bounce ray that enters a solid cell before its light or surface
+    /// brings nothing, counted in [`RenderStats::light_blocked`]; the objects reflect no
+    /// light onto the scene. Light only falls: a pixel's direct light is never more than
+    /// [`Renderer::render`] gives it, and pixels none of whose rays an occluder meets
+    /// render exactly as there (a hidden sample or a stopped bounce draws fewer random
+    /// numbers, so the next sample of its pixel takes another path).
     pub fn render_behind(
         &self,
         camera: &Camera,
@@ -272,6 +281,7 @@ impl Renderer {
             out.stats.traversal += s.traversal;
             out.stats.dropped_non_finite += s.dropped_non_finite;
             out.stats.hidden_samples += s.hidden_samples;
+            out.stats.light_blocked += s.light_blocked;
         }
         Ok(out)
     }
@@ -336,7 +346,7 @@ impl Renderer {
         for _ in 0..spp {
             let jitter = rng.next_vec2();
             let ray = camera.ray(x as f32 + jitter.x, y as f32 + jitter.y);
-            let sample = self.trace(ray, options, may_hide.then_some(&mut *behind), &mut rng, stats);
+            let sample = self.trace(ray, options, behind, may_hide, &mut rng, stats);
             stats.samples += 1;
             stats.hidden_samples += u64::from(sample.hidden);
             if !(sample.radiance.is_finite() && sample.direct.is_finite()) {
@@ -370,12 +380,14 @@ impl Renderer {
         acc
     }
 
-    /// Follows one camera ray; see the module documentation.
+    /// Follows one camera ray; see the module documentation. `may_hide`: the camera ray may
+    /// meet one of `behind`'s occluders (its pixel lies in their footprint).
     fn trace(
         &self,
         mut ray: Ray,
         options: &RenderOptions,
-        mut behind: Option<&mut Behind>,
+        behind: &mut Behind,
+        may_hide: bool,
         rng: &mut Rng,
         stats: &mut RenderStats,
     ) -> SampleResult {
@@ -389,15 +401,18 @@ impl Renderer {
         for bounce in 0..=last_bounce {
             let is_direct = bounce <= 1;
             let hit = self.bvh.intersect(&ray, 0.0, f32::INFINITY, &mut stats.traversal);
-            if bounce == 0
-                && let Some(behind) = behind.as_deref_mut()
-            {
+            if bounce == 0 && may_hide {
                 let reach = hit.as_ref().map_or(f32::INFINITY, |h| h.t);
                 if behind.hides(&ray, reach) {
                     result.hidden = true;
                     result.first_hit = hit.map(|h| first_hit(&self.surface_point(&ray, &h), h.t));
                     break;
                 }
+            }
+            // An object's solid matter stops a bounce ray before the surface or light it
+            // would reach: the object absorbs it (it reflects nothing onto the scene).
+            if bounce > 0 && behind.blocks_light(&ray, hit.as_ref().map_or(f32::INFINITY, |h| h.t), stats) {
+                break;
             }
             let Some(hit) = hit else {
                 if bounce == 0 && options.background == Background::Transparent {
@@ -443,7 +458,7 @@ impl Renderer {
                 material => {
                     let frame = Frame::from_normal(surface.shading);
                     let wo = frame.to_local(-ray.direction);
-                    let direct_light = self.next_event(&surface, &material, &frame, wo, rng, stats);
+                    let direct_light = self.next_event(&surface, (&material, &frame, wo), behind, rng, stats);
                     add(&mut result, throughput * direct_light, bounce == 0);
                     let Some(sample) = material.sample(wo, rng.next_f32(), rng.next_vec2()) else { break };
                     let direction = frame.to_world(sample.wi);
@@ -493,12 +508,12 @@ impl Renderer {
 
     /// Direct light at a non-delta surface from every light kind, MIS-weighted against BSDF
     /// sampling where that could also find the light.
+    /// Shadow rays meet `behind`'s occluders (the objects' solid matter) as well as the scene.
     fn next_event(
         &self,
         surface: &SurfacePoint,
-        material: &Material,
-        frame: &Frame,
-        wo: Vec3,
+        (material, frame, wo): (&Material, &Frame, Vec3),
+        behind: &mut Behind,
         rng: &mut Rng,
         stats: &mut RenderStats,
     ) -> Vec3 {
@@ -527,6 +542,7 @@ impl Renderer {
                     let shadow = Ray { origin: origin_for(wi), direction: wi };
                     let reach = (q - shadow.origin).length() * (1.0 - 1e-4);
                     if !self.bvh.occluded(&shadow, 0.0, reach, &mut stats.traversal)
+                        && !behind.blocks_light(&shadow, reach, stats)
                         && let Material::Emissive { radiance } = self.material_of(tri)
                     {
                         total += f * radiance * cos_surface / light_pdf * power_heuristic(light_pdf, bsdf_pdf);
@@ -543,7 +559,9 @@ impl Renderer {
                 let (f, _) = material.eval(wo, local);
                 if f != Vec3::ZERO && local.z > 0.0 {
                     let shadow = Ray { origin: origin_for(wi), direction: wi };
-                    if !self.bvh.occluded(&shadow, 0.0, f32::INFINITY, &mut stats.traversal) {
+                    if !self.bvh.occluded(&shadow, 0.0, f32::INFINITY, &mut stats.traversal)
+                        && !behind.blocks_light(&shadow, f32::INFINITY, stats)
+                    {
                         total += f * sun.irradiance * local.z;
                     }
                 }
@@ -558,7 +576,9 @@ impl Renderer {
                 let (f, bsdf_pdf) = material.eval(wo, local);
                 if f != Vec3::ZERO {
                     let shadow = Ray { origin: origin_for(wi), direction: wi };
-                    if !self.bvh.occluded(&shadow, 0.0, f32::INFINITY, &mut stats.traversal) {
+                    if !self.bvh.occluded(&shadow, 0.0, f32::INFINITY, &mut stats.traversal)
+                        && !behind.blocks_light(&shadow, f32::INFINITY, stats)
+                    {
                         let env = self.scene.environment.radiance(wi);
                         total += f * env * local.z / env_pdf * power_heuristic(env_pdf, bsdf_pdf);
                     }
@@ -604,16 +624,30 @@ struct PixelValue {
 
 /// The occluders of [`Renderer::render_behind`] as one thread walks a row of camera rays:
 /// the row's pixels whose rays may meet a solid cell, and the solid cell that last blocked a
-/// ray of each occluder (tried first for the next ray).
+/// camera ray of each occluder (tried first for the next ray), the same for shadow and
+/// bounce rays (neighbouring pixels' shadow rays to one light are coherent too).
 struct Behind<'a> {
     occluders: &'a [SolidTraversal<'a>],
     footprint: &'a [bool],
     hints: Vec<Option<[u32; 3]>>,
+    light_hints: Vec<Option<[u32; 3]>>,
 }
 
 impl<'a> Behind<'a> {
     fn new(occluders: &'a [SolidTraversal<'a>], footprint: &'a [bool]) -> Behind<'a> {
-        Behind { occluders, footprint, hints: vec![None; occluders.len()] }
+        let hints = vec![None; occluders.len()];
+        Behind { occluders, footprint, light_hints: hints.clone(), hints }
+    }
+
+    /// Whether an occluder stops a shadow or bounce `ray` before distance `reach` (counted).
+    fn blocks_light(&mut self, ray: &Ray, reach: f32, stats: &mut RenderStats) -> bool {
+        let blocked = self
+            .occluders
+            .iter()
+            .zip(&mut self.light_hints)
+            .any(|(o, hint)| o.blocks_near(ray.origin, ray.direction, reach, hint));
+        stats.light_blocked += u64::from(blocked);
+        blocked
     }
 
     /// Whether an occluder hides what `ray` meets at distance `reach`.
@@ -1012,7 +1046,9 @@ mod tests {
                     assert_eq!((behind.direct[i], behind.color[i]), (Vec3::ZERO, Vec3::ZERO), "pixel {x} {y}");
                     light_lost += plain.direct[i].max_element();
                 } else if !corners.iter().any(|&b| b) {
-                    assert_eq!((behind.direct[i], behind.color[i]), (plain.direct[i], plain.color[i]));
+                    // Seen, and lit but for what the block's shadow takes (one sample of
+                    // direct light: the random stream is the same, light can only fall).
+                    assert!(behind.direct[i].cmple(plain.direct[i]).all(), "pixel {x} {y}");
                 }
                 possible += u64::from(corners.iter().any(|&b| b));
             }
@@ -1021,6 +1057,64 @@ mod tests {
         let hidden = behind.stats.hidden_samples;
         assert!((sure..=possible).contains(&hidden), "{hidden} hidden samples, {sure}..={possible} expected");
         assert!(behind.stats.traversal.rays < plain.stats.traversal.rays);
+    }
+
+    /// The objects' solid matter casts shadows: a floor under a small lamp with a solid block
+    /// between them. Floor points from which the block hides the whole lamp get no direct
+    /// light; points whose rays to the lamp's corners all pass beside the block keep exactly
+    /// their light; nowhere is there more light than without the block.
+    #[test]
+    fn occluders_cast_shadows_on_the_scene() {
+        let mut b = SceneBuilder::new();
+        let floor = Affine3A::from_scale_rotation_translation(
+            Vec3::new(4.0, 4.0, 0.01),
+            glam::Quat::IDENTITY,
+            Vec3::new(0.0, 0.0, -0.01),
+        );
+        b.add(&cube(1.0), floor, Material::lambertian(Vec3::splat(0.7)));
+        let lamp_at = Vec3::new(0.0, 0.0, 2.0);
+        b.add(&cube(0.1), Affine3A::from_translation(lamp_at), Material::emissive(Vec3::splat(20.0)));
+        let renderer = Renderer::new(b.build().expect("scene")).expect("renderer");
+        // A slab 0.6 m across halfway up: it hides the whole lamp from the floor within about
+        // 0.4 m of the centre and none of it beyond 0.8 m.
+        let block = SolidGrid::new(Vec3::new(-0.3, -0.3, 0.95), Vec3::new(0.3, 0.3, 1.05), [4, 4, 1], &[true; 16])
+            .expect("grid");
+        // Looking down at the floor from the side, below the slab (no camera ray rises).
+        let cam = Camera::look_at(48, 48, 0.8, Vec3::new(0.0, -1.6, 0.7), Vec3::ZERO, Vec3::Z).expect("camera");
+        let options = RenderOptions {
+            samples_per_pixel: 1,
+            max_bounces: 1,
+            seed: 11,
+            background: Background::Environment,
+            direct_only: true,
+        };
+        let plain = renderer.render(&cam, &options, &|_| {}).expect("render");
+        let shaded = renderer.render_behind(&cam, &options, std::slice::from_ref(&block), &|_| {}).expect("render");
+        assert_eq!(shaded.stats.hidden_samples, 0, "the camera sees past the slab");
+        assert!(shaded.stats.light_blocked > 0);
+        assert_eq!(plain.stats.light_blocked, 0);
+        let lamp_corners: Vec<Vec3> = (0..8)
+            .map(|k| lamp_at + Vec3::new([-0.1, 0.1][k & 1], [-0.1, 0.1][(k >> 1) & 1], [-0.1, 0.1][k >> 2]))
+            .collect();
+        let (mut dark, mut lit) = (0, 0);
+        for i in 0..plain.direct.len() {
+            assert_eq!(shaded.position[i], plain.position[i], "the G-buffer does not change");
+            assert!(shaded.direct[i].is_finite() && shaded.direct[i].cmple(plain.direct[i]).all(), "pixel {i}");
+            let p = plain.position[i];
+            if p.z.abs() > 1e-3 || plain.direct[i] == Vec3::ZERO {
+                continue; // not the floor's top, or unlit anyway
+            }
+            // The lamp is convex, so its hull is hidden where its corners are.
+            let blocked = lamp_corners.iter().map(|&c| block.blocks(p, c - p, 1.0)).collect::<Vec<_>>();
+            if blocked.iter().all(|&b| b) {
+                dark += 1;
+                assert_eq!(shaded.direct[i], Vec3::ZERO, "pixel {i} at {p} lies in the umbra");
+            } else if p.truncate().abs().max_element() > 0.85 {
+                lit += 1;
+                assert_eq!(shaded.direct[i], plain.direct[i], "pixel {i} at {p} lies outside the shadow");
+            }
+        }
+        assert!(dark >= 20 && lit >= 20, "{dark} pixels in the umbra, {lit} outside the shadow");
     }
 
     #[test]

@@ -101,6 +101,12 @@ pub fn scaled_view_size(width: u32, height: u32, level: u32) -> Option<(u32, u32
         .then(|| (width / factor, height / factor))
 }
 
+/// The level at which a view `width x height` becomes `size` (the inverse of
+/// [`scaled_view_size`]), if it is one of the levels the stream may take.
+pub fn scale_level_of(width: u32, height: u32, size: (u32, u32)) -> Option<u32> {
+    (0..=MAX_SCALE_LEVEL).find(|&level| scaled_view_size(width, height, level) == Some(size))
+}
+
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum PoseError {
     #[error("pose message of {got} bytes is too short")]
@@ -248,6 +254,10 @@ mod tests {
         assert_eq!(scaled_view_size(640, 480, 3), None, "deeper than MAX_SCALE_LEVEL");
         assert_eq!(scaled_view_size(640, 480, 40), None);
         assert_eq!(scaled_view_size(642, 480, 2), None, "642 is not a multiple of 4");
+        assert_eq!(scale_level_of(640, 480, (640, 480)), Some(0));
+        assert_eq!(scale_level_of(640, 480, (160, 120)), Some(2));
+        assert_eq!(scale_level_of(640, 480, (80, 60)), None, "deeper than MAX_SCALE_LEVEL");
+        assert_eq!(scale_level_of(640, 480, (320, 480)), None, "one side only");
     }
 
     #[test]
