@@ -5,7 +5,8 @@
 //!
 //! * loss above 10 %: `rate *= 1 - loss / 2` (at most once per 300 ms, so one burst of
 //!   reports does not cut twice);
-//! * loss below 2 %: `rate *= 1.08` (at most once a second: GCC's 8 % per second);
+//! * loss below 2 %: `rate *= 1.08` (at most once a second: GCC's 8 % per second), and
+//!   faster while the link stays clean ([the climb back](#the-climb-back));
 //! * in between: hold;
 //! * a REMB caps the rate at the estimate (it expires after 5 s without a new one);
 //! * always within `[floor, ceiling]`;
@@ -33,6 +34,18 @@
 //!   picture's floor), so that a link narrower than the full picture's floor gets a smaller
 //!   picture before it gets fewer frames.
 //!
+//! # The climb back
+//!
+//! At 8 % a second a stream cut to its floor by a narrow link needs half a minute to come
+//! back once the link widens (37.5 to 460 kbit/s, where a 640x480 picture returns, is 33 s).
+//! So the step doubles with each clean second in a row, 8, 16, 32, 64 and then 100 % (the
+//! rate doubles each second, a slow start's probe), and any report with 2 % or more of loss
+//! starts it again at 8 %. Near the rate where the link last broke (within
+//! [`CAREFUL_BELOW`]..[`CAREFUL_ABOVE`] times the rate before the latest cut, for
+//! [`BREAK_MEMORY_S`] after it) the rate grows by 8 % only and a step from below stops at
+//! the zone: a link at its capacity keeps GCC's gentle saw-tooth, while a link that has
+//! widened, or an old break, gets the fast climb.
+//!
 //! Pure: the caller feeds [`Feedback`] with times in seconds and reads [`RateController::target_bps`].
 
 /// What a receiver reported.
@@ -49,7 +62,20 @@ pub const HIGH_LOSS: f64 = 0.10;
 /// Loss below which the rate may grow.
 pub const LOW_LOSS: f64 = 0.02;
 const INCREASE: f64 = 1.08;
+/// The largest step of the climb back: the rate doubles in a clean second.
+pub const MAX_INCREASE: f64 = 2.0;
+/// The zone around the last break, as fractions of the rate before the cut, where the rate
+/// grows by 8 % a second only.
+pub const CAREFUL_BELOW: f64 = 0.9;
+/// See [`CAREFUL_BELOW`].
+pub const CAREFUL_ABOVE: f64 = 1.25;
+/// How long a break is remembered, seconds.
+pub const BREAK_MEMORY_S: f64 = 10.0;
 const INCREASE_EVERY_S: f64 = 1.0;
+/// How much earlier than its period a once-a-second step may come: receivers report about
+/// every second, some a little under (webrtc-rs's reports arrived 0.9996 s apart now and then,
+/// and every such report skipped its step: half the climb's seconds).
+const REPORT_JITTER_S: f64 = 0.1;
 const DECREASE_EVERY_S: f64 = 0.3;
 const ESTIMATE_LIFETIME_S: f64 = 5.0;
 /// The largest frame divisor: one frame in 8 (a 30-fps stream at about 4 fps).
@@ -72,6 +98,10 @@ pub struct RateController {
     estimate: Option<(f64, f64)>,
     last_increase: f64,
     last_decrease: f64,
+    /// Increases in a row without a report of 2 % loss or more between them.
+    clean_steps: u32,
+    /// The rate before the latest cut, and when it was cut.
+    broke: Option<(f64, f64)>,
     /// One frame in `divisor` is sent (1: all).
     divisor: u32,
     last_divisor_change: f64,
@@ -97,6 +127,8 @@ impl RateController {
             estimate: None,
             last_increase: f64::NEG_INFINITY,
             last_decrease: f64::NEG_INFINITY,
+            clean_steps: 0,
+            broke: None,
             divisor: 1,
             last_divisor_change: f64::NEG_INFINITY,
             full_floor: floor,
@@ -151,14 +183,17 @@ impl RateController {
     pub fn on_feedback(&mut self, feedback: Feedback, now: f64) {
         match feedback {
             Feedback::Loss(loss) if (0.0..=1.0).contains(&loss) => {
+                if loss >= LOW_LOSS {
+                    self.clean_steps = 0;
+                }
                 let since_divisor = now - self.last_divisor_change;
                 if loss > HIGH_LOSS && self.rate <= self.floor {
-                    if since_divisor >= DIVISOR_UP_EVERY_S && self.divisor < MAX_FRAME_DIVISOR {
+                    if since_divisor >= DIVISOR_UP_EVERY_S - REPORT_JITTER_S && self.divisor < MAX_FRAME_DIVISOR {
                         self.divisor *= 2;
                         self.last_divisor_change = now;
                     }
                 } else if loss < LOW_LOSS && self.divisor > 1 {
-                    if since_divisor >= DIVISOR_DOWN_EVERY_S {
+                    if since_divisor >= DIVISOR_DOWN_EVERY_S - REPORT_JITTER_S {
                         self.divisor /= 2;
                         self.last_divisor_change = now;
                     }
@@ -167,11 +202,14 @@ impl RateController {
                 }
                 if loss > HIGH_LOSS {
                     if now - self.last_decrease >= DECREASE_EVERY_S {
+                        if self.rate > self.floor {
+                            self.broke = Some((self.rate, now));
+                        }
                         self.rate *= 1.0 - loss / 2.0;
                         self.last_decrease = now;
                     }
-                } else if loss < LOW_LOSS && now - self.last_increase >= INCREASE_EVERY_S {
-                    self.rate *= INCREASE;
+                } else if loss < LOW_LOSS && now - self.last_increase >= INCREASE_EVERY_S - REPORT_JITTER_S {
+                    self.grow(now);
                     self.last_increase = now;
                 }
                 self.rate = self.rate.clamp(self.floor, self.ceiling);
@@ -179,6 +217,23 @@ impl RateController {
             Feedback::Estimate(bps) if bps.is_finite() && bps > 0.0 => self.estimate = Some((bps, now)),
             _ => {}
         }
+    }
+
+    /// One clean second's increase (the module header's climb back).
+    fn grow(&mut self, now: f64) {
+        let broke_at = self.broke.filter(|&(_, at)| now - at <= BREAK_MEMORY_S).map(|(rate, _)| rate);
+        if broke_at.is_some_and(|b| (CAREFUL_BELOW * b..CAREFUL_ABOVE * b).contains(&self.rate)) {
+            self.rate *= INCREASE;
+            self.clean_steps = 0;
+            return;
+        }
+        let step = (INCREASE - 1.0) * 2f64.powi(self.clean_steps.min(8) as i32);
+        let mut next = self.rate * (1.0 + step).min(MAX_INCREASE);
+        if let Some(b) = broke_at.filter(|&b| self.rate < CAREFUL_BELOW * b) {
+            next = next.min(CAREFUL_BELOW * b).max(self.rate * INCREASE);
+        }
+        self.rate = next;
+        self.clean_steps += 1;
     }
 
     /// The stream sends one frame in this many (1: every frame).
@@ -322,6 +377,94 @@ mod tests {
         // A degenerate picture leaves it off.
         let mut empty = plain.clone().with_resolution_levels(0, fps, 2);
         assert_eq!(empty.update_resolution(10.0), None);
+    }
+
+    /// The rate after each of `n` clean reports from `t`, as ratios to the one before; the
+    /// reports come a little under a second apart, as a receiver's do now and then.
+    fn clean_steps(c: &mut RateController, t: &mut f64, n: usize) -> Vec<f64> {
+        (0..n)
+            .map(|_| {
+                let before = c.target_bps(*t);
+                *t += 0.9996;
+                c.on_feedback(Feedback::Loss(0.0), *t);
+                c.target_bps(*t) / before
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_rate_climbs_back_fast_on_a_clean_link_and_gently_where_it_broke() {
+        let close = |got: &[f64], want: &[f64]| {
+            got.len() == want.len() && got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-9)
+        };
+        // A clean link far from any break: 8, 16, 32, 64 %, then the rate doubles each second.
+        let mut c = RateController::new(1e4, 1e4, 1e9);
+        let mut t = 0.0;
+        let steps = clean_steps(&mut c, &mut t, 7);
+        assert!(close(&steps, &[1.08, 1.16, 1.32, 1.64, 2.0, 2.0, 2.0]), "{steps:?}");
+        // One report of 2 % loss or more starts the climb again at 8 %; a clean report within
+        // the second adds nothing.
+        c.on_feedback(Feedback::Loss(0.05), t + 0.5);
+        c.on_feedback(Feedback::Loss(0.0), t + 0.7);
+        let steps = clean_steps(&mut c, &mut t, 3);
+        assert!(close(&steps, &[1.08, 1.16, 1.32]), "{steps:?}");
+
+        // A link at its capacity: 40 % loss at 1 Mbit/s cuts to 0.8 Mbit/s. Below the zone the
+        // climb stops at its edge (0.9 Mbit/s) or takes one 8 % step; inside the zone (0.9 to
+        // 1.25 Mbit/s) 8 % a second; past it, the fast climb again.
+        let mut c = RateController::new(1e6, 1e5, 1e8);
+        c.on_feedback(Feedback::Loss(0.4), 0.0);
+        assert!((c.target_bps(0.0) - 0.8e6).abs() < 1e-3);
+        let mut t = 0.0;
+        let steps = clean_steps(&mut c, &mut t, 8);
+        assert!(close(&steps, &[1.08, 1.08, 1.08, 1.08, 1.08, 1.08, 1.08, 1.16]), "{steps:?}");
+        // Seven steps of 8 % (0.8 * 1.08^6 = 1.269 Mbit/s is past the zone), then 16 %.
+        assert!(c.target_bps(t) > CAREFUL_ABOVE * 1e6);
+        // The same cut, remembered no longer than BREAK_MEMORY_S: a hold of 11 s (5 % loss)
+        // and then the fast climb through the old zone.
+        let mut c = RateController::new(1e6, 1e5, 1e8);
+        c.on_feedback(Feedback::Loss(0.4), 0.0);
+        let mut t = 0.0;
+        while t < BREAK_MEMORY_S + 1.0 {
+            t += 0.5;
+            c.on_feedback(Feedback::Loss(0.05), t);
+        }
+        let steps = clean_steps(&mut c, &mut t, 3);
+        assert!(close(&steps, &[1.08, 1.16, 1.32]), "{steps:?}");
+    }
+
+    #[test]
+    fn after_a_narrow_link_the_full_picture_returns_within_seconds() {
+        // The lossy-link test's stream (640x480 at 30 fps, floor 150 kbit/s, one level): a
+        // narrow link brings it to 320x240 at 37.5 kbit/s and one frame in 8.
+        let (pixels, fps) = (640u64 * 480, 30.0);
+        let mut c = RateController::new(921_600.0, 150_000.0, 921_600.0).with_resolution_levels(pixels, fps, 1);
+        let mut t = 0.0;
+        while t < 15.0 {
+            c.on_feedback(Feedback::Loss(0.3), t);
+            c.update_resolution(t);
+            t += 0.25;
+        }
+        assert_eq!((c.resolution_level(), c.frame_divisor()), (1, MAX_FRAME_DIVISOR));
+        // A wide, clean link with a report about every second: every frame again after 3 s,
+        // then the climb; 640x480 back once the full picture gets 0.05 bits per pixel
+        // (461 kbit/s).
+        let wide = t;
+        let mut back = None;
+        while t < wide + 60.0 && back.is_none() {
+            t += 0.9996;
+            c.on_feedback(Feedback::Loss(0.0), t);
+            if c.update_resolution(t) == Some(1) {
+                back = Some(t - wide);
+            }
+        }
+        let back = back.expect("the full picture came back");
+        // With 8 % a second the climb alone from 37.5 to 461 kbit/s takes
+        // ln(12.3) / ln(1.08) = 33 s.
+        assert!(back < 12.0, "640x480 came back after {back} s");
+        let mut later = t;
+        clean_steps(&mut c, &mut later, 3);
+        assert_eq!(c.target_bps(later), 921_600.0, "and the rate reaches its ceiling");
     }
 
     #[test]

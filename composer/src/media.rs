@@ -103,7 +103,15 @@ pub(crate) fn spawn_media_thread(
             if let Some(enc) = encoder.as_ref() {
                 let divisor = controller.frame_divisor();
                 for (report, at) in feedback {
-                    controller.on_feedback(report, at.saturating_duration_since(started).as_secs_f64());
+                    let at = at.saturating_duration_since(started).as_secs_f64();
+                    controller.on_feedback(report, at);
+                    tracing::debug!(
+                        session,
+                        ?report,
+                        at,
+                        target = controller.target_bps(at) as u64,
+                        "receiver feedback"
+                    );
                 }
                 if controller.frame_divisor() != divisor {
                     tracing::info!(
