@@ -9,8 +9,8 @@
 //! 1. 5 Mbit/s with 2 % loss (more than this stream needs): the rate holds, frames keep coming;
 //! 2. 32 kbit/s, no loss (less than any 640x480 picture of path-traced noise needs): the
 //!    composer must cut its bitrate on the receiver's loss reports within a few seconds;
-//! 3. 20 Mbit/s: it must climb back, and frames keep coming; the full picture (640x480)
-//!    returns within the phase (8-10 s in, on the composer's fast climb back).
+//! 3. 20 Mbit/s for 24 s: it must climb back, and frames keep coming; the full picture
+//!    (640x480) returns within the phase (4-14 s in, on the composer's fast climb back).
 //!
 //! Needs root (or CAP_NET_ADMIN), `ip netns` and `/dev/net/tun`; without any of them the test
 //! says which and passes without running.
@@ -260,7 +260,7 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
     let phases: [(&str, Shape, Duration); 3] = [
         ("5 Mbit/s, 2 % loss", Shape { bits_per_s: mbit(5.0), loss: 0.02, delay }, Duration::from_secs(12)),
         ("32 kbit/s", Shape { bits_per_s: mbit(0.032), loss: 0.0, delay }, Duration::from_secs(15)),
-        ("20 Mbit/s", Shape { bits_per_s: mbit(20.0), loss: 0.0, delay }, Duration::from_secs(18)),
+        ("20 Mbit/s", Shape { bits_per_s: mbit(20.0), loss: 0.0, delay }, Duration::from_secs(24)),
     ];
     let link = match Link::create(phases[0].1) {
         Ok(link) => link,
@@ -395,7 +395,7 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
     );
     // ...fast enough for the full picture to return within the phase (at 8 % a second it
     // took some 30 s from the floor).
-    assert!(back.is_some(), "phase 3 (20 Mbit/s): still 320x240 after 18 s; targets {changes:?}");
+    assert!(back.is_some(), "phase 3 (20 Mbit/s): still 320x240 after 24 s; targets {changes:?}");
     println!("packets delivered to the viewer's side: {}", counters.delivered.load(Ordering::Relaxed));
     up.interrupt(Duration::from_secs(20));
     drop(link);
