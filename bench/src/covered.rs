@@ -17,11 +17,12 @@ use std::time::Instant;
 use anyhow::{Context, Result, ensure};
 use glam::Vec3;
 use nephele_geometry::camera::{Camera, stereo_pair};
-use nephele_imaging::image::RgbaImage;
+use nephele_imaging::image::{RgbaImage, linear_to_srgb};
 use nephele_kernels::environment::{GiKernel, GiServeSettings};
 use nephele_kernels::kernel::{RayKernel, all_pixels};
 use nephele_master::scenes::{Catalog, ROOM_VIEW};
 use nephele_pathtracer::bvh::{Bvh, TraversalStats};
+use nephele_pathtracer::material::luminance;
 use nephele_pathtracer::scenes;
 
 use crate::Progress;
@@ -185,18 +186,16 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
             rays.1,
             rays.1 as f64 / rays.0 as f64
         );
-        let luminance = |c: [f32; 3]| 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2];
         let visible = covered.iter().filter(|&&c| !c).count().max(1);
         let darker = (0..all.len())
-            .filter(|&i| !covered[i] && luminance(behind.color[i]) < 0.9 * luminance(plain.color[i]))
+            .filter(|&i| !covered[i] && luminance(behind.color[i].into()) < 0.9 * luminance(plain.color[i].into()))
             .count();
         if let Some(dir) = &args.images {
             for (name, image) in [("empty", &plain.color), ("objects", &behind.color)] {
                 let path = dir.join(format!("view-{k}-{name}.png"));
-                let srgb = |v: f32| nephele_imaging::image::linear_to_srgb(v);
                 RgbaImage::from_fn(w, h, |x, y| {
                     let c = image[(y * w + x) as usize];
-                    [srgb(c[0]), srgb(c[1]), srgb(c[2]), 1.0]
+                    [linear_to_srgb(c[0]), linear_to_srgb(c[1]), linear_to_srgb(c[2]), 1.0]
                 })
                 .save_png(&path)
                 .with_context(|| format!("writing {}", path.display()))?;
