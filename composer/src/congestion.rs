@@ -12,7 +12,17 @@
 //! * loss below 2 %: `rate *= 1.08` (at most once a second: GCC's 8 % per second), and
 //!   faster while the link stays clean ([the climb back](#the-climb-back));
 //! * in between: hold;
-//! * a REMB caps the rate at the estimate (it expires after 5 s without a new one);
+//! * a REMB caps the rate at the estimate (it expires after 5 s without a new one), until
+//!   the receiver's own reports contradict it: once it has gone on getting more than twice
+//!   the estimates ([`IMPLAUSIBLE_ESTIMATE_SHARE`] of what it gets, the target less the
+//!   latest loss) for [`CONTRADICTED_AFTER_S`] with no report of 2 % loss or more, such low
+//!   estimates are ignored and counted, until a higher estimate or a loss comes. GCC's
+//!   delay-based decrease goes to 0.85 times the incoming rate, and the floor is where the
+//!   stream goes anyway; Chromium sends estimates far below both: behind the lossy-link
+//!   test's link its first REMB after a narrowing said 5 kbit/s (its estimator's minimum)
+//!   and it climbed to 13 kbit/s in the next 40 s of a clean 20 Mbit/s link, with no loss
+//!   reported, which held the stream at its floor for good. A believed estimate also holds
+//!   the loss-based rate (GCC's `A_s = min(A_s, A_r)`), which grows from there afterwards;
 //! * always within `[floor, ceiling]`;
 //! * below the floor the frame rate falls: loss above 10 % while the rate sits at its floor
 //!   doubles a frame divisor (the stream sends one frame in 2, 4 or 8; at most once a
@@ -61,6 +71,63 @@ pub enum Feedback {
     Estimate(f64),
 }
 
+/// Receiver reports are gathered until they speak for this many packets (libwebrtc's
+/// loss-based estimate waits for 20 expected packets too) ...
+pub const LOSS_WINDOW_PACKETS: u64 = 20;
+/// ... or for this long, seconds (at least one packet).
+pub const LOSS_WINDOW_S: f64 = 0.9;
+
+/// The loss of the packets that receiver reports cover, gathered over several reports.
+///
+/// A report's own loss fraction speaks for the packets since the receiver's previous
+/// report. Chromium sends one with every REMB, several a second (every 30-300 ms behind the
+/// lossy-link test's link), each about a handful of packets: their fractions swing between
+/// 0 and 50 % on a link that loses a steady quarter, and a report of no packets at all read
+/// as a clean one (a step of the climb back). So the loss is counted from the reports'
+/// cumulative counters (RFC 3550: the extended highest sequence number received and the
+/// packets lost so far) and passed on once the reports since the last loss cover
+/// [`LOSS_WINDOW_PACKETS`] packets, or [`LOSS_WINDOW_S`] and at least one packet (a slow
+/// stream still gets about one loss a second). A receiver that reports once a second
+/// (webrtc-rs, and so `nephele loadgen`) is read as before, one loss per report.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LossWindow {
+    /// The last report's highest sequence number and cumulative loss.
+    last: Option<(u32, u32)>,
+    expected: u64,
+    lost: u64,
+    since: f64,
+}
+
+impl LossWindow {
+    /// One report's counters, received at `now` (seconds); the loss fraction when the window
+    /// is full. The first report only sets the counters' origin; a sequence number that
+    /// goes back (a new stream) starts again.
+    pub fn on_report(&mut self, highest_sequence: u32, total_lost: u32, now: f64) -> Option<f64> {
+        // 24-bit two's complement: a negative count (more duplicates than losses) is none.
+        let total_lost = if total_lost & 0x80_0000 != 0 { 0 } else { total_lost & 0xFF_FFFF };
+        let Some((last_sequence, last_lost)) = self.last.replace((highest_sequence, total_lost)) else {
+            self.since = now;
+            return None;
+        };
+        let expected = highest_sequence.wrapping_sub(last_sequence);
+        if expected > 1 << 24 {
+            *self = LossWindow { last: self.last, since: now, ..LossWindow::default() };
+            return None;
+        }
+        // The cumulative count is 24 bits and may fall (duplicates): a fall counts as none lost.
+        let lost = total_lost.saturating_sub(last_lost).min(expected);
+        self.expected += u64::from(expected);
+        self.lost += u64::from(lost);
+        let long_enough = now - self.since >= LOSS_WINDOW_S && self.expected > 0;
+        if self.expected < LOSS_WINDOW_PACKETS && !long_enough {
+            return None;
+        }
+        let fraction = self.lost as f64 / self.expected as f64;
+        (self.expected, self.lost, self.since) = (0, 0, now);
+        Some(fraction)
+    }
+}
+
 /// Loss above which the rate is cut.
 pub const HIGH_LOSS: f64 = 0.10;
 /// Loss below which the rate may grow.
@@ -84,6 +151,11 @@ const DECREASE_EVERY_S: f64 = 0.3;
 /// After heavy loss, the rate is at most this many times what got through.
 const RECEIVED_RATE_CAP: f64 = 1.5;
 const ESTIMATE_LIFETIME_S: f64 = 5.0;
+/// A receiver's estimate below this share of what it gets is contradicted by its own clean
+/// reports (see the module header) ...
+pub const IMPLAUSIBLE_ESTIMATE_SHARE: f64 = 0.5;
+/// ... once they have said so for this long, seconds.
+pub const CONTRADICTED_AFTER_S: f64 = 5.0;
 /// The largest frame divisor: one frame in 8 (a 30-fps stream at about 4 fps).
 pub const MAX_FRAME_DIVISOR: u32 = 8;
 const DIVISOR_UP_EVERY_S: f64 = 1.0;
@@ -102,6 +174,12 @@ pub struct RateController {
     /// The loss-based rate.
     rate: f64,
     estimate: Option<(f64, f64)>,
+    /// Estimates ignored as contradicted so far.
+    ignored_estimates: u64,
+    /// Since when the receiver has taken more than twice its estimates without loss.
+    contradicted_since: Option<f64>,
+    /// The latest loss fraction reported.
+    last_loss: f64,
     last_increase: f64,
     last_decrease: f64,
     /// Increases in a row without a report of 2 % loss or more between them.
@@ -131,6 +209,9 @@ impl RateController {
             ceiling,
             rate: start_bps.clamp(floor, ceiling),
             estimate: None,
+            ignored_estimates: 0,
+            contradicted_since: None,
+            last_loss: 0.0,
             last_increase: f64::NEG_INFINITY,
             last_decrease: f64::NEG_INFINITY,
             clean_steps: 0,
@@ -189,8 +270,10 @@ impl RateController {
     pub fn on_feedback(&mut self, feedback: Feedback, now: f64) {
         match feedback {
             Feedback::Loss(loss) if (0.0..=1.0).contains(&loss) => {
+                self.last_loss = loss;
                 if loss >= LOW_LOSS {
                     self.clean_steps = 0;
+                    self.contradicted_since = None;
                 }
                 let since_divisor = now - self.last_divisor_change;
                 if loss > HIGH_LOSS && self.rate <= self.floor {
@@ -220,7 +303,20 @@ impl RateController {
                 }
                 self.rate = self.rate.clamp(self.floor, self.ceiling);
             }
-            Feedback::Estimate(bps) if bps.is_finite() && bps > 0.0 => self.estimate = Some((bps, now)),
+            Feedback::Estimate(bps) if bps.is_finite() && bps > 0.0 => {
+                let received = self.target_bps(now) * (1.0 - self.last_loss);
+                if bps >= IMPLAUSIBLE_ESTIMATE_SHARE * received {
+                    self.contradicted_since = None;
+                } else if now - *self.contradicted_since.get_or_insert(now) >= CONTRADICTED_AFTER_S {
+                    self.ignored_estimates += 1;
+                    self.estimate = None;
+                    return;
+                }
+                self.estimate = Some((bps, now));
+                // GCC's loss-based rate is itself held at the receiver's estimate, so that it
+                // grows from there once the estimate goes stale or is no longer believed.
+                self.rate = self.rate.min(bps).clamp(self.floor, self.ceiling);
+            }
             _ => {}
         }
     }
@@ -240,6 +336,12 @@ impl RateController {
         }
         self.rate = next;
         self.clean_steps += 1;
+    }
+
+    /// Receiver estimates ignored so far as contradicted by the receiver's reports (below
+    /// [`IMPLAUSIBLE_ESTIMATE_SHARE`] of what it gets, for [`CONTRADICTED_AFTER_S`]).
+    pub fn ignored_estimates(&self) -> u64 {
+        self.ignored_estimates
     }
 
     /// The stream sends one frame in this many (1: every frame).
@@ -485,7 +587,86 @@ mod tests {
         assert_eq!(c.target_bps(1.0), 1.5e6);
         c.on_feedback(Feedback::Estimate(0.1e6), 2.0);
         assert_eq!(c.target_bps(2.0), 0.3e6, "never below the floor");
-        assert_eq!(c.target_bps(7.5), 4e6, "a stale estimate caps nothing");
+        assert_eq!(c.target_bps(7.5), 0.3e6, "a stale estimate leaves the rate where it held it");
+        c.on_feedback(Feedback::Loss(0.0), 8.0);
+        assert!(c.target_bps(8.0) > 0.3e6, "which grows from there on clean reports");
+        assert_eq!(c.ignored_estimates(), 0);
+    }
+
+    #[test]
+    fn an_estimate_the_receivers_clean_reports_contradict_is_ignored_after_a_while() {
+        let mut c = RateController::new(921_600.0, 150_000.0, 921_600.0);
+        // Chromium's REMB after the link narrowed, its estimator's 5 kbit/s minimum: believed
+        // at first (the rate goes to its floor).
+        let mut t = 0.0;
+        c.on_feedback(Feedback::Loss(0.0), t);
+        c.on_feedback(Feedback::Estimate(5_000.0), t);
+        assert_eq!((c.target_bps(t), c.ignored_estimates()), (150_000.0, 0));
+        // It goes on at 5-13 kbit/s while the receiver takes the 150-kbit/s floor without
+        // loss: after 5 s of that it is ignored, and the rate is what the loss reports allow.
+        while t < 4.5 {
+            t += 0.5;
+            c.on_feedback(Feedback::Loss(0.0), t);
+            c.on_feedback(Feedback::Estimate(13_000.0), t);
+            assert_eq!((c.target_bps(t), c.ignored_estimates()), (150_000.0, 0), "at {t} s");
+        }
+        t = 5.0;
+        c.on_feedback(Feedback::Loss(0.0), t);
+        c.on_feedback(Feedback::Estimate(13_000.0), t);
+        assert_eq!(c.ignored_estimates(), 1);
+        for _ in 0..8 {
+            t += 1.0;
+            c.on_feedback(Feedback::Loss(0.0), t);
+            c.on_feedback(Feedback::Estimate(13_000.0), t);
+        }
+        assert_eq!((c.target_bps(t), c.ignored_estimates()), (921_600.0, 9), "the climb back, from the floor");
+        // A report of loss makes the next low estimate believed again, for another 5 s.
+        c.on_feedback(Feedback::Loss(0.05), t);
+        c.on_feedback(Feedback::Estimate(13_000.0), t);
+        assert_eq!((c.target_bps(t), c.ignored_estimates()), (150_000.0, 9));
+        c.on_feedback(Feedback::Estimate(13_000.0), t + 4.9);
+        assert_eq!((c.target_bps(t + 4.9), c.ignored_estimates()), (150_000.0, 9));
+        c.on_feedback(Feedback::Estimate(13_000.0), t + 5.0);
+        assert_eq!(c.ignored_estimates(), 10);
+        // An estimate within half of what the receiver gets is believed and restarts the clock
+        // (84 % lost: 0.85 times the 16 % that arrives is GCC's own decrease).
+        let mut d = RateController::new(921_600.0, 150_000.0, 921_600.0);
+        d.on_feedback(Feedback::Loss(0.84), 0.0);
+        d.on_feedback(Feedback::Estimate(0.85 * 0.16 * 921_600.0), 0.0);
+        assert_eq!((d.target_bps(0.0), d.ignored_estimates()), (150_000.0, 0), "held at the floor");
+        d.on_feedback(Feedback::Estimate(100_000.0), 20.0);
+        assert_eq!(d.ignored_estimates(), 0);
+    }
+
+    #[test]
+    fn loss_is_counted_over_reports_that_cover_enough_packets() {
+        let mut w = LossWindow::default();
+        assert_eq!(w.on_report(1000, 0, 0.0), None, "the first report sets the origin");
+        // Chromium's reports, a few packets each: nothing until 20 packets are covered.
+        assert_eq!(w.on_report(1005, 2, 0.1), None);
+        assert_eq!(w.on_report(1005, 2, 0.2), None, "a report of no packets is no clean report");
+        assert_eq!(w.on_report(1012, 3, 0.3), None);
+        assert_eq!(w.on_report(1020, 5, 0.4), Some(5.0 / 20.0));
+        // A slow stream: 3 packets in 0.95 s still give a loss.
+        assert_eq!(w.on_report(1021, 5, 0.6), None);
+        assert_eq!(w.on_report(1023, 6, 1.35), Some(1.0 / 3.0));
+        // But time alone, without packets, gives none.
+        assert_eq!(w.on_report(1023, 6, 5.0), None);
+        // A report a second at 30 fps (webrtc-rs): one loss per report, as its own fraction.
+        assert_eq!(w.on_report(1063, 6, 6.0), Some(0.0));
+        assert_eq!(w.on_report(1103, 10, 7.0), Some(0.1));
+        // Sequence numbers across the 16-bit wrap (extended numbers go on counting).
+        let mut w = LossWindow::default();
+        w.on_report(65_530, 0, 0.0);
+        assert_eq!(w.on_report(65_560, 3, 0.5), Some(0.1));
+        // A cumulative loss that falls (duplicates) counts as none; more lost than expected
+        // is capped; a sequence number that goes back restarts the window.
+        assert_eq!(w.on_report(65_600, 1, 1.0), Some(0.0));
+        assert_eq!(w.on_report(65_620, 500, 1.5), Some(1.0));
+        assert_eq!(w.on_report(10, 500, 2.0), None);
+        assert_eq!(w.on_report(40, 503, 2.5), Some(0.1));
+        // A negative cumulative count (24-bit two's complement) is none lost.
+        assert_eq!(w.on_report(80, 0xFF_FFFE, 3.0), Some(0.0));
     }
 
     #[test]

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use nephele_shutdown::Shutdown;
 
-use crate::congestion::RateController;
+use crate::congestion::{Feedback, RateController};
 use crate::encode::{EncoderSettings, EncoderStats, H264Encoder};
 use crate::fusion::FusedFrame;
 use crate::scale;
@@ -44,6 +44,7 @@ pub(crate) fn spawn_media_thread(
     let session = viewer.session();
     let spawned = std::thread::Builder::new().name(format!("media-{session}")).spawn(move || {
         let frame_time = Duration::from_secs_f32(1.0 / fps);
+        let mut previous_send: Option<Instant> = None;
         let mut encoder: Option<H264Encoder> = None;
         let mut yuv: Option<Yuv420> = None;
         let started = Instant::now();
@@ -104,6 +105,11 @@ pub(crate) fn spawn_media_thread(
                 let divisor = controller.frame_divisor();
                 for (report, at) in feedback {
                     let at = at.saturating_duration_since(started).as_secs_f64();
+                    if let Feedback::Estimate(bps) = report {
+                        let mut counters = lock(&media);
+                        counters.0.receiver_estimates += 1;
+                        counters.0.receiver_estimate_bps = bps.max(0.0) as u64;
+                    }
                     controller.on_feedback(report, at);
                     tracing::debug!(
                         session,
@@ -113,6 +119,7 @@ pub(crate) fn spawn_media_thread(
                         "receiver feedback"
                     );
                 }
+                lock(&media).0.receiver_estimates_ignored = controller.ignored_estimates();
                 if controller.frame_divisor() != divisor {
                     tracing::info!(
                         session,
@@ -185,6 +192,7 @@ pub(crate) fn spawn_media_thread(
                     Ok(e) => {
                         encoder = Some(e);
                         viewer.set_pacing_target(target);
+                        lock(&media).0.bitrate_bps = u64::from(target);
                     }
                     Err(e) => {
                         tracing::warn!(session, "encoder for {w}x{h}: {e}");
@@ -212,7 +220,10 @@ pub(crate) fn spawn_media_thread(
                     continue;
                 }
             };
-            let sent = runtime.block_on(viewer.send_frame(&encoded, frame_time));
+            let now = Instant::now();
+            let step = timestamp_step(previous_send, now, frame_time);
+            previous_send = Some(now);
+            let sent = runtime.block_on(viewer.send_frame(&encoded, step));
             let t3 = Instant::now();
             let timing = {
                 let mut latency = lock(&shared.latency);
@@ -300,5 +311,54 @@ pub(crate) async fn fusion_loop(shared: Arc<Shared>, stop: Shutdown) {
         }
         let frames = lock(&shared.compositor).poll(Instant::now());
         dispatch(&shared, frames);
+    }
+}
+
+/// The step from a frame's RTP timestamp to the next frame's (webrtc-rs stamps each frame
+/// with the previous frame's timestamp plus the previous frame's duration).
+///
+/// The timestamps follow the clock rather than the nominal frame rate: the receiver's jitter
+/// buffer maps them onto its own clock, and a browser's delay-based estimate (REMB) reads the
+/// growth of arrival time against them. A stream that sends fewer frames than its nominal
+/// rate (one frame in 8 below its floor bitrate, or a farm that renders 25 frames a second
+/// of 30) with timestamps `1 / fps` apart looks to the receiver like a queue that grows
+/// without end: Chromium's estimate then sits at its 5 kbit/s minimum for good
+/// (`tests/tests/lossy_link.rs`, the Chromium test). The next frame's time is not known when
+/// this one leaves, so the step is the interval just ended: timestamps one frame behind the
+/// clock, without drift. Clamped to [1 ms, 10 s] (a stalled session does not jump far).
+fn timestamp_step(previous_send: Option<Instant>, now: Instant, nominal: Duration) -> Duration {
+    previous_send.map_or(nominal, |previous| {
+        now.saturating_duration_since(previous).clamp(Duration::from_millis(1), Duration::from_secs(10))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rtp_timestamps_follow_the_clock_one_frame_behind() {
+        let nominal = Duration::from_millis(33);
+        let t0 = Instant::now();
+        let ms = |m: u64| Duration::from_millis(m);
+        assert_eq!(timestamp_step(None, t0, nominal), nominal, "the first frame's step is nominal");
+        // Frames sent 125 ms apart (one in 4 of 30 fps, say): the steps follow, not 33 ms.
+        let sends: Vec<Instant> = (0..6).map(|i| t0 + ms(125 * i)).collect();
+        let mut timestamp = Duration::ZERO;
+        let mut previous = None;
+        let mut stamps = Vec::new();
+        for &now in &sends {
+            stamps.push(timestamp);
+            timestamp += timestamp_step(previous, now, nominal);
+            previous = Some(now);
+        }
+        // Frame k is stamped with the send time of frame k - 1 (frame 0 at 0, frame 1 one
+        // nominal step after it): no drift however long the stream.
+        for k in 1..sends.len() {
+            assert_eq!(stamps[k], nominal + (sends[k - 1] - sends[0]), "frame {k}");
+        }
+        // Out of order clocks and stalls stay within bounds.
+        assert_eq!(timestamp_step(Some(t0 + ms(5)), t0, nominal), ms(1));
+        assert_eq!(timestamp_step(Some(t0), t0 + Duration::from_secs(60), nominal), Duration::from_secs(10));
     }
 }

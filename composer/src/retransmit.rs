@@ -17,7 +17,9 @@
 //! The bookkeeping is [`Retransmissions`] (pure, times given); the interceptor is its thin
 //! shell in webrtc-rs's interceptor chain, in place of the stock responder. Its writer of
 //! each outgoing stream also paces the first sending of every packet ([`crate::pacer`]);
-//! resends go out at once.
+//! resends go out at once. Where the viewer negotiated it, every packet, resends included,
+//! leaves stamped with its send time (the `abs-send-time` header extension,
+//! [`abs_send_time`]), after the pacer's wait: what a browser's delay-based estimate reads.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -162,9 +164,21 @@ impl InterceptorBuilder for BoundedResponderBuilder {
     }
 }
 
+/// The `abs-send-time` header extension's value for a packet sent `since` after any fixed
+/// epoch: seconds in 6.18 fixed point, modulo 64 s, big-endian in 3 bytes
+/// (<http://www.webrtc.org/experiments/rtp-hdrext/abs-send-time>; the receiver reads only
+/// differences between packets).
+pub fn abs_send_time(since: Duration) -> [u8; 3] {
+    let ticks = (since.as_nanos() << 18) / 1_000_000_000;
+    let t = (ticks & 0xFF_FFFF) as u32;
+    [(t >> 16) as u8, (t >> 8) as u8, t as u8]
+}
+
 /// One outgoing stream: its bookkeeping, its pacer and the writer resends go to.
 struct Stream {
     ssrc: u32,
+    /// The negotiated id of the `abs-send-time` extension, if any.
+    abs_send_time: Option<u8>,
     book: Mutex<Retransmissions>,
     /// The pacer, its rate cell (bits per second, 0: none) and the counters; `None`:
     /// pacing is off.
@@ -187,7 +201,21 @@ impl RTPWriter for Stream {
             }
         }
         self.book.lock().unwrap_or_else(|p| p.into_inner()).on_sent(packet, Instant::now());
-        self.next.write(packet, attributes).await
+        self.send(packet, attributes).await
+    }
+}
+
+impl Stream {
+    /// Writes a packet on, stamped with its send time where the viewer asked for it.
+    async fn send(&self, packet: &Packet, attributes: &Attributes) -> Result<usize> {
+        let Some(id) = self.abs_send_time else { return self.next.write(packet, attributes).await };
+        let mut stamped = packet.clone();
+        let time = abs_send_time(self.epoch.elapsed());
+        // Only an id outside RFC 8285's range fails; the packet then leaves unstamped.
+        if stamped.header.set_extension(id, bytes::Bytes::copy_from_slice(&time)).is_err() {
+            return self.next.write(packet, attributes).await;
+        }
+        self.next.write(&stamped, attributes).await
     }
 }
 
@@ -246,7 +274,7 @@ impl RTCPReader for NackReader {
             if !resend.is_empty() {
                 tokio::spawn(async move {
                     for packet in resend {
-                        if let Err(e) = stream.next.write(&packet, &Attributes::new()).await {
+                        if let Err(e) = stream.send(&packet, &Attributes::new()).await {
                             tracing::debug!("resending a NACKed packet: {e}");
                         }
                     }
@@ -278,12 +306,25 @@ impl Interceptor for BoundedResponder {
     ) -> Arc<dyn RTPWriter + Send + Sync> {
         // NACKs are answered only for streams that negotiated plain NACK feedback.
         let nack = info.rtcp_feedback.iter().any(|fb| fb.typ == "nack" && fb.parameter.is_empty());
-        if !nack && self.pacing.is_none() {
+        let abs_send_time = info
+            .rtp_header_extensions
+            .iter()
+            .find(|e| e.uri == webrtc::sdp::extmap::ABS_SEND_TIME_URI)
+            .and_then(|e| u8::try_from(e.id).ok());
+        tracing::debug!(
+            ssrc = info.ssrc,
+            nack,
+            pacing = self.pacing.is_some(),
+            ?abs_send_time,
+            "outgoing stream bound"
+        );
+        if !nack && self.pacing.is_none() && abs_send_time.is_none() {
             return writer;
         }
         let pacer = self.pacing.as_ref().map(|p| (Mutex::default(), p.handle(info.ssrc), Arc::clone(p)));
         let stream = Arc::new(Stream {
             ssrc: info.ssrc,
+            abs_send_time,
             book: Mutex::default(),
             pacer,
             epoch: tokio::time::Instant::now(),
@@ -327,6 +368,22 @@ mod tests {
         let mut p = Packet { payload: Bytes::from(vec![0u8; bytes - 12]), ..Default::default() };
         p.header.sequence_number = sequence;
         p
+    }
+
+    #[test]
+    fn send_times_are_6_18_fixed_point_seconds_modulo_64() {
+        assert_eq!(abs_send_time(Duration::ZERO), [0, 0, 0]);
+        assert_eq!(abs_send_time(Duration::from_secs(1)), [0x04, 0, 0], "1 s is 2^18");
+        assert_eq!(abs_send_time(Duration::from_millis(250)), [0x01, 0, 0]);
+        // One tick is 1 / 2^18 s, about 3.8 us; 63.999... s is the largest value, 64 s wraps.
+        assert_eq!(abs_send_time(Duration::from_nanos(3_815)), [0, 0, 1]);
+        assert_eq!(abs_send_time(Duration::from_secs(64)), [0, 0, 0]);
+        assert_eq!(abs_send_time(Duration::from_secs(64) - Duration::from_nanos(1)), [0xFF, 0xFF, 0xFF]);
+        assert_eq!(abs_send_time(Duration::from_secs(65)), abs_send_time(Duration::from_secs(1)));
+        // A stamped header carries it as a one-byte extension that reads back.
+        let mut p = packet(7, 100);
+        p.header.set_extension(3, Bytes::copy_from_slice(&abs_send_time(Duration::from_secs(2)))).expect("stamp");
+        assert_eq!(p.header.get_extension(3).as_deref(), Some(&[0x08u8, 0, 0][..]));
     }
 
     #[test]

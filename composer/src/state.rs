@@ -35,6 +35,15 @@ pub struct MediaCounters {
     pub encode_errors: u64,
     pub send_errors: u64,
     pub keyframes_requested: u64,
+    /// The receiver's bitrate estimates read (REMB; a browser sends them about once a
+    /// second) and the latest, in bits per second (0 before the first).
+    pub receiver_estimates: u64,
+    pub receiver_estimate_bps: u64,
+    /// Of those, estimates the controller ignored as implausible
+    /// ([`crate::congestion::IMPLAUSIBLE_ESTIMATE_SHARE`]).
+    pub receiver_estimates_ignored: u64,
+    /// The encoder's bitrate now (the controller's target at the last encoder built).
+    pub bitrate_bps: u64,
     /// Time of the last frame: colour conversion, encoding, sending (ms).
     pub last_yuv_ms: f64,
     pub last_encode_ms: f64,

@@ -48,9 +48,11 @@ use webrtc::rtcp::payload_feedbacks::picture_loss_indication::PictureLossIndicat
 use webrtc::rtcp::payload_feedbacks::receiver_estimated_maximum_bitrate::ReceiverEstimatedMaximumBitrate;
 use webrtc::rtcp::receiver_report::ReceiverReport;
 
-use crate::congestion::Feedback;
+use crate::congestion::{Feedback, LossWindow};
 use webrtc::rtp_transceiver::RTCPFeedback;
-use webrtc::rtp_transceiver::rtp_codec::{RTCRtpCodecCapability, RTCRtpCodecParameters, RTPCodecType};
+use webrtc::rtp_transceiver::rtp_codec::{
+    RTCRtpCodecCapability, RTCRtpCodecParameters, RTCRtpHeaderExtensionCapability, RTPCodecType,
+};
 use webrtc::track::track_local::TrackLocal;
 use webrtc::track::track_local::track_local_static_sample::TrackLocalStaticSample;
 
@@ -214,6 +216,14 @@ fn build_api_counting(
 ) -> Result<API, RtcError> {
     let mut media = MediaEngine::default();
     media.register_codec(h264_codec(), RTPCodecType::Video)?;
+    // The send time of each packet (stamped by `retransmit`'s writer, after pacing), where
+    // the viewer offers it: a browser's receive-side estimate (its REMB) reads it instead of
+    // the RTP timestamps, which say when a frame was made, not when its packets left.
+    media.register_header_extension(
+        RTCRtpHeaderExtensionCapability { uri: webrtc::sdp::extmap::ABS_SEND_TIME_URI.to_owned() },
+        RTPCodecType::Video,
+        None,
+    )?;
     // webrtc-rs's default interceptors but for its NACK responder, replaced by one with a
     // budget (`retransmit`); the NACK generator is for received media, which has none here.
     let mut registry = Registry::new();
@@ -369,6 +379,8 @@ impl RtcStack {
         let feedback: Arc<StdMutex<Vec<(Feedback, Instant)>>> = Arc::default();
         let rtcp_feedback = Arc::clone(&feedback);
         tokio::spawn(async move {
+            let mut loss = LossWindow::default();
+            let epoch = Instant::now();
             while let Ok((packets, _)) = sender.read_rtcp().await {
                 let now = Instant::now();
                 for p in packets {
@@ -381,7 +393,13 @@ impl RtcStack {
                         reports.push(Feedback::Estimate(f64::from(remb.bitrate)));
                     }
                     if let Some(rr) = any.downcast_ref::<ReceiverReport>() {
-                        reports.extend(rr.reports.iter().map(|r| Feedback::Loss(f64::from(r.fraction_lost) / 256.0)));
+                        let at = now.saturating_duration_since(epoch).as_secs_f64();
+                        reports.extend(
+                            rr.reports
+                                .iter()
+                                .filter_map(|r| loss.on_report(r.last_sequence_number, r.total_lost, at))
+                                .map(Feedback::Loss),
+                        );
                     }
                     if !reports.is_empty() {
                         let mut queue = rtcp_feedback.lock().unwrap_or_else(|p| p.into_inner());

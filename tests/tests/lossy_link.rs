@@ -12,20 +12,35 @@
 //! 3. 20 Mbit/s for 24 s: it must climb back, and frames keep coming; the full picture
 //!    (640x480) returns within the phase (4-14 s in, on the composer's fast climb back).
 //!
-//! Needs root (or CAP_NET_ADMIN), `ip netns` and `/dev/net/tun`; without any of them the test
-//! says which and passes without running.
+//! A second test puts headless Chromium behind the same link (the real client page, Chrome's
+//! own receiver: its REMB estimate, frequent receiver reports, NACKs, keyframe requests and
+//! decoder): the link narrows, Chromium keeps decoding, and the full picture returns once
+//! the link widens.
+//!
+//! Needs root (or CAP_NET_ADMIN), `ip netns` and `/dev/net/tun`; without any of them the tests
+//! say which and pass without running. The two run one after the other (each is a whole
+//! service and a viewer on a 2-core machine).
 
 use std::net::SocketAddr;
 use std::process::Command;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use nephele_geometry::SplitMix64;
 use nephele_loadgen::{Live, LoadConfig};
+use nephele_tests::browser::Browser;
+use nephele_tests::client;
 use nephele_tests::service::UpService;
 use tun_rs::{DeviceBuilder, SyncDevice};
+
+/// One link (and one service behind it) at a time.
+static ONE_LINK_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+/// Links made by this process so far: each gets its own names and subnet (a TUN device on
+/// this side lives as long as the process).
+static LINKS_MADE: AtomicU32 = AtomicU32::new(0);
 
 fn run(args: &[&str]) -> Result<(), String> {
     let out = Command::new(args[0]).args(&args[1..]).output().map_err(|e| format!("{}: {e}", args.join(" ")))?;
@@ -174,8 +189,9 @@ struct Link {
 impl Link {
     fn create(shape: Shape) -> Result<Link, String> {
         let pid = std::process::id();
-        let subnet = 20 + pid % 200;
-        let (ns, inside, outside) = (format!("nlossy{pid}"), format!("nln{pid}"), format!("nlh{pid}"));
+        let n = LINKS_MADE.fetch_add(1, Ordering::Relaxed);
+        let subnet = 20 + (pid * 4 + n) % 200;
+        let (ns, inside, outside) = (format!("nlossy{pid}_{n}"), format!("nln{pid}_{n}"), format!("nlh{pid}_{n}"));
         let (inside_ip, outside_ip) = (format!("10.213.{subnet}.2"), format!("10.213.{subnet}.1"));
         let device = |name: &str| {
             DeviceBuilder::new()
@@ -207,11 +223,16 @@ impl Link {
         run(&all)
     }
 
-    /// A counter of a `/metrics` page served inside the namespace, read with `curl` there;
-    /// `None` without `curl` or without the counter.
-    fn counter(&self, url: &str, name: &str) -> Option<u64> {
+    /// A page served inside the namespace, read with `curl` there; `None` without `curl`.
+    fn fetch(&self, url: &str) -> Option<String> {
         let out = Command::new("ip").args(["netns", "exec", &self.ns, "curl", "-s", url]).output().ok()?;
-        nephele_tests::metric_value(&String::from_utf8_lossy(&out.stdout), name).map(|v| v as u64)
+        out.status.success().then(|| String::from_utf8_lossy(&out.stdout).into_owned())
+    }
+
+    /// A counter of a `/metrics` page served inside the namespace; `None` without `curl` or
+    /// without the counter.
+    fn counter(&self, url: &str, name: &str) -> Option<u64> {
+        nephele_tests::metric_value(&self.fetch(url)?, name).map(|v| v as u64)
     }
 
     fn set(&self, shape: Shape) {
@@ -226,8 +247,6 @@ impl Drop for Link {
     }
 }
 
-/// The composer's bitrate targets so far, from its log lines ("the stream's bitrate follows
-/// the receiver's feedback ... from=A to=B").
 /// The composer's changes of resolution, as the size each went to.
 fn resolutions(log: &str) -> Vec<String> {
     log.lines()
@@ -255,6 +274,7 @@ fn targets(log: &str) -> Vec<u64> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
+    let _one = ONE_LINK_AT_A_TIME.lock().await;
     let delay = Duration::from_millis(50);
     let mbit = |m: f64| m * 1e6;
     let phases: [(&str, Shape, Duration); 3] = [
@@ -397,6 +417,150 @@ async fn the_stream_follows_a_shaped_lossy_link_and_keeps_decoding() {
     // took some 30 s from the floor).
     assert!(back.is_some(), "phase 3 (20 Mbit/s): still 320x240 after 24 s; targets {changes:?}");
     println!("packets delivered to the viewer's side: {}", counters.delivered.load(Ordering::Relaxed));
+    up.interrupt(Duration::from_secs(20));
+    drop(link);
+}
+
+/// The rate at which a 640x480 picture at 30 fps is coded again after a fall to 320x240
+/// (`SCALE_UP_BITS_PER_PIXEL`, 0.05 bits per pixel).
+const FULL_PICTURE_BPS: u64 = 460_000;
+
+/// What Chromium's receiver says now: frames decoded, and the size of the last one.
+fn decoded(browser: &Browser) -> (u64, u64, u64) {
+    let stats = client::inbound_video_stats(browser).unwrap_or_default();
+    let n = |k: &str| stats[k].as_u64().unwrap_or(0);
+    (n("framesDecoded"), n("frameWidth"), n("frameHeight"))
+}
+
+/// Waits up to `limit` until Chromium has decoded `count` frames of `width` pixels across
+/// since the call (counted from the first such frame on); the seconds that took, or `None`.
+fn frames_of_width(browser: &Browser, width: u64, count: u64, limit: Duration) -> Option<f64> {
+    let start = Instant::now();
+    let mut first_at_width: Option<u64> = None;
+    while start.elapsed() < limit {
+        let (frames, w, _) = decoded(browser);
+        if w == width {
+            let from = *first_at_width.get_or_insert(frames);
+            if frames >= from + count {
+                return Some(start.elapsed().as_secs_f64());
+            }
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    None
+}
+
+/// Chromium (the real client page, Chrome's own receiver with its REMB estimate, receiver
+/// reports several a second, NACKs and keyframe requests) behind the emulated link, 50 ms
+/// away: the link narrows to 150 kbit/s for 15 s and Chromium keeps decoding; once the link
+/// is wide again the full picture (640x480) returns at a full rate. The picture stands still
+/// (a turning camera makes the one path-tracing worker too slow to fill any link), so how
+/// soon the stream falls to 320x240 varies from run to run and is printed, not checked.
+#[test]
+fn chromium_behind_a_narrowing_link_keeps_decoding_and_gets_the_full_picture_back() {
+    let _one = ONE_LINK_AT_A_TIME.blocking_lock();
+    let delay = Duration::from_millis(50);
+    let wide = Shape { bits_per_s: 5e6, loss: 0.0, delay };
+    let link = match Link::create(wide) {
+        Ok(link) => link,
+        Err(why) => {
+            eprintln!("skipped: this test needs network namespaces and TUN devices (root): {why}");
+            return;
+        }
+    };
+    let started = Instant::now();
+    let at = || format!("[{:5.1} s]", started.elapsed().as_secs_f64());
+    let assets = tempfile::tempdir().expect("an asset folder");
+    let http: SocketAddr = format!("{}:8480", link.inside_ip).parse().expect("address");
+    let prefix = ["ip", "netns", "exec", link.ns.as_str()];
+    let dir = assets.path().to_str().expect("utf-8 path");
+    let mut up = UpService::start_in(&prefix, http, 1, &["--bake", "off", "--assets", dir], Duration::from_secs(90));
+    let sessions = format!("http://{}/v1/sessions", up.composer_http.expect("the composer's address"));
+    // The composer's media counters of the session, and a line of them.
+    let media = || {
+        let all: serde_json::Value = serde_json::from_str(&link.fetch(&sessions)?).ok()?;
+        let m = all["sessions"][0]["media"].clone();
+        let n = |k: &str| m[k].as_u64().unwrap_or(0);
+        let line = format!(
+            "{} frames sent, encoder {} kbit/s at level {}, REMB {} kbit/s ({} read, {} ignored), {} resolution changes, {} frames skipped for rate",
+            n("frames_sent"),
+            n("bitrate_bps") / 1000,
+            n("resolution_level"),
+            n("receiver_estimate_bps") / 1000,
+            n("receiver_estimates"),
+            n("receiver_estimates_ignored"),
+            n("resolution_changes"),
+            n("frames_skipped_for_rate")
+        );
+        Some((m, line))
+    };
+
+    let browser = Browser::start().expect("headless Chromium");
+    browser.goto(&format!("http://{http}/?scene=default&width=640&height=480")).expect("open the client");
+    client::wait_streaming(&browser, Duration::from_secs(60)).expect("the data channel opens through the link");
+    let first = frames_of_width(&browser, 640, 20, Duration::from_secs(30));
+    // The composer's answer takes the packets' send time that Chromium offers.
+    let answer = browser.execute("return window.nephele.pc.remoteDescription.sdp", Vec::new()).expect("the answer");
+    assert!(answer.as_str().is_some_and(|sdp| sdp.contains("abs-send-time")), "no abs-send-time in {answer}");
+    println!("{} 5 Mbit/s: 20 frames of 640x480 decoded ({first:?} s); {:?}", at(), media().map(|m| m.1));
+    assert!(
+        first.is_some(),
+        "no 640x480 frames through a 5 Mbit/s link: {:?} {}",
+        decoded(&browser),
+        client::inbound_video_stats(&browser).unwrap_or_default()
+    );
+
+    // The link narrows below what the stream sends: Chromium reports the losses and its REMB,
+    // and keeps decoding whatever the stream becomes.
+    link.set(Shape { bits_per_s: 150e3, ..wide });
+    let (before, _, _) = decoded(&browser);
+    let mut widths = std::collections::BTreeSet::new();
+    let narrowed = Instant::now();
+    while narrowed.elapsed() < Duration::from_secs(15) {
+        widths.insert(decoded(&browser).1);
+        std::thread::sleep(Duration::from_millis(250));
+    }
+    let (after, _, _) = decoded(&browser);
+    println!(
+        "{} 150 kbit/s for 15 s: {} frames decoded, of widths {widths:?}; {:?}",
+        at(),
+        after - before,
+        media().map(|m| m.1)
+    );
+    assert!(after - before >= 10, "{} frames decoded in 15 s of a 150 kbit/s link", after - before);
+
+    // Wide again: the full picture at a full rate returns. Chromium's REMB said 5-13 kbit/s
+    // here for the whole phase (its estimator's minimum after the narrowing), which held the
+    // stream at its floor, at 320x240, for good until the controller learnt to ignore such
+    // estimates: this is the check that failed.
+    link.set(Shape { bits_per_s: 20e6, ..wide });
+    let widened = Instant::now();
+    let mut back = None;
+    while back.is_none() && widened.elapsed() < Duration::from_secs(40) {
+        let rate = media().map_or(0, |m| m.0["bitrate_bps"].as_u64().unwrap_or(0));
+        if rate >= FULL_PICTURE_BPS && frames_of_width(&browser, 640, 10, Duration::from_secs(1)).is_some() {
+            back = Some(widened.elapsed().as_secs_f64());
+        }
+    }
+    println!(
+        "{} 20 Mbit/s: 640x480 at {} kbit/s or more after {back:?} s; {:?}",
+        at(),
+        FULL_PICTURE_BPS / 1000,
+        media().map(|m| m.1)
+    );
+    let log = up.log_text();
+    assert!(
+        back.is_some(),
+        "the full picture did not return within 40 s of a 20 Mbit/s link: {:?}, {:?}, targets {:?}, resolutions {:?}",
+        decoded(&browser),
+        media().map(|m| m.1),
+        targets(&log),
+        resolutions(&log)
+    );
+    assert_eq!(client::state(&browser).expect("the page's state"), "streaming");
+    let errors = browser.console_log().expect("console log");
+    assert!(client::page_errors(&errors).is_empty(), "JavaScript errors: {errors:?}");
+    drop(browser);
     up.interrupt(Duration::from_secs(20));
     drop(link);
 }
