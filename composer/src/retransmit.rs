@@ -167,7 +167,9 @@ impl InterceptorBuilder for BoundedResponderBuilder {
 /// The `abs-send-time` header extension's value for a packet sent `since` after any fixed
 /// epoch: seconds in 6.18 fixed point, modulo 64 s, big-endian in 3 bytes
 /// (<http://www.webrtc.org/experiments/rtp-hdrext/abs-send-time>; the receiver reads only
-/// differences between packets).
+/// differences between packets). Not `rtp`'s `AbsSendTimeExtension::new`, which reads the
+/// wall clock (`SystemTime`, which can step): this takes the pacer's monotonic clock, the
+/// one tokio pauses in tests.
 pub fn abs_send_time(since: Duration) -> [u8; 3] {
     let ticks = (since.as_nanos() << 18) / 1_000_000_000;
     let t = (ticks & 0xFF_FFFF) as u32;
