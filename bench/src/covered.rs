@@ -92,6 +92,9 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
         .collect::<Result<_>>()?;
     let kernel = GiKernel::load(&args.model, GiServeSettings::default())
         .with_context(|| format!("loading {}", args.model.display()))?;
+    // The same models running the network over the covered pixels too, as before the mask.
+    let whole_network = GiKernel::load(&args.model, GiServeSettings { shade_covered: true, ..Default::default() })
+        .with_context(|| format!("loading {}", args.model.display()))?;
     let solid: u64 = occluders.iter().map(|g| g.solid_count()).sum();
     println!(
         "{}: {} occluder(s), {solid} solid cells; served at {:?}, network on {}; stereo model: {}",
@@ -109,7 +112,9 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
     if let Some(dir) = &args.images {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
-    let mut totals = [0.0f64; 4]; // plain and behind ms, flat then stereo
+    // ms: plain and behind, flat then stereo, then behind with the network over every pixel
+    // (flat, stereo).
+    let mut totals = [0.0f64; 6];
     let bar = progress.bar(args.views.max(1) as u64, "views", "views");
     for k in 0..args.views.max(1) {
         let a = start + k as f32 * std::f32::consts::TAU / args.views.max(1) as f32;
@@ -145,13 +150,16 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
             shaded = (out.width, out.height);
         }
         let (g_plain, g_behind) = (median(g_plain), median(g_behind));
-        // A warm-up round, then rounds that rotate the order of the four renders (so that
-        // none always follows the same one).
-        let mut times = [(); 4].map(|_| Vec::new());
-        let (mut plain, mut behind) = (None, None);
-        let jobs = if kernel.has_stereo() { 4 } else { 2 };
+        // A warm-up round, then rounds that rotate the order of the renders (so that none
+        // always follows the same one).
+        let mut times = [(); 6].map(|_| Vec::new());
+        // Multiply-adds the network ran and what whole passes would, per job.
+        let mut macs = [(0u64, 0u64); 6];
+        let (mut plain, mut behind, mut behind_whole) = (None, None, None);
+        let jobs: Vec<usize> = if kernel.has_stereo() { (0..6).collect() } else { vec![0, 1, 4] };
         for round in 0..=args.repeats.max(1) {
-            for job in (0..jobs).map(|j| (j + round) % jobs) {
+            for job in (0..jobs.len()).map(|j| jobs[(j + round) % jobs.len()]) {
+                let before = kernel.network_macs();
                 let t = Instant::now();
                 match job {
                     0 => plain = Some(kernel.render_pixels(&camera, &all)?),
@@ -159,24 +167,49 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
                     2 => {
                         kernel.render_pair((&left, &all), (&right, &all)).context("a stereo pass")??;
                     }
-                    _ => {
+                    3 => {
                         kernel
+                            .render_pair_behind((&left, &all), (&right, &all), &occluders)
+                            .context("a stereo pass")??;
+                    }
+                    4 => behind_whole = Some(whole_network.render_pixels_behind(&camera, &all, &occluders)?.0),
+                    _ => {
+                        whole_network
                             .render_pair_behind((&left, &all), (&right, &all), &occluders)
                             .context("a stereo pass")??;
                     }
                 }
                 if round > 0 {
                     times[job].push(t.elapsed().as_secs_f64() * 1e3);
+                    let after = kernel.network_macs();
+                    macs[job].0 += after.0 - before.0;
+                    macs[job].1 += after.1 - before.1;
                 }
             }
         }
-        let last = plain.zip(behind);
-        let ((plain, plain_stats), (behind, behind_stats)) = last.context("one repetition")?;
+        let last = plain.zip(behind).zip(behind_whole);
+        let (((plain, plain_stats), (behind, behind_stats)), behind_whole) = last.context("one repetition")?;
         let ms = times.map(|t| if t.is_empty() { 0.0 } else { median(t) });
         for (total, m) in totals.iter_mut().zip(ms) {
             *total += m;
         }
         let knot_share = covered.iter().filter(|&&c| c).count() as f64 / all.len() as f64;
+        let share = |(done, whole): (u64, u64)| 100.0 * done as f64 / whole.max(1) as f64;
+        // The mask changes no pixel the objects leave visible.
+        let changed = (0..all.len()).filter(|&i| !covered[i] && behind.color[i] != behind_whole.color[i]).count();
+        println!(
+            "view {k}: network over the pixels left visible only: {:.1} % of a whole pass's multiply-adds (flat){}; behind the objects {:.1} -> {:.1} ms flat ({:.3}){}; visible pixels changed by the mask: {changed}",
+            share(macs[1]),
+            if kernel.has_stereo() { format!(", {:.1} % (stereo pair)", share(macs[3])) } else { String::new() },
+            ms[4],
+            ms[1],
+            ms[1] / ms[4],
+            if kernel.has_stereo() {
+                format!(", stereo pair {:.1} -> {:.1} ms ({:.3})", ms[5], ms[3], ms[3] / ms[5])
+            } else {
+                String::new()
+            },
+        );
         println!(
             "view {k}: G-buffer alone ({}x{}): {g_plain:.1} -> {g_behind:.1} ms ({:.3}), rays traced {} -> {} ({:.3}), {light_blocked} shadow rays stopped by the objects",
             shaded.0,
@@ -223,17 +256,22 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
         bar.inc(1);
     }
     bar.finish_and_clear();
+    let per_view = |t: f64| t / args.views as f64;
     println!(
-        "all views: flat {:.1} -> {:.1} ms per view ({:.3}){}",
-        totals[0] / args.views as f64,
-        totals[1] / args.views as f64,
+        "all views: flat {:.1} -> {:.1} ms per view ({:.3}; {:.1} ms, {:.3}, with the network over the covered pixels too){}",
+        per_view(totals[0]),
+        per_view(totals[1]),
         totals[1] / totals[0],
+        per_view(totals[4]),
+        totals[4] / totals[0],
         if kernel.has_stereo() {
             format!(
-                "; stereo pair {:.1} -> {:.1} ms ({:.3})",
-                totals[2] / args.views as f64,
-                totals[3] / args.views as f64,
-                totals[3] / totals[2]
+                "; stereo pair {:.1} -> {:.1} ms ({:.3}; {:.1} ms, {:.3}, the network over every pixel)",
+                per_view(totals[2]),
+                per_view(totals[3]),
+                totals[3] / totals[2],
+                per_view(totals[5]),
+                totals[5] / totals[2]
             )
         } else {
             String::new()

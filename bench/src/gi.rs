@@ -80,7 +80,8 @@ fn served(
     for scale in [1.0, 0.5] {
         let (mut single, mut paired) = (Vec::new(), Vec::new());
         for ([l, r], time_s) in &cameras {
-            let settings = GiServeSettings { samples_per_pixel: args.served_spp, scale, time_s: *time_s };
+            let settings =
+                GiServeSettings { samples_per_pixel: args.served_spp, scale, time_s: *time_s, shade_covered: false };
             let kernel = GiKernel::new(teacher.clone(), Some(stereo.clone()), settings)?;
             let all = all_pixels(l);
             let eye = |c: &Camera| kernel.render_pixels(c, &all).map(|(p, _)| p.color);
@@ -99,7 +100,7 @@ fn served(
     let (l, r) = (sized(l)?, sized(r)?);
     let all = all_pixels(&l);
     for scale in [1.0, 0.5] {
-        let settings = GiServeSettings { samples_per_pixel: args.served_spp, scale, time_s: 0.0 };
+        let settings = GiServeSettings { samples_per_pixel: args.served_spp, scale, time_s: 0.0, shade_covered: false };
         let kernel = GiKernel::new(teacher.clone(), Some(stereo.clone()), settings)?;
         let (mut two, mut one) = (Vec::new(), Vec::new());
         for _ in 0..args.repeats.max(1) + 1 {

@@ -26,20 +26,25 @@
 //! Where objects stand in the room, the master sends their solid matter with the batch
 //! ([`RayKernel::render_pixels_behind`]): G-buffer samples whose first hit lies behind it are
 //! not lit (no shadow rays, no bounce), since the fused object covers them with full
-//! opacity; the network still runs over the whole window (those pixels enter it with their
-//! geometry and no direct light). The same solid matter casts the objects' shadows: shadow
+//! opacity, and the network computes only what the pixels left visible read
+//! ([`nephele_nn::UNet::forward_masked`]: a pixel all four of whose shaded taps are covered
+//! comes back black, at the room's depth, behind the object; every other pixel gets exactly
+//! the value of the whole pass). The same solid matter casts the objects' shadows: shadow
 //! rays to the room's lights that it stops bring no direct light, so the network, which
 //! turns direct light into global illumination, darkens the room under and behind them.
 //!
-//! Not yet: the objects' light on the room (they absorb what reaches them; no bounce off
+//! Not yet: the G-buffer's camera rays are still traced behind the objects (the network's
+//! halo reads them, and a ray's hit decides whether it is covered); the GPU twin of the
+//! network runs every pixel; the objects' light on the room (they absorb what reaches them; no bounce off
 //! them), shadows of the glass shell (no solid grid), the ball's motion (the room is
 //! rendered at one moment, [`GiServeSettings::time_s`]).
 
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use nephele_geometry::camera::Camera;
-use nephele_nn::UNetWorkspace;
+use nephele_nn::{PixelMask, UNetWorkspace};
 use nephele_pathtracer::{Background, RenderOptions, RenderOutput, Renderer, scenes};
 
 use crate::gi::{GBufferPixel, GiModel, GiModelError, UNetDevice};
@@ -66,6 +71,9 @@ pub struct GiServeSettings {
     pub scale: f32,
     /// Seconds into the scene's animation (the room's rolling ball) the room is rendered at.
     pub time_s: f32,
+    /// Run the network over the pixels the objects cover too (every pixel of the window, as
+    /// before issue 13's mask): for measuring what the mask saves.
+    pub shade_covered: bool,
 }
 
 /// Two samples at half resolution: `nephele bench gi` (BENCHMARKS.md, "environment served by
@@ -73,7 +81,7 @@ pub struct GiServeSettings {
 /// 2-core VM, -0.2 dB against 4 samples and 1.5x faster; 1 sample loses another 0.3 dB.
 impl Default for GiServeSettings {
     fn default() -> GiServeSettings {
-        GiServeSettings { samples_per_pixel: 2, scale: 0.5, time_s: 0.0 }
+        GiServeSettings { samples_per_pixel: 2, scale: 0.5, time_s: 0.0, shade_covered: false }
     }
 }
 
@@ -89,6 +97,8 @@ pub struct GiKernel {
     workspaces: Mutex<Vec<UNetWorkspace>>,
     /// The networks' twins on a GPU (`--device`), `None`: the CPU runs them.
     devices: Option<GiDevices>,
+    /// Multiply-adds the CPU networks ran, and what whole passes would have run.
+    network_macs: [AtomicU64; 2],
 }
 
 /// The single-eye and (where there is a stereo model) stereo networks resident on a device.
@@ -137,6 +147,7 @@ impl GiKernel {
             bounds: Bounds { min, max },
             workspaces: Mutex::new(Vec::new()),
             devices: None,
+            network_macs: [AtomicU64::new(0), AtomicU64::new(0)],
         })
     }
 
@@ -168,6 +179,12 @@ impl GiKernel {
         let twin = stereo_path(path);
         let stereo = if twin.is_file() { Some(GiModel::load(&twin).map_err(failed)?) } else { None };
         GiKernel::new(single, stereo, settings)
+    }
+
+    /// Multiply-adds the networks ran on the CPU so far, and what whole passes over the same
+    /// windows would have run (the difference: pixels the objects cover, not shaded).
+    pub fn network_macs(&self) -> (u64, u64) {
+        (self.network_macs[0].load(Ordering::Relaxed), self.network_macs[1].load(Ordering::Relaxed))
     }
 
     /// Chooses the instruction set of the networks' CPU convolutions (`--simd`).
@@ -279,12 +296,21 @@ impl GiKernel {
         let mut passes = 0u64;
         let stereo_device = self.devices.as_ref().and_then(|d| d.stereo.as_deref());
         let single_device = self.devices.as_ref().map(|d| d.single.as_ref());
+        let covered: Vec<&[bool]> = buffers.iter().map(|(out, _)| out.covered.as_slice()).collect();
+        let needed =
+            if self.settings.shade_covered { None } else { needed_pixels(views, &cameras[0], first, &covered) };
+        let needed = needed.as_ref();
+        let count = |ws: &UNetWorkspace| {
+            let (done, whole) = ws.last_macs();
+            self.network_macs[0].fetch_add(done, Ordering::Relaxed);
+            self.network_macs[1].fetch_add(whole, Ordering::Relaxed);
+        };
         match (&self.stereo, buffers.as_slice()) {
             (Some(stereo), [left, right]) => {
                 let eyes = [left.1.as_slice(), right.1.as_slice()];
                 let shaded = match stereo_device {
                     Some(device) => stereo.shade_on(device, w, h, &eyes),
-                    None => stereo.shade(w, h, &eyes, &mut ws),
+                    None => stereo.shade_where(w, h, &eyes, needed, &mut ws).inspect(|_| count(&ws)),
                 }
                 .map_err(failed)?;
                 non_finite += shaded.non_finite_inputs;
@@ -295,7 +321,7 @@ impl GiKernel {
                 for (_, pixels) in &buffers {
                     let shaded = match single_device {
                         Some(device) => self.single.shade_on(device, w, h, &[pixels]),
-                        None => self.single.shade(w, h, &[pixels], &mut ws),
+                        None => self.single.shade_where(w, h, &[pixels], needed, &mut ws).inspect(|_| count(&ws)),
                     }
                     .map_err(failed)?;
                     non_finite += shaded.non_finite_inputs;
@@ -341,6 +367,82 @@ pub fn g_buffer_pixels(out: &RenderOutput) -> Vec<GBufferPixel> {
         .collect()
 }
 
+/// Where a view's pixel reads the image shaded for it: the four bilinear taps (indices into
+/// the shaded image: top left, top right, bottom left, bottom right), the fractions between
+/// them, and the nearest shaded pixel (one of the four).
+struct Taps {
+    corners: [usize; 4],
+    fx: f32,
+    fy: f32,
+    nearest: usize,
+}
+
+impl Taps {
+    /// Pixel `p` of `view` in the image shaded through `camera` (the view scaled, same
+    /// pinhole, its rows from `first_row` of the scaled view on).
+    fn of(view: &Camera, camera: &Camera, first_row: u32, p: u32) -> Taps {
+        let (sw, sh) = (camera.width() as usize, camera.height() as usize);
+        let sx = camera.intrinsics().0 / view.intrinsics().0;
+        let sy = camera.intrinsics().1 / view.intrinsics().1;
+        let (x, y) = ((p % view.width()) as f32, (p / view.width()) as f32);
+        // Centre of the view's pixel in the shaded image's pixel coordinates.
+        let (u, v) = ((x + 0.5) * sx - 0.5, (y + 0.5) * sy - 0.5 - first_row as f32);
+        let (x0, y0) = (u.floor().clamp(0.0, (sw - 1) as f32) as usize, v.floor().clamp(0.0, (sh - 1) as f32) as usize);
+        let (x1, y1) = ((x0 + 1).min(sw - 1), (y0 + 1).min(sh - 1));
+        let (fx, fy) = ((u - x0 as f32).clamp(0.0, 1.0), (v - y0 as f32).clamp(0.0, 1.0));
+        let nx = (u.round().clamp(0.0, (sw - 1) as f32)) as usize;
+        let ny = (v.round().clamp(0.0, (sh - 1) as f32)) as usize;
+        Taps { corners: [y0 * sw + x0, y0 * sw + x1, y1 * sw + x0, y1 * sw + x1], fx, fy, nearest: ny * sw + nx }
+    }
+}
+
+/// The shaded pixels the network must give for `views`' requested pixels, where some shaded
+/// pixels are `covered` (per view, every G-buffer sample hidden behind the objects): the taps
+/// of each requested pixel not all of whose taps are covered. `None` (shade everything) when
+/// nothing is covered.
+fn needed_pixels(
+    views: &[(&Camera, &[u32])],
+    camera: &Camera,
+    first_row: u32,
+    covered: &[&[bool]],
+) -> Option<PixelMask> {
+    if !covered.iter().any(|c| c.contains(&true)) {
+        return None;
+    }
+    let (sw, sh) = (camera.width() as usize, camera.height() as usize);
+    // A view pixel's taps are the 2x2 block (clamped at the borders) from its top-left tap,
+    // which depends on its column and its row alone: tables, no division per pixel.
+    let block = |q: usize| {
+        let (x, y) = (q % sw, q / sw);
+        let (x1, y1) = ((x + 1).min(sw - 1), (y + 1).min(sh - 1));
+        [q, y * sw + x1, y1 * sw + x, y1 * sw + x1]
+    };
+    let mut seen_from = vec![false; sw * sh];
+    for ((view, pixels), covered) in views.iter().zip(covered) {
+        let open: Vec<bool> = (0..sw * sh).map(|q| block(q).iter().any(|&i| !covered[i])).collect();
+        let width = view.width();
+        let columns: Vec<usize> = (0..width).map(|x| Taps::of(view, camera, first_row, x).corners[0]).collect();
+        let rows: Vec<usize> =
+            (0..view.height()).map(|y| Taps::of(view, camera, first_row, y * width).corners[0] - columns[0]).collect();
+        let (mut row, mut row_start) = (0, 0);
+        for &p in pixels.iter() {
+            if p < row_start || p - row_start >= width {
+                row = p / width;
+                row_start = row * width;
+            }
+            let q = rows[row as usize] + columns[(p - row_start) as usize];
+            seen_from[q] |= open[q];
+        }
+    }
+    let mut needed = vec![false; sw * sh];
+    for q in (0..sw * sh).filter(|&q| seen_from[q]) {
+        for i in block(q) {
+            needed[i] = true;
+        }
+    }
+    PixelMask::from_flags(sw, sh, needed).ok()
+}
+
 /// `pixels` of `view` from an image shaded through `camera` (the view scaled, same pinhole,
 /// its rows from `first_row` of the scaled view on): colour bilinear, depth of the nearest
 /// shaded pixel ([`SKY_DEPTH`] where it saw no geometry), opacity 1.
@@ -352,27 +454,16 @@ fn upsample(
     image: &[[f32; 3]],
     depth: &[f32],
 ) -> PixelResults {
-    let (sw, sh) = (camera.width() as usize, camera.height() as usize);
-    let sx = camera.intrinsics().0 / view.intrinsics().0;
-    let sy = camera.intrinsics().1 / view.intrinsics().1;
     let mut out = PixelResults::with_len(pixels.len());
     for (k, &p) in pixels.iter().enumerate() {
-        let (x, y) = ((p % view.width()) as f32, (p / view.width()) as f32);
-        // Centre of the view's pixel in the shaded image's pixel coordinates.
-        let (u, v) = ((x + 0.5) * sx - 0.5, (y + 0.5) * sy - 0.5 - first_row as f32);
-        let (x0, y0) = (u.floor().clamp(0.0, (sw - 1) as f32) as usize, v.floor().clamp(0.0, (sh - 1) as f32) as usize);
-        let (x1, y1) = ((x0 + 1).min(sw - 1), (y0 + 1).min(sh - 1));
-        let (fx, fy) = ((u - x0 as f32).clamp(0.0, 1.0), (v - y0 as f32).clamp(0.0, 1.0));
-        let at = |x: usize, y: usize| image[y * sw + x];
-        let (a, b, c, d) = (at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1));
+        let Taps { corners, fx, fy, nearest } = Taps::of(view, camera, first_row, p);
+        let [a, b, c, d] = corners.map(|i| image[i]);
         for ch in 0..3 {
             let top = a[ch] + (b[ch] - a[ch]) * fx;
             let bottom = c[ch] + (d[ch] - c[ch]) * fx;
             out.color[k][ch] = top + (bottom - top) * fy;
         }
-        let nx = (u.round().clamp(0.0, (sw - 1) as f32)) as usize;
-        let ny = (v.round().clamp(0.0, (sh - 1) as f32)) as usize;
-        let z = depth[ny * sw + nx];
+        let z = depth[nearest];
         // The shaded camera's depth is the view's (same pose, z along the same axis).
         out.depth[k] = if z.is_finite() && z > 0.0 { z } else { SKY_DEPTH };
         out.opacity[k] = 1.0;
@@ -455,7 +546,7 @@ mod tests {
 
     #[test]
     fn a_view_is_opaque_with_depth_and_a_subset_matches_the_whole() {
-        let settings = GiServeSettings { samples_per_pixel: 2, scale: 1.0, time_s: 0.0 };
+        let settings = GiServeSettings { samples_per_pixel: 2, scale: 1.0, time_s: 0.0, shade_covered: false };
         let kernel = GiKernel::new(model(1, "room-day"), None, settings).expect("kernel");
         let camera = view(16, 12);
         let all: Vec<u32> = (0..16 * 12).collect();
@@ -477,7 +568,7 @@ mod tests {
 
     #[test]
     fn what_an_object_hides_is_not_lit_and_the_rest_is_untouched() {
-        let settings = GiServeSettings { samples_per_pixel: 2, scale: 1.0, time_s: 0.0 };
+        let settings = GiServeSettings { samples_per_pixel: 2, scale: 1.0, time_s: 0.0, shade_covered: false };
         let kernel = GiKernel::new(model(1, "room-day"), None, settings).expect("kernel");
         let camera = view(16, 12);
         let all: Vec<u32> = (0..16 * 12).collect();
@@ -503,11 +594,59 @@ mod tests {
     }
 
     #[test]
+    fn pixels_the_objects_cover_are_not_shaded_and_the_others_are_exact() {
+        // At scale 1 a pixel's taps are itself and its right and lower neighbours, at zero
+        // weight: its colour is its shaded pixel's.
+        let settings = GiServeSettings { samples_per_pixel: 2, scale: 1.0, time_s: 0.0, shade_covered: false };
+        let kernel = GiKernel::new(model(1, "room-day"), None, settings).expect("kernel");
+        let camera = view(16, 12);
+        let all: Vec<u32> = (0..16 * 12).collect();
+        let eye = camera.camera_to_world().transform_point3(Vec3::ZERO);
+        let forward = camera.camera_to_world().transform_vector3(-Vec3::Z);
+        let at = eye + forward * 0.5;
+        let front = SolidGrid::new(at - Vec3::splat(0.1), at + Vec3::splat(0.1), [1, 1, 1], &[true]).expect("grid");
+        assert_eq!(kernel.network_macs(), (0, 0));
+        let (hid, _) = kernel.render_pixels_behind(&camera, &all, std::slice::from_ref(&front)).expect("render");
+        let (done, whole) = kernel.network_macs();
+        // The network over the same G-buffer, every pixel.
+        let g = kernel.trace_g_buffer(&camera, std::slice::from_ref(&front)).expect("g-buffer");
+        let reference = kernel
+            .single
+            .shade(16, 12, &[&g_buffer_pixels(&g)], &mut UNetWorkspace::new())
+            .expect("shade")
+            .eyes
+            .remove(0);
+        let mut black = 0;
+        for (p, want) in reference.iter().enumerate() {
+            let (x, y) = (p % 16, p / 16);
+            let taps = [(x, y), ((x + 1).min(15), y), (x, (y + 1).min(11)), ((x + 1).min(15), (y + 1).min(11))];
+            if taps.iter().all(|&(x, y)| g.covered[y * 16 + x]) {
+                // Covered: black, or exact where a seen neighbour needed its shaded pixel.
+                if hid.color[p] == [0.0; 3] {
+                    // Not shaded (the whole pass gives it light).
+                    black += usize::from(*want != [0.0; 3]);
+                } else {
+                    assert_eq!(hid.color[p], *want, "pixel {p} is covered");
+                }
+            } else {
+                assert_eq!(hid.color[p], *want, "pixel {p} is seen");
+            }
+            assert_eq!(hid.depth[p], if g.depth[p] > 0.0 { g.depth[p] } else { SKY_DEPTH });
+        }
+        assert!(black > 0, "no covered pixel was left unshaded");
+        assert!(done < whole && whole > 0, "the network skipped nothing: {done} of {whole}");
+        // Nothing covered: the whole pass.
+        kernel.render_pixels(&camera, &all).expect("render");
+        let (after, after_whole) = kernel.network_macs();
+        assert_eq!(after - done, after_whole - whole);
+    }
+
+    #[test]
     fn views_of_any_size_are_shaded_at_the_scale() {
         let kernel = GiKernel::new(
             model(1, "room-night"),
             None,
-            GiServeSettings { samples_per_pixel: 1, scale: 0.5, time_s: 0.0 },
+            GiServeSettings { samples_per_pixel: 1, scale: 0.5, time_s: 0.0, shade_covered: false },
         )
         .expect("kernel");
         // 22 x 10 at half scale: 11 x 5, rounded up to even sides for the two-level U-Net.
@@ -525,7 +664,7 @@ mod tests {
     /// inside the scaled view; the band's pixels come back valid.
     #[test]
     fn a_band_of_rows_is_shaded_with_an_aligned_margin() {
-        let settings = GiServeSettings { samples_per_pixel: 1, scale: 0.5, time_s: 0.0 };
+        let settings = GiServeSettings { samples_per_pixel: 1, scale: 0.5, time_s: 0.0, shade_covered: false };
         let kernel = GiKernel::new(model(1, "room-day"), None, settings).expect("kernel");
         let view = view(64, 96);
         let shaded = kernel.shading_camera(&view).expect("camera");
@@ -557,7 +696,7 @@ mod tests {
         let kernel = GiKernel::new(
             model(1, "room-day"),
             None,
-            GiServeSettings { samples_per_pixel: 1, scale: 0.5, time_s: 0.0 },
+            GiServeSettings { samples_per_pixel: 1, scale: 0.5, time_s: 0.0, shade_covered: false },
         )
         .expect("k");
         let coarse = kernel.shading_camera(&fine).expect("coarse");
@@ -576,7 +715,7 @@ mod tests {
 
     #[test]
     fn a_pair_is_one_stereo_pass_only_with_a_stereo_model_of_the_same_scene() {
-        let settings = GiServeSettings { samples_per_pixel: 1, scale: 1.0, time_s: 0.0 };
+        let settings = GiServeSettings { samples_per_pixel: 1, scale: 1.0, time_s: 0.0, shade_covered: false };
         let eyes = stereo_pair(&view(16, 12), 0.064).expect("eyes");
         let all: Vec<u32> = (0..16 * 12).collect();
         let mono = GiKernel::new(model(1, "room-day"), None, settings).expect("mono");

@@ -15,7 +15,7 @@
 
 use std::path::Path;
 
-use nephele_nn::{NnError, UNet, UNetConfig, UNetWorkspace};
+use nephele_nn::{NnError, PixelMask, UNet, UNetConfig, UNetWorkspace};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -231,8 +231,22 @@ impl GiModel {
         eyes: &[&[GBufferPixel]],
         ws: &mut UNetWorkspace,
     ) -> Result<Shaded, GiModelError> {
+        self.shade_where(width, height, eyes, None, ws)
+    }
+
+    /// [`Self::shade`] for the pixels `needed` selects (every pixel when `None`): the network
+    /// computes only what those pixels read ([`nephele_nn::UNet::forward_masked`]), the
+    /// others come out black.
+    pub fn shade_where(
+        &self,
+        width: usize,
+        height: usize,
+        eyes: &[&[GBufferPixel]],
+        needed: Option<&PixelMask>,
+        ws: &mut UNetWorkspace,
+    ) -> Result<Shaded, GiModelError> {
         let (input, bad) = self.inputs(width, height, eyes)?;
-        let heads = self.network.forward(width, height, &input, ws)?;
+        let heads = self.network.forward_masked(width, height, &input, needed, ws)?;
         Ok(Shaded { eyes: heads.iter().map(|head| decode_image(head)).collect(), non_finite_inputs: bad })
     }
 

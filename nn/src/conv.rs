@@ -19,6 +19,10 @@
 //! (about 4 multiply-adds per cycle on AVX2 hardware, a quarter of its peak) remains for layers
 //! whose output channels are not a multiple of the block (the 1x1 heads) and as the reference
 //! the tests compare with.
+//!
+//! A pass may compute only some output pixels ([`PixelMask`], [`conv_forward_masked`]): each
+//! computed pixel gets exactly the value the whole pass gives it (same taps, same summation
+//! order, whichever tile it falls in), so a network can skip what nobody will look at.
 
 use rayon::prelude::*;
 
@@ -73,6 +77,131 @@ impl ConvShape {
 /// Rows per parallel task (enough work per task for small images).
 const ROWS_PER_TASK: usize = 4;
 
+/// The pixels of a `width x height` image that a pass computes (row-major flags).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct PixelMask {
+    width: usize,
+    height: usize,
+    selected: Vec<bool>,
+}
+
+impl PixelMask {
+    /// No pixel selected.
+    pub fn none(width: usize, height: usize) -> PixelMask {
+        PixelMask { width, height, selected: vec![false; width * height] }
+    }
+
+    /// Every pixel selected.
+    pub fn all(width: usize, height: usize) -> PixelMask {
+        PixelMask { width, height, selected: vec![true; width * height] }
+    }
+
+    /// A mask from row-major flags.
+    pub fn from_flags(width: usize, height: usize, selected: Vec<bool>) -> Result<PixelMask, NnError> {
+        check_len("pixel mask", width * height, selected.len())?;
+        Ok(PixelMask { width, height, selected })
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Whether pixel `(x, y)` is selected.
+    pub fn get(&self, x: usize, y: usize) -> bool {
+        self.selected[y * self.width + x]
+    }
+
+    pub fn select(&mut self, x: usize, y: usize) {
+        self.selected[y * self.width + x] = true;
+    }
+
+    /// Selected pixels.
+    pub fn count(&self) -> usize {
+        self.selected.iter().filter(|&&s| s).count()
+    }
+
+    /// Adds `other`'s pixels (same size).
+    pub fn union_with(&mut self, other: &PixelMask) {
+        debug_assert_eq!((self.width, self.height), (other.width, other.height));
+        self.selected.iter_mut().zip(&other.selected).for_each(|(a, &b)| *a |= b);
+    }
+
+    /// Every pixel within `radius` of a selected one (a square neighbourhood): what a
+    /// `(2 radius + 1)`-wide convolution reads to compute the selected pixels.
+    pub fn dilated(&self, radius: usize) -> PixelMask {
+        if radius == 0 {
+            return self.clone();
+        }
+        let (w, h) = (self.width, self.height);
+        let or_into = |to: &mut [bool], from: &[bool]| to.iter_mut().zip(from).for_each(|(a, &b)| *a |= b);
+        // Separable: along the rows (each shift one slice-wide OR), then along the columns.
+        let mut rows = self.selected.clone();
+        for (row, source) in rows.chunks_exact_mut(w).zip(self.selected.chunks_exact(w)) {
+            for shift in 1..=radius.min(w.saturating_sub(1)) {
+                or_into(&mut row[shift..], &source[..w - shift]);
+                or_into(&mut row[..w - shift], &source[shift..]);
+            }
+        }
+        let mut out = rows.clone();
+        for shift in 1..=radius.min(h.saturating_sub(1)) {
+            or_into(&mut out[shift * w..], &rows[..(h - shift) * w]);
+            or_into(&mut out[..(h - shift) * w], &rows[shift * w..]);
+        }
+        PixelMask { width: w, height: h, selected: out }
+    }
+
+    /// The half-size mask whose pixel is selected where any of its 2x2 block is: what a 2x
+    /// nearest upsampling reads to give this mask's pixels. Sides must be even.
+    pub fn coarsened(&self) -> PixelMask {
+        let (w2, h2) = (self.width / 2, self.height / 2);
+        let mut out = PixelMask::none(w2, h2);
+        for y in 0..2 * h2 {
+            for x in 0..2 * w2 {
+                if self.get(x, y) {
+                    out.selected[(y / 2) * w2 + x / 2] = true;
+                }
+            }
+        }
+        out
+    }
+
+    /// The double-size mask selecting each selected pixel's 2x2 block: what a 2x2 pooling
+    /// reads to give this mask's pixels.
+    pub fn refined(&self) -> PixelMask {
+        let (w, h) = (2 * self.width, 2 * self.height);
+        let mut out = PixelMask::none(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                out.selected[y * w + x] = self.get(x / 2, y / 2);
+            }
+        }
+        out
+    }
+
+    /// Runs `[start, end)` of selected pixels in row `y`, left to right.
+    pub fn spans(&self, y: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
+        let row = &self.selected[y * self.width..(y + 1) * self.width];
+        let mut x = 0;
+        std::iter::from_fn(move || {
+            while x < row.len() && !row[x] {
+                x += 1;
+            }
+            if x == row.len() {
+                return None;
+            }
+            let start = x;
+            while x < row.len() && row[x] {
+                x += 1;
+            }
+            Some((start, x))
+        })
+    }
+}
+
 /// Output pixels of one register tile of the vector forward pass.
 pub const TILE_PIXELS: usize = 4;
 /// Vectors of output channels per register block of the vector forward pass (16 channels with
@@ -97,13 +226,52 @@ pub fn conv_forward(
     check_len("convolution parameters", shape.param_count(), params.len())?;
     check_len("convolution input", width * height * shape.inputs, input.len())?;
     check_len("convolution output", width * height * shape.outputs, output.len())?;
+    conv_forward_in(simd, shape, params, width, height, input, output, None);
+    Ok(())
+}
+
+/// [`conv_forward`] for the output pixels `mask` selects only (a mask of the image's size);
+/// the other output pixels keep what they held. Each computed pixel equals the whole pass's.
+#[allow(clippy::too_many_arguments)]
+pub fn conv_forward_masked(
+    simd: SimdMode,
+    shape: &ConvShape,
+    params: &[f32],
+    width: usize,
+    height: usize,
+    input: &[f32],
+    output: &mut [f32],
+    mask: &PixelMask,
+) -> Result<(), NnError> {
+    shape.validate()?;
+    check_len("convolution parameters", shape.param_count(), params.len())?;
+    check_len("convolution input", width * height * shape.inputs, input.len())?;
+    check_len("convolution output", width * height * shape.outputs, output.len())?;
+    if (mask.width, mask.height) != (width, height) {
+        return Err(NnError::Config(format!("a {}x{} mask for a {width}x{height} image", mask.width, mask.height)));
+    }
+    conv_forward_in(simd, shape, params, width, height, input, output, Some(mask));
+    Ok(())
+}
+
+#[allow(clippy::too_many_arguments)]
+fn conv_forward_in(
+    simd: SimdMode,
+    shape: &ConvShape,
+    params: &[f32],
+    width: usize,
+    height: usize,
+    input: &[f32],
+    output: &mut [f32],
+    mask: Option<&PixelMask>,
+) {
     let (weights, bias) = params.split_at(shape.weight_count());
     let image = Image { inputs: shape.inputs, outputs: shape.outputs, kernel: shape.kernel, width, height };
     output.par_chunks_mut(width * shape.outputs * ROWS_PER_TASK).enumerate().for_each(|(task, rows)| {
-        let op = ForwardRows { image, weights, bias, input, first_row: task * ROWS_PER_TASK, rows, relu: shape.relu };
+        let op =
+            ForwardRows { image, weights, bias, input, first_row: task * ROWS_PER_TASK, rows, relu: shape.relu, mask };
         simd.arch().dispatch(op);
     });
-    Ok(())
 }
 
 /// Sizes of one convolution over one image (a dense layer over `n` rows is a 1x1 convolution
@@ -139,6 +307,8 @@ struct ForwardRows<'a> {
     first_row: usize,
     rows: &'a mut [f32],
     relu: bool,
+    /// Output pixels to compute (all when `None`).
+    mask: Option<&'a PixelMask>,
 }
 
 impl WithSimd for ForwardRows<'_> {
@@ -146,7 +316,17 @@ impl WithSimd for ForwardRows<'_> {
 
     #[inline(always)]
     fn with_simd<S: Simd>(self, simd: S) {
-        forward_rows(simd, self.image, self.weights, self.bias, self.input, self.first_row, self.rows, self.relu)
+        forward_rows_in(
+            simd,
+            self.image,
+            self.weights,
+            self.bias,
+            self.input,
+            self.first_row,
+            self.rows,
+            self.relu,
+            self.mask,
+        )
     }
 }
 
@@ -165,8 +345,25 @@ pub(crate) fn forward_rows<S: Simd>(
     rows: &mut [f32],
     relu: bool,
 ) {
+    forward_rows_in(simd, g, weights, bias, input, first_row, rows, relu, None)
+}
+
+/// [`forward_rows`] for the output pixels `mask` selects (all when `None`).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn forward_rows_in<S: Simd>(
+    simd: S,
+    g: Image,
+    weights: &[f32],
+    bias: &[f32],
+    input: &[f32],
+    first_row: usize,
+    rows: &mut [f32],
+    relu: bool,
+    mask: Option<&PixelMask>,
+) {
     if !g.tiles_outputs::<S>() {
-        return forward_rows_plain(g, weights, bias, input, first_row, rows, relu);
+        return forward_rows_plain(g, weights, bias, input, first_row, rows, relu, mask);
     }
     // Whole vectors: the weights' rows, the biases and the output rows are multiples of
     // the output channels, hence of the lanes.
@@ -176,21 +373,28 @@ pub(crate) fn forward_rows<S: Simd>(
     for (r, row) in rows.chunks_mut(g.width * g.outputs).enumerate() {
         let row = S::as_mut_simd_f32s(row).0;
         let y = first_row + r;
-        // Pixels whose taps all fall inside the image take whole tiles; the borders and
-        // what is left of the row one pixel at a time, with bounds checks. (Direct calls,
-        // not closures: a closure may be compiled apart, without the dispatch's AVX2.)
-        let mut x = 0;
-        while x < pad.min(g.width) {
-            forward_tile::<S, 1, true>(simd, g, weights, bias, input, y, x, relu, row);
-            x += 1;
-        }
-        while x + TILE_PIXELS + pad <= g.width {
-            forward_tile::<S, TILE_PIXELS, false>(simd, g, weights, bias, input, y, x, relu, row);
-            x += TILE_PIXELS;
-        }
-        while x < g.width {
-            forward_tile::<S, 1, true>(simd, g, weights, bias, input, y, x, relu, row);
-            x += 1;
+        let spans: &mut dyn Iterator<Item = (usize, usize)> = match mask {
+            None => &mut std::iter::once((0, g.width)),
+            Some(mask) => &mut mask.spans(y),
+        };
+        for (start, end) in spans {
+            // Pixels whose taps all fall inside the image take whole tiles; the borders and
+            // what is left of the span one pixel at a time, with bounds checks. (Direct
+            // calls, not closures: a closure may be compiled apart, without the dispatch's
+            // AVX2.) A pixel's sum runs in the same order in either.
+            let mut x = start;
+            while x < end && x < pad {
+                forward_tile::<S, 1, true>(simd, g, weights, bias, input, y, x, relu, row);
+                x += 1;
+            }
+            while x + TILE_PIXELS <= end && x + TILE_PIXELS + pad <= g.width {
+                forward_tile::<S, TILE_PIXELS, false>(simd, g, weights, bias, input, y, x, relu, row);
+                x += TILE_PIXELS;
+            }
+            while x < end {
+                forward_tile::<S, 1, true>(simd, g, weights, bias, input, y, x, relu, row);
+                x += 1;
+            }
         }
     }
 }
@@ -285,7 +489,8 @@ fn forward_tile<S: Simd, const P: usize, const CHECKED: bool>(
 
 /// The plain forward of output rows `first_row..`: per output pixel, the output channels are
 /// loaded and stored once per input value (zero inputs skipped). For layers the tiles do not
-/// fit, and the reference of the tests.
+/// fit, and the reference of the tests. Only the pixels `mask` selects, where given.
+#[allow(clippy::too_many_arguments)]
 fn forward_rows_plain(
     g: Image,
     weights: &[f32],
@@ -294,12 +499,16 @@ fn forward_rows_plain(
     first_row: usize,
     rows: &mut [f32],
     relu: bool,
+    mask: Option<&PixelMask>,
 ) {
     let (ci, co, k) = (g.inputs, g.outputs, g.kernel);
     let pad = (k / 2) as isize;
     for (r, row) in rows.chunks_mut(g.width * co).enumerate() {
         let y = (first_row + r) as isize;
         for (x, out) in row.chunks_exact_mut(co).enumerate() {
+            if mask.is_some_and(|m| !m.get(x, y as usize)) {
+                continue;
+            }
             out.copy_from_slice(bias);
             for ky in 0..k {
                 let sy = y + ky as isize - pad;
@@ -417,6 +626,7 @@ pub fn conv_backward(
                 first_row: task * ROWS_PER_TASK,
                 rows,
                 relu: false,
+                mask: None,
             };
             simd.arch().dispatch(op);
         });
@@ -672,7 +882,7 @@ mod tests {
         let mut out = vec![0.0; w * h * shape.outputs];
         let (weights, bias) = params.split_at(shape.weight_count());
         let image = Image { inputs: shape.inputs, outputs: shape.outputs, kernel: shape.kernel, width: w, height: h };
-        forward_rows_plain(image, weights, bias, input, 0, &mut out, shape.relu);
+        forward_rows_plain(image, weights, bias, input, 0, &mut out, shape.relu, None);
         out
     }
 
@@ -712,6 +922,68 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn a_masked_pass_computes_exactly_the_selected_pixels() {
+        // Masks that start and end spans at every offset against the tiles and the borders;
+        // both loops (channels that fill blocks and that do not), both instruction sets.
+        let mut seed = 500;
+        for (inputs, outputs) in [(13, 16), (16, 32), (16, 3)] {
+            for kernel in [1, 3] {
+                for (w, h) in [(1, 1), (7, 3), (13, 5), (16, 4)] {
+                    seed += 1;
+                    let shape = ConvShape { inputs, outputs, kernel, relu: seed % 2 == 0 };
+                    let params = random(shape.param_count(), seed);
+                    let input = random(w * h * inputs, seed + 1000);
+                    let mut rng = InitRng::new(seed + 2000);
+                    let flags: Vec<bool> = (0..w * h).map(|_| rng.uniform(1.0) > 0.0).collect();
+                    let mask = PixelMask::from_flags(w, h, flags).expect("mask");
+                    for simd in [SimdMode::Auto, SimdMode::Off] {
+                        let mut whole = vec![0.0; w * h * outputs];
+                        conv_forward(simd, &shape, &params, w, h, &input, &mut whole).expect("forward");
+                        let mut masked = vec![f32::NAN; w * h * outputs];
+                        conv_forward_masked(simd, &shape, &params, w, h, &input, &mut masked, &mask).expect("masked");
+                        for p in 0..w * h {
+                            let (got, want) = (&masked[p * outputs..][..outputs], &whole[p * outputs..][..outputs]);
+                            if mask.get(p % w, p / w) {
+                                assert_eq!(got, want, "{simd} {shape:?} {w}x{h} pixel {p}");
+                            } else {
+                                assert!(got.iter().all(|v| v.is_nan()), "{simd} {shape:?} pixel {p} was written");
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        let shape = ConvShape { inputs: 1, outputs: 16, kernel: 3, relu: false };
+        let params = random(shape.param_count(), 1);
+        let mut out = vec![0.0; 16 * 4];
+        let wrong = PixelMask::all(2, 3);
+        assert!(conv_forward_masked(SimdMode::Auto, &shape, &params, 2, 2, &[0.0; 4], &mut out, &wrong).is_err());
+    }
+
+    #[test]
+    fn masks_grow_shrink_and_split_into_spans() {
+        let mut m = PixelMask::none(8, 6);
+        m.select(0, 0);
+        m.select(5, 3);
+        assert_eq!(m.spans(3).collect::<Vec<_>>(), vec![(5, 6)]);
+        let d = m.dilated(1);
+        assert_eq!(d.count(), 4 + 9);
+        assert_eq!(d.spans(3).collect::<Vec<_>>(), vec![(4, 7)]);
+        assert_eq!(d.spans(0).collect::<Vec<_>>(), vec![(0, 2)]);
+        assert_eq!(d.spans(5).count(), 0);
+        let c = m.coarsened();
+        assert_eq!((c.width(), c.height(), c.count()), (4, 3, 2));
+        assert!(c.get(0, 0) && c.get(2, 1));
+        let r = c.refined();
+        assert_eq!((r.width(), r.height(), r.count()), (8, 6, 8));
+        assert!(r.get(4, 2) && r.get(5, 3) && r.get(1, 1) && !r.get(2, 2));
+        let mut u = PixelMask::none(8, 6);
+        u.union_with(&r);
+        assert_eq!(u, r);
+        assert_eq!(PixelMask::all(3, 2).spans(1).collect::<Vec<_>>(), vec![(0, 3)]);
     }
 
     /// The backward pass, vector and scalar, against its definition: the weight gradient by

@@ -35,6 +35,7 @@ pub mod simd;
 pub mod unet;
 
 pub use adam::{Adam, AdamConfig};
+pub use conv::PixelMask;
 pub use encoding::{frequency_encode, frequency_encoded_len, sh_coefficient_count, sh_encode};
 pub use hashgrid::{FEATURES_PER_LEVEL, HashGrid, HashGridConfig};
 pub use mlp::{Activation, Mlp, MlpConfig, MlpWorkspace};

@@ -29,8 +29,8 @@
 //! heads), each layer its weights then its biases ([`crate::conv`]'s layout).
 
 use crate::conv::{
-    ConvShape, concat, conv_backward, conv_forward, pool_backward, pool_forward, split, upsample_backward,
-    upsample_forward,
+    ConvShape, PixelMask, concat, conv_backward, conv_forward, conv_forward_masked, pool_backward, pool_forward, split,
+    upsample_backward, upsample_forward,
 };
 use crate::simd::SimdMode;
 use crate::{InitRng, NnError, check_len};
@@ -98,20 +98,12 @@ impl UNetConfig {
     /// Multiply-adds per full-resolution pixel of one forward pass (coarser levels count
     /// a quarter per level down).
     pub fn macs_per_pixel(&self) -> f64 {
-        let layers = self.layers();
         let levels = self.levels();
-        let mut total = 0.0;
-        for (i, layer) in layers.iter().enumerate() {
-            let level = if i < 2 * levels {
-                i / 2
-            } else if i < 2 * levels + 2 * (levels - 1) {
-                levels - 2 - (i - 2 * levels) / 2
-            } else {
-                0
-            };
-            total += layer.macs_per_pixel() as f64 / 4f64.powi(level as i32);
-        }
-        total
+        self.layers()
+            .iter()
+            .enumerate()
+            .map(|(i, layer)| layer.macs_per_pixel() as f64 / 4f64.powi(level_of(i, levels) as i32))
+            .sum()
     }
 
     /// Whether an image of `width x height` fits the levels.
@@ -150,6 +142,8 @@ pub struct UNetWorkspace {
     joined: Vec<Vec<f32>>,
     /// Scratch for the upsampled image of each decoder level.
     upsampled: Vec<Vec<f32>>,
+    /// Multiply-adds of the last forward pass: (done, a whole pass's).
+    macs: (u64, u64),
 }
 
 impl UNet {
@@ -244,6 +238,21 @@ impl UNet {
         input: &[f32],
         ws: &'w mut UNetWorkspace,
     ) -> Result<Vec<&'w [f32]>, NnError> {
+        self.forward_masked(width, height, input, None, ws)
+    }
+
+    /// [`UNet::forward`] for the output pixels `needed` selects (all when `None`): each
+    /// layer computes only what those pixels read through the layers after it
+    /// ([`UNet::layer_masks`]); the heads' other pixels are 0. The needed pixels get exactly
+    /// the whole pass's values. Not for training: the backward pass needs every activation.
+    pub fn forward_masked<'w>(
+        &self,
+        width: usize,
+        height: usize,
+        input: &[f32],
+        needed: Option<&PixelMask>,
+        ws: &'w mut UNetWorkspace,
+    ) -> Result<Vec<&'w [f32]>, NnError> {
         let c = &self.config;
         c.check_size(width, height)?;
         check_len("U-Net input", width * height * c.eyes * c.inputs, input.len())?;
@@ -251,15 +260,40 @@ impl UNet {
         let levels = c.levels();
         ws.allocate(c, &layers, width, height);
         let size = |level: usize| (width >> level, height >> level);
+        let masks = needed.map(|n| self.layer_masks(width, height, n)).transpose()?;
+        let full: u64 = (0..layers.len())
+            .map(|i| {
+                (layers[i].macs_per_pixel() * (width >> level_of(i, levels)) * (height >> level_of(i, levels))) as u64
+            })
+            .sum();
+        ws.macs = match &masks {
+            None => (full, full),
+            Some(masks) => {
+                (masks.iter().zip(&layers).map(|(m, l)| (m.count() * l.macs_per_pixel()) as u64).sum(), full)
+            }
+        };
+        let conv = |index: usize, w: usize, h: usize, source: &[f32], output: &mut [f32]| match &masks {
+            None => conv_forward(self.simd, &layers[index], self.layer_params(index), w, h, source, output),
+            Some(masks) => conv_forward_masked(
+                self.simd,
+                &layers[index],
+                self.layer_params(index),
+                w,
+                h,
+                source,
+                output,
+                &masks[index],
+            ),
+        };
 
         // Encoder.
         for level in 0..levels {
             let (w, h) = size(level);
             let (a, b) = (2 * level, 2 * level + 1);
             let source: &[f32] = if level == 0 { input } else { &ws.pooled[level - 1] };
-            conv_forward(self.simd, &layers[a], self.layer_params(a), w, h, source, &mut ws.outputs[a])?;
+            conv(a, w, h, source, &mut ws.outputs[a])?;
             let (before, after) = ws.outputs.split_at_mut(b);
-            conv_forward(self.simd, &layers[b], self.layer_params(b), w, h, &before[a], &mut after[0])?;
+            conv(b, w, h, &before[a], &mut after[0])?;
             if level + 1 < levels {
                 pool_forward(w, h, c.channels[level], &ws.outputs[b], &mut ws.pooled[level]);
             }
@@ -272,18 +306,76 @@ impl UNet {
             upsample_forward(w / 2, h / 2, c.channels[level + 1], &ws.outputs[below], &mut ws.upsampled[step]);
             let skip = &ws.outputs[2 * level + 1];
             concat(w * h, &ws.upsampled[step], c.channels[level + 1], skip, c.channels[level], &mut ws.joined[step]);
-            conv_forward(self.simd, &layers[a], self.layer_params(a), w, h, &ws.joined[step], &mut ws.outputs[a])?;
+            conv(a, w, h, &ws.joined[step], &mut ws.outputs[a])?;
             let (before, after) = ws.outputs.split_at_mut(b);
-            conv_forward(self.simd, &layers[b], self.layer_params(b), w, h, &before[a], &mut after[0])?;
+            conv(b, w, h, &before[a], &mut after[0])?;
             below = b;
         }
         // Heads.
         let first_head = layers.len() - c.eyes;
-        for (head, layer) in layers.iter().enumerate().skip(first_head) {
+        for head in first_head..layers.len() {
             let (before, after) = ws.outputs.split_at_mut(head);
-            conv_forward(self.simd, layer, self.layer_params(head), width, height, &before[below], &mut after[0])?;
+            conv(head, width, height, &before[below], &mut after[0])?;
+            if let Some(needed) = needed {
+                for (p, out) in after[0].chunks_exact_mut(c.outputs).enumerate() {
+                    if !needed.get(p % width, p / width) {
+                        out.fill(0.0);
+                    }
+                }
+            }
         }
         Ok(ws.outputs[first_head..].iter().map(Vec::as_slice).collect())
+    }
+
+    /// The output pixels each convolution (in [`UNetConfig::layers`] order) must compute for
+    /// the network's output at the pixels `needed` selects: walking back from the heads, a
+    /// 3x3 convolution needs its input one pixel around what it computes, an upsampling the
+    /// coarse pixels under it, a pooling the fine 2x2 blocks, a concatenation both halves.
+    pub fn layer_masks(&self, width: usize, height: usize, needed: &PixelMask) -> Result<Vec<PixelMask>, NnError> {
+        let c = &self.config;
+        c.check_size(width, height)?;
+        if (needed.width(), needed.height()) != (width, height) {
+            return Err(NnError::Config(format!(
+                "a {}x{} mask for a {width}x{height} image",
+                needed.width(),
+                needed.height()
+            )));
+        }
+        let layers = c.layers();
+        let levels = c.levels();
+        let mut masks: Vec<PixelMask> = (0..layers.len())
+            .map(|i| PixelMask::none(width >> level_of(i, levels), height >> level_of(i, levels)))
+            .collect();
+        // What a layer reads of its input for the pixels it computes.
+        let read = |masks: &[PixelMask], i: usize| masks[i].dilated(layers[i].kernel / 2);
+        let first_head = layers.len() - c.eyes;
+        for head in first_head..layers.len() {
+            masks[head] = needed.clone();
+            let input = read(&masks, head);
+            masks[first_head - 1].union_with(&input);
+        }
+        // Decoder, finest level first: step `s` works at level `levels - 2 - s`.
+        for step in (0..levels - 1).rev() {
+            let level = levels - 2 - step;
+            let (a, b) = (2 * levels + 2 * step, 2 * levels + 2 * step + 1);
+            let input = read(&masks, b);
+            masks[a].union_with(&input);
+            let joined = read(&masks, a);
+            masks[2 * level + 1].union_with(&joined);
+            let below = if step == 0 { 2 * levels - 1 } else { b - 2 };
+            masks[below].union_with(&joined.coarsened());
+        }
+        // Encoder, coarsest level first.
+        for level in (0..levels).rev() {
+            let (a, b) = (2 * level, 2 * level + 1);
+            let input = read(&masks, b);
+            masks[a].union_with(&input);
+            if level > 0 {
+                let pooled = read(&masks, a);
+                masks[2 * level - 1].union_with(&pooled.refined());
+            }
+        }
+        Ok(masks)
     }
 
     /// Backward pass of the last [`UNet::forward`] with `ws`: `d_heads` holds the loss
@@ -437,23 +529,32 @@ impl UNet {
     }
 }
 
+/// The level (0 finest) at which layer `index` of a U-Net of `levels` works.
+fn level_of(index: usize, levels: usize) -> usize {
+    if index < 2 * levels {
+        index / 2
+    } else if index < 2 * levels + 2 * (levels - 1) {
+        levels - 2 - (index - 2 * levels) / 2
+    } else {
+        0
+    }
+}
+
 impl UNetWorkspace {
     pub fn new() -> Self {
         Self::default()
     }
 
+    /// Multiply-adds of the last forward pass with this workspace, and of a whole pass over
+    /// the same image: what a mask saved.
+    pub fn last_macs(&self) -> (u64, u64) {
+        self.macs
+    }
+
     fn allocate(&mut self, c: &UNetConfig, layers: &[ConvShape], width: usize, height: usize) {
         let levels = c.levels();
         let pixels = |level: usize| (width >> level) * (height >> level);
-        let level_of = |index: usize| {
-            if index < 2 * levels {
-                index / 2
-            } else if index < 2 * levels + 2 * (levels - 1) {
-                levels - 2 - (index - 2 * levels) / 2
-            } else {
-                0
-            }
-        };
+        let level_of = |index: usize| level_of(index, levels);
         let resize = |v: &mut Vec<Vec<f32>>, sizes: Vec<usize>| {
             v.resize_with(sizes.len(), Vec::new);
             for (buffer, n) in v.iter_mut().zip(sizes) {
@@ -570,6 +671,75 @@ mod tests {
             let alone = one_head.forward(w, h, &input, &mut ws1).expect("forward")[0].to_vec();
             assert_eq!(&alone, expected, "eye {eye}");
         }
+    }
+
+    #[test]
+    fn a_masked_pass_gives_the_needed_pixels_exactly_for_less_work() {
+        // Blobs, single pixels at borders and corners, an empty and a full mask; one to
+        // three levels, one and two eyes, both instruction sets.
+        let (w, h) = (16, 12);
+        let mut blob = PixelMask::none(w, h);
+        for y in 3..9 {
+            for x in 6..13 {
+                blob.select(x, y);
+            }
+        }
+        let mut corners = PixelMask::none(w, h);
+        for (x, y) in [(0, 0), (15, 0), (0, 11), (15, 11), (7, 5)] {
+            corners.select(x, y);
+        }
+        let mut rng = InitRng::new(77);
+        let scattered =
+            PixelMask::from_flags(w, h, (0..w * h).map(|_| rng.uniform(1.0) > 0.8).collect()).expect("mask");
+        let masks = [blob, corners, scattered, PixelMask::none(w, h), PixelMask::all(w, h)];
+        for channels in [vec![4], vec![4, 6], vec![4, 6, 8]] {
+            for eyes in [1, 2] {
+                let mut net = UNet::new(UNetConfig { channels: channels.clone(), ..config(eyes) }, 9).expect("net");
+                let input = random(w * h * 3 * eyes, 11);
+                for simd in [SimdMode::Auto, SimdMode::Off] {
+                    net.set_simd(simd);
+                    let mut ws = UNetWorkspace::new();
+                    let whole: Vec<Vec<f32>> =
+                        net.forward(w, h, &input, &mut ws).expect("forward").iter().map(|s| s.to_vec()).collect();
+                    let (_, full) = ws.last_macs();
+                    assert_eq!(ws.last_macs(), (full, full));
+                    for (m, needed) in masks.iter().enumerate() {
+                        // The same workspace: what the whole pass left in it must not matter.
+                        let heads: Vec<Vec<f32>> = net
+                            .forward_masked(w, h, &input, Some(needed), &mut ws)
+                            .expect("masked")
+                            .iter()
+                            .map(|s| s.to_vec())
+                            .collect();
+                        let (done, total) = ws.last_macs();
+                        assert_eq!(total, full);
+                        assert!(done <= full, "mask {m}: {done} of {full}");
+                        if needed.count() == 0 {
+                            assert_eq!(done, 0);
+                        }
+                        if m < 2 {
+                            assert!(done < full, "{channels:?} mask {m}: {done} of {full}: nothing saved");
+                        }
+                        for (head, want) in heads.iter().zip(&whole) {
+                            for p in 0..w * h {
+                                let got = &head[p * 2..][..2];
+                                if needed.get(p % w, p / w) {
+                                    assert_eq!(
+                                        got,
+                                        &want[p * 2..][..2],
+                                        "{channels:?} eyes {eyes} {simd} mask {m} pixel {p}"
+                                    );
+                                } else {
+                                    assert_eq!(got, &[0.0, 0.0], "mask {m} pixel {p} not needed");
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        let net = UNet::new(config(1), 1).expect("net");
+        assert!(net.layer_masks(16, 12, &PixelMask::all(8, 12)).is_err());
     }
 
     #[test]

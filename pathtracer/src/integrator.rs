@@ -125,6 +125,9 @@ pub struct RenderOutput {
     /// Shading normal of the first hit, turned towards the camera.
     pub normal: Vec<Vec3>,
     pub albedo: Vec<Vec3>,
+    /// Pixels every camera sample of which [`Renderer::render_behind`]'s occluders hid (all
+    /// `false` without occluders): the objects cover them fully.
+    pub covered: Vec<bool>,
     pub stats: RenderStats,
 }
 
@@ -244,6 +247,7 @@ impl Renderer {
             position: vec![Vec3::ZERO; pixels],
             normal: vec![Vec3::ZERO; pixels],
             albedo: vec![Vec3::ZERO; pixels],
+            covered: vec![false; pixels],
             stats: RenderStats::default(),
         };
         let row_stats: Vec<RenderStats> = out
@@ -255,8 +259,9 @@ impl Renderer {
             .zip(out.position.par_chunks_mut(width as usize))
             .zip(out.normal.par_chunks_mut(width as usize))
             .zip(out.albedo.par_chunks_mut(width as usize))
+            .zip(out.covered.par_chunks_mut(width as usize))
             .enumerate()
-            .map(|(y, ((((((color, direct), alpha), depth), position), normal), albedo))| {
+            .map(|(y, (((((((color, direct), alpha), depth), position), normal), albedo), covered))| {
                 let mut stats = RenderStats::default();
                 let row = footprint.get(y * width as usize..(y + 1) * width as usize).unwrap_or(&[]);
                 let mut behind = Behind::new(occluders, row);
@@ -271,6 +276,7 @@ impl Renderer {
                     position[x] = px.position;
                     normal[x] = px.normal;
                     albedo[x] = px.albedo;
+                    covered[x] = px.covered;
                 }
                 progress(1);
                 stats
@@ -342,6 +348,7 @@ impl Renderer {
         let may_hide = behind.footprint.get(x as usize).copied().unwrap_or(false);
         let mut acc = PixelValue::default();
         let mut hits = 0u32;
+        let mut hidden = 0u32;
         let spp = options.samples_per_pixel;
         for _ in 0..spp {
             let jitter = rng.next_vec2();
@@ -349,6 +356,7 @@ impl Renderer {
             let sample = self.trace(ray, options, behind, may_hide, &mut rng, stats);
             stats.samples += 1;
             stats.hidden_samples += u64::from(sample.hidden);
+            hidden += u32::from(sample.hidden);
             if !(sample.radiance.is_finite() && sample.direct.is_finite()) {
                 stats.dropped_non_finite += 1;
                 continue;
@@ -363,6 +371,7 @@ impl Renderer {
                 acc.albedo += hit.albedo;
             }
         }
+        acc.covered = hidden == spp;
         let inv_spp = 1.0 / spp as f32;
         acc.color *= inv_spp;
         acc.direct *= inv_spp;
@@ -620,6 +629,8 @@ struct PixelValue {
     position: Vec3,
     normal: Vec3,
     albedo: Vec3,
+    /// Every sample hidden behind the occluders.
+    covered: bool,
 }
 
 /// The occluders of [`Renderer::render_behind`] as one thread walks a row of camera rays:
@@ -1041,14 +1052,18 @@ mod tests {
                     (behind.depth[i], behind.position[i], behind.normal[i], behind.albedo[i]),
                     (plain.depth[i], plain.position[i], plain.normal[i], plain.albedo[i])
                 );
+                // One sample per pixel: covered is hidden.
+                assert!(!plain.covered[i]);
                 if corners.iter().all(|&b| b) {
                     sure += 1;
+                    assert!(behind.covered[i], "pixel {x} {y}");
                     assert_eq!((behind.direct[i], behind.color[i]), (Vec3::ZERO, Vec3::ZERO), "pixel {x} {y}");
                     light_lost += plain.direct[i].max_element();
                 } else if !corners.iter().any(|&b| b) {
                     // Seen, and lit but for what the block's shadow takes (one sample of
                     // direct light: the random stream is the same, light can only fall).
                     assert!(behind.direct[i].cmple(plain.direct[i]).all(), "pixel {x} {y}");
+                    assert!(!behind.covered[i], "pixel {x} {y}");
                 }
                 possible += u64::from(corners.iter().any(|&b| b));
             }
@@ -1056,6 +1071,7 @@ mod tests {
         assert!(sure >= 4 && light_lost > 0.0, "the block covers some lit pixels: {sure}");
         let hidden = behind.stats.hidden_samples;
         assert!((sure..=possible).contains(&hidden), "{hidden} hidden samples, {sure}..={possible} expected");
+        assert_eq!(behind.covered.iter().filter(|&&c| c).count() as u64, hidden);
         assert!(behind.stats.traversal.rays < plain.stats.traversal.rays);
     }
 
