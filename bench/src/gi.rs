@@ -212,7 +212,8 @@ pub fn run(args: GiArgs, _progress: &dyn Progress) -> Result<()> {
     ensure!(teacher.eyes() == 1, "{} is not a single-eye model", args.teacher.display());
     ensure!(stereo.eyes() == 2, "{} is not a stereo model", args.stereo.display());
     let features = teacher.header.features;
-    let pairs = load_pairs(&args.data, &features, false).with_context(|| format!("loading {}", args.data.display()))?;
+    let pairs =
+        load_pairs(&args.data, &features, false, None).with_context(|| format!("loading {}", args.data.display()))?;
     if pairs.is_empty() {
         bail!("{} has no evaluation pairs (nephele dataset gi --stereo-pairs)", args.data.display());
     }

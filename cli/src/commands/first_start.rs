@@ -15,6 +15,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
+use nephele_kernels::environment::GiServeSettings;
 use nephele_kernels::inolf::kernel::InolfKernel;
 use nephele_train::inolf::pipeline::{BakeRecipe, bake};
 use nephele_train::score::{MARCH_STRIDE_BUDGET_DB, choose_march_stride, march_stride_scores};
@@ -186,13 +187,21 @@ pub struct GiRecipe {
     pub student_steps: u32,
     /// Side of the training crops (a multiple of 4, at most `size`).
     pub crop: usize,
+    /// Train on inputs rendered as the farm serves them, at this many samples
+    /// (`nephele train gi --input-spp`); `None`: the dataset's converged direct light.
+    pub input_spp: Option<u32>,
+    /// Written into the models' headers (`training.recipe`): a model of another recipe is
+    /// trained again at the next start (the objects' assets stay).
+    pub version: &'static str,
 }
 
 impl BakeQuality {
-    /// Standard: 64x64 frames at 64 spp, the teacher 600 steps, the student 1000 (about 3
-    /// minutes on two cores; 26.9 dB on held-out frames against the path tracer, the stereo
-    /// student 0.2 dB under its teacher: BENCHMARKS.md, "environment served by the farm").
-    /// Quick: seconds, a barely trained model, for trying the service and for the tests.
+    /// Standard: 64x64 frames at 64 spp, the networks trained on inputs rendered as the farm
+    /// serves them (2 samples) towards the converged target, the teacher 4000 steps, the
+    /// student 4000 (about 2.5 minutes of training on two cores; served at half resolution
+    /// 1.6-2.1 dB above the earlier 600 / 1000 steps on clean inputs: BENCHMARKS.md,
+    /// "2026-12-06f"). Quick: seconds, a barely trained model, for trying the service and for
+    /// the tests.
     pub fn gi_recipe(self) -> Option<GiRecipe> {
         match self {
             BakeQuality::Standard => Some(GiRecipe {
@@ -202,9 +211,11 @@ impl BakeQuality {
                 train_pairs: 24,
                 spp: 64,
                 bounces: 4,
-                teacher_steps: 600,
-                student_steps: 1000,
+                teacher_steps: 4000,
+                student_steps: 4000,
                 crop: 32,
+                input_spp: Some(GiServeSettings::default().samples_per_pixel),
+                version: "standard-gi-v2",
             }),
             BakeQuality::Quick => Some(GiRecipe {
                 size: 32,
@@ -216,16 +227,24 @@ impl BakeQuality {
                 teacher_steps: 60,
                 student_steps: 60,
                 crop: 16,
+                input_spp: Some(GiServeSettings::default().samples_per_pixel),
+                version: "quick-gi-v2",
             }),
             BakeQuality::Off => None,
         }
     }
 }
 
-/// Whether `path` holds a GI model the workers serve, with its stereo twin.
-fn environment_loads(path: &Path) -> bool {
-    use nephele_kernels::environment::{GiKernel, GiServeSettings};
-    path.is_file() && GiKernel::load(path, GiServeSettings::default()).is_ok_and(|k| k.has_stereo())
+/// Whether `path` holds a GI model the workers serve, with its stereo twin, both trained by
+/// the recipe `version`.
+fn environment_loads(path: &Path, version: &str) -> bool {
+    use nephele_kernels::environment::GiKernel;
+    let of_recipe = |training: &serde_json::Value| training.get("recipe").and_then(|r| r.as_str()) == Some(version);
+    path.is_file()
+        && GiKernel::load(path, GiServeSettings::default()).is_ok_and(|k| match k.models() {
+            (single, Some(stereo)) => of_recipe(&single.header.training) && of_recipe(&stereo.header.training),
+            _ => false,
+        })
 }
 
 /// Makes sure `dir/<name>.ngi` and `dir/<name>.stereo.ngi` exist for a built-in environment
@@ -244,7 +263,7 @@ pub fn ensure_environment(
 
     let Some(recipe) = quality.gi_recipe() else { return Ok(None) };
     let path = dir.join(format!("{name}.ngi"));
-    if environment_loads(&path) {
+    if environment_loads(&path, recipe.version) {
         return Ok(Some(BakedObject { name: name.into(), path, psnr_db: None, march_stride: None, seconds: 0.0 }));
     }
     println!(
@@ -276,7 +295,7 @@ pub fn ensure_environment(
     render_gi_dataset(&spec, &data, &|rows| bar.inc(u64::from(rows)))?;
     bar.finish_and_clear();
 
-    let (train, held_out, features, _) = load_single_eye(&data)?;
+    let (train, held_out, features, _) = load_single_eye(&data, recipe.input_spp)?;
     let options = GiTrainOptions {
         steps: recipe.teacher_steps,
         crop: recipe.crop,
@@ -297,7 +316,7 @@ pub fn ensure_environment(
     teacher.header.scene = Some(name.into());
     let psnr = if held_out.is_empty() { f64::NAN } else { evaluate_single_eye(&teacher, &held_out)? };
 
-    let pairs = load_pairs(&data, &features, true)?;
+    let pairs = load_pairs(&data, &features, true, recipe.input_spp)?;
     let options = GiTrainOptions { steps: recipe.student_steps, learning_rate: 1e-3, ..options };
     let bar = progress.bar(u64::from(options.steps), "GI stereo student", "steps");
     let (student, _) = train_stereo(
@@ -311,6 +330,11 @@ pub fn ensure_environment(
         &mut |_| Ok(()),
     )?;
     bar.finish_and_clear();
+    let mut student = student;
+    for model in [&mut teacher, &mut student] {
+        let training = std::mem::take(&mut model.header.training);
+        model.header.training = serde_json::json!({ "recipe": recipe.version, "run": training });
+    }
     // The student first: the single-eye model's presence says the pair is complete.
     let scratch = |p: &Path| p.with_extension(format!("part-{}", std::process::id()));
     for (model, target) in [(&student, stereo_path(&path)), (&teacher, path.clone())] {

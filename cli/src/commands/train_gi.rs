@@ -58,6 +58,12 @@ pub struct Args {
     /// Weight of the spatial coherence loss for the stereo student (0 turns it off).
     #[arg(long, default_value_t = 1.0)]
     coherence_weight: f32,
+    /// Train (and score) on inputs rendered as the farm serves them, at this many samples per
+    /// pixel (the served kernel's: 2), instead of the dataset's direct light, which shares the
+    /// target's samples; the target stays the dataset's converged image. A model so trained
+    /// takes the farm's noisy inputs to the converged light (`nephele up` trains its room so).
+    #[arg(long)]
+    input_spp: Option<u32>,
 }
 
 pub fn run(args: Args, progress: &Progress) -> Result<()> {
@@ -74,8 +80,8 @@ pub fn run(args: Args, progress: &Progress) -> Result<()> {
         return student(&args, &options, teacher, progress);
     }
     let start = Instant::now();
-    let (train, held_out, features, non_finite) =
-        load_single_eye(&args.data).with_context(|| format!("loading the GI dataset {}", args.data.display()))?;
+    let (train, held_out, features, non_finite) = load_single_eye(&args.data, args.input_spp)
+        .with_context(|| format!("loading the GI dataset {}", args.data.display()))?;
     if non_finite > 0 {
         println!("{non_finite} NaN or infinite G-buffer values in the files were set to 0");
     }
@@ -151,8 +157,9 @@ fn student(args: &Args, options: &GiTrainOptions, teacher_path: &std::path::Path
         bail!("{} is a stereo model; the teacher is a single-eye model", teacher_path.display());
     }
     let features = teacher.header.features;
-    let pairs = load_pairs(&args.data, &features, true).with_context(|| format!("loading {}", args.data.display()))?;
-    let eval = load_pairs(&args.data, &features, false)?;
+    let pairs = load_pairs(&args.data, &features, true, args.input_spp)
+        .with_context(|| format!("loading {}", args.data.display()))?;
+    let eval = load_pairs(&args.data, &features, false, args.input_spp)?;
     println!(
         "train gi (stereo student of {}): {} training pairs, coherence weight {}",
         teacher_path.display(),

@@ -368,6 +368,44 @@ pub fn load_frame(dir: &Path, frame: &GiFrame) -> Result<GiBuffers, GiDataError>
     })
 }
 
+/// `frame`'s buffers with the network's inputs (position, normal, albedo, depth, direct
+/// light) replaced by what the farm's environment kernel gives at `spp` samples: the path
+/// tracer's direct-light-only mode, one bounce for MIS, as `GiKernel` renders its G-buffer.
+/// The target (`gi`) stays the dataset's converged one, so a model trained on these learns to
+/// take the served, noisy inputs to it (the dataset's direct light shares the target's
+/// hundreds of samples; the farm's has two).
+pub fn with_served_inputs(spec: &GiSpec, frame: &GiFrame, spp: u32, b: &GiBuffers) -> Result<GiBuffers, GiDataError> {
+    let scene = scenes::builtin_at(&spec.scene, frame.time)?;
+    // Noise of its own per frame, unlike the dataset's (its name picks the stream).
+    let seed = frame.name.bytes().fold(spec.seed ^ 0x5E_4E_ED, |h, c| h.wrapping_mul(0x100_0000_01B3) ^ u64::from(c));
+    let options = RenderOptions {
+        samples_per_pixel: spp,
+        max_bounces: 1,
+        seed,
+        background: Background::Environment,
+        direct_only: true,
+    };
+    let out = Renderer::new(scene.scene)?.render(&spec.camera(frame)?, &options, &|_| {})?;
+    if (out.width, out.height) != (b.width, b.height) {
+        return Err(GiDataError::Manifest {
+            path: PathBuf::from(&frame.name),
+            reason: format!("served inputs {}x{} against the frame's {}x{}", out.width, out.height, b.width, b.height),
+        });
+    }
+    let finite = |v: Vec3| if v.is_finite() { v.to_array() } else { [0.0; 3] };
+    Ok(GiBuffers {
+        width: b.width,
+        height: b.height,
+        position: out.position.iter().map(|&v| finite(v)).collect(),
+        normal: out.normal.iter().map(|&v| finite(v)).collect(),
+        albedo: out.albedo.iter().map(|&v| finite(v)).collect(),
+        depth: out.depth.iter().map(|&d| if d.is_finite() { d } else { 0.0 }).collect(),
+        direct: out.direct.iter().map(|&v| finite(v)).collect(),
+        gi: b.gi.clone(),
+        non_finite: b.non_finite,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -413,6 +451,29 @@ mod tests {
         let times: Vec<f32> = plan.iter().map(|f| f.time).collect();
         assert!(times.iter().all(|t| (0.0..scenes::BALL_PERIOD_S).contains(t)));
         assert!(times.windows(2).any(|w| w[0] != w[1]), "the scene moves between frames");
+    }
+
+    #[test]
+    fn served_inputs_replace_the_inputs_and_keep_the_target() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let spec = GiSpec { spp: 16, ..tiny("room-day") };
+        render_gi_dataset(&spec, dir.path(), &|_| {}).expect("render");
+        let frame = &read_manifest(dir.path()).expect("manifest").frames[0];
+        let b = load_frame(dir.path(), frame).expect("load");
+        let served = with_served_inputs(&spec, frame, 2, &b).expect("served");
+        assert_eq!(served.gi, b.gi, "the target stays");
+        assert_eq!((served.width, served.height, served.direct.len()), (b.width, b.height, b.direct.len()));
+        // Other samples of the same view (pixels of these 12x10 views span edges): most depths
+        // within the pixel's spread, the mean depth alike; other, noisier direct light. The
+        // same call gives the same inputs.
+        assert_ne!(served.direct, b.direct);
+        let agree = served.depth.iter().zip(&b.depth).filter(|(a, b)| (*a - *b).abs() < 0.05 * b.max(0.1)).count();
+        assert!(agree * 2 > served.depth.len(), "{agree} of {} depths agree", served.depth.len());
+        let mean = |d: &[f32]| d.iter().sum::<f32>() / d.len() as f32;
+        assert!((mean(&served.depth) - mean(&b.depth)).abs() < 0.1 * mean(&b.depth));
+        assert!(served.direct.iter().flatten().chain(&served.depth).all(|v| v.is_finite() && *v >= 0.0));
+        let again = with_served_inputs(&spec, frame, 2, &b).expect("served");
+        assert_eq!((again.direct, again.depth), (served.direct, served.depth));
     }
 
     #[test]

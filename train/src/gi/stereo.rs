@@ -37,8 +37,14 @@ pub struct StereoSample {
 }
 
 /// The stereo pairs of a dataset folder: the training pairs (`train`) or the evaluation
-/// pairs, with inputs scaled by `features`.
-pub fn load_pairs(dir: &Path, features: &GiFeatures, train: bool) -> Result<Vec<StereoSample>, GiTrainError> {
+/// pairs, with inputs scaled by `features`; with `input_spp`, the inputs rendered as the farm
+/// serves them ([`super::data::with_served_inputs`]; the warp keeps the dataset's depth).
+pub fn load_pairs(
+    dir: &Path,
+    features: &GiFeatures,
+    train: bool,
+    input_spp: Option<u32>,
+) -> Result<Vec<StereoSample>, GiTrainError> {
     let manifest = read_manifest(dir)?;
     let eye_of = |f: &GiFrame, eye: Eye| f.stereo.is_some_and(|s| s.eye == eye && s.train == train);
     let lefts: Vec<&GiFrame> = manifest.frames.iter().filter(|f| eye_of(f, Eye::Left)).collect();
@@ -51,7 +57,12 @@ pub fn load_pairs(dir: &Path, features: &GiFeatures, train: bool) -> Result<Vec<
             .find(|f| eye_of(f, Eye::Right) && f.stereo.map(|s| s.pair) == pair)
             .ok_or_else(|| GiTrainError::Options(format!("{} has no right eye", left.name)))?;
         let (lb, rb) = (load_frame(dir, left)?, load_frame(dir, right)?);
-        let (ls, rs) = (sample_of(left, &lb, features), sample_of(right, &rb, features));
+        let inputs = |f: &GiFrame, b: &super::data::GiBuffers| match input_spp {
+            Some(spp) => super::data::with_served_inputs(&manifest.spec, f, spp, b),
+            None => Ok(b.clone()),
+        };
+        let (li, ri) = (inputs(left, &lb)?, inputs(right, &rb)?);
+        let (ls, rs) = (sample_of(left, &li, features), sample_of(right, &ri, features));
         let camera = |f: &GiFrame| manifest.spec.camera(f).map_err(|e| GiTrainError::Data(e.into()));
         let (lc, rc) = (camera(left)?, camera(right)?);
         let warp = Warp::right_onto_left(&lc, &lb.depth, &rc, &rb.depth);
@@ -288,15 +299,15 @@ mod tests {
             seed: 3,
         };
         render_gi_dataset(&spec, dir.path(), &|_| {}).expect("dataset");
-        let (train, _, features, _) = load_single_eye(dir.path()).expect("load");
+        let (train, _, features, _) = load_single_eye(dir.path(), None).expect("load");
         let options =
             GiTrainOptions { steps: 60, batch: 2, crop: 8, learning_rate: 3e-3, channels: vec![4, 8], seed: 1 };
         let (teacher, _) =
             train_single_eye(&train, features, &options, None, 0, &mut |_| {}, &mut |_| Ok(())).expect("teacher");
-        let pairs = load_pairs(dir.path(), &features, true).expect("pairs");
+        let pairs = load_pairs(dir.path(), &features, true, None).expect("pairs");
         assert_eq!(pairs.len(), 3);
         assert!(pairs.iter().all(|p| p.gi.is_none() && p.warp.valid() > 0));
-        let eval = load_pairs(dir.path(), &features, false).expect("eval pairs");
+        let eval = load_pairs(dir.path(), &features, false, None).expect("eval pairs");
         assert!(eval.len() == 1 && eval[0].gi.is_some());
 
         let student_options = GiTrainOptions { steps: 80, crop: 16, ..options.clone() };

@@ -15,7 +15,7 @@ use thiserror::Error;
 
 use crate::checkpoint::{Checkpoint, CheckpointError, CheckpointState};
 
-use super::data::{GiBuffers, GiDataError, GiFrame, load_frame, read_manifest};
+use super::data::{GiBuffers, GiDataError, GiFrame, load_frame, read_manifest, with_served_inputs};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct GiTrainOptions {
@@ -158,21 +158,40 @@ pub fn split_frames(frames: &[GiFrame]) -> (Vec<GiFrame>, Vec<GiFrame>) {
 }
 
 /// The single-eye training data of a dataset folder: training samples, held-out samples,
-/// the feature scales, and how many non-finite values the files held (zeroed).
-pub fn load_single_eye(dir: &Path) -> Result<(Vec<GiSample>, Vec<GiSample>, GiFeatures, usize), GiTrainError> {
+/// the feature scales, and how many non-finite values the files held (zeroed). With
+/// `input_spp`, the inputs are rendered as the farm serves them at that many samples
+/// ([`with_served_inputs`]), held-out frames included.
+pub fn load_single_eye(
+    dir: &Path,
+    input_spp: Option<u32>,
+) -> Result<(Vec<GiSample>, Vec<GiSample>, GiFeatures, usize), GiTrainError> {
     let manifest = read_manifest(dir)?;
     let (train, held_out) = split_frames(&manifest.frames);
     if train.is_empty() {
         return Err(GiTrainError::Options(format!("{} holds no single-eye training frames", dir.display())));
     }
     let load = |frames: &[GiFrame]| -> Result<Vec<(GiFrame, GiBuffers)>, GiTrainError> {
-        frames.iter().map(|f| Ok((f.clone(), load_frame(dir, f)?))).collect()
+        frames.iter().map(|f| Ok((f.clone(), load_inputs(dir, &manifest.spec, f, input_spp)?))).collect()
     };
     let (train, held_out) = (load(&train)?, load(&held_out)?);
     let non_finite = train.iter().chain(&held_out).map(|(_, b)| b.non_finite).sum();
     let features = features_of(train.iter().map(|(_, b)| b));
     let samples = |v: &[(GiFrame, GiBuffers)]| v.iter().map(|(f, b)| sample_of(f, b, &features)).collect::<Vec<_>>();
     Ok((samples(&train), samples(&held_out), features, non_finite))
+}
+
+/// A frame's buffers, its inputs rendered as served at `input_spp` samples where given.
+pub fn load_inputs(
+    dir: &Path,
+    spec: &super::data::GiSpec,
+    frame: &GiFrame,
+    input_spp: Option<u32>,
+) -> Result<GiBuffers, GiTrainError> {
+    let buffers = load_frame(dir, frame)?;
+    Ok(match input_spp {
+        Some(spp) => with_served_inputs(spec, frame, spp, &buffers)?,
+        None => buffers,
+    })
 }
 
 /// Where a training run stands (what a checkpoint holds besides the weights).
@@ -406,7 +425,7 @@ mod tests {
     fn a_short_run_lowers_the_loss_and_resumes_from_its_checkpoint() {
         let dir = tempfile::tempdir().expect("tempdir");
         tiny_data(dir.path());
-        let (train, held_out, features, bad) = load_single_eye(dir.path()).expect("load");
+        let (train, held_out, features, bad) = load_single_eye(dir.path(), None).expect("load");
         assert_eq!((train.len(), held_out.len(), bad), (8, 1, 0));
         assert!(features.scale > 1.0 && features.scale < 4.0, "{features:?}");
 
