@@ -28,6 +28,22 @@ pub(crate) struct MediaHandles {
     pub(crate) scale_level: Arc<AtomicU32>,
 }
 
+/// One running media thread in the composer's gauge, for as long as it lives.
+struct Running(nephele_telemetry::prometheus_client::metrics::gauge::Gauge);
+
+impl Running {
+    fn new(gauge: &nephele_telemetry::prometheus_client::metrics::gauge::Gauge) -> Running {
+        gauge.inc();
+        Running(gauge.clone())
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        self.0.dec();
+    }
+}
+
 /// The session's media path on its own thread: YUV conversion and encoding are CPU work
 /// that must not stall the async runtime.
 pub(crate) fn spawn_media_thread(
@@ -35,14 +51,17 @@ pub(crate) fn spawn_media_thread(
     viewer: Arc<Viewer>,
     frames: std_mpsc::Receiver<FusedFrame>,
     handles: MediaHandles,
-) {
+) -> Option<std::thread::JoinHandle<()>> {
     let MediaHandles { keyframe, media, scale_level } = handles;
     let runtime = shared.runtime.clone();
     let shared = Arc::clone(shared);
     let fps = shared.config.fps;
     let bitrate = shared.config.bitrate_bps;
     let session = viewer.session();
+    // Counted out however the thread ends, or with the closure if it never starts.
+    let running = Running::new(&shared.metrics.media_threads);
     let spawned = std::thread::Builder::new().name(format!("media-{session}")).spawn(move || {
+        let _running = running;
         let frame_time = Duration::from_secs_f32(1.0 / fps);
         let mut previous_send: Option<Instant> = None;
         let mut encoder: Option<H264Encoder> = None;
@@ -269,8 +288,12 @@ pub(crate) fn spawn_media_thread(
         }
         tracing::debug!(session, "media thread ends");
     });
-    if let Err(e) = spawned {
-        tracing::error!(session, "cannot start the media thread: {e}");
+    match spawned {
+        Ok(thread) => Some(thread),
+        Err(e) => {
+            tracing::error!(session, "cannot start the media thread: {e}");
+            None
+        }
     }
 }
 

@@ -28,6 +28,7 @@ pub struct ComposerMetrics {
     pub(crate) worker_connections: Counter,
     pub(crate) peers_unauthenticated: Counter,
     pub(crate) sessions: Gauge,
+    pub(crate) media_threads: Gauge,
     pub(crate) peer_connections: Gauge,
     pub(crate) nack_resent: Counter,
     pub(crate) nack_refused: Counter,
@@ -67,6 +68,12 @@ impl ComposerMetrics {
             "Results connections refused for not proving the farm secret (their results never reach a frame)",
         );
         let sessions = register(&mut registry, "sessions", "Viewer sessions", Gauge::default());
+        let media_threads = register(
+            &mut registry,
+            "media_threads",
+            "Sessions' media threads (encoding and sending) still running; an ended session's is waited for",
+            Gauge::default(),
+        );
         let peer_connections = register(
             &mut registry,
             "peer_connections",
@@ -136,6 +143,7 @@ impl ComposerMetrics {
             worker_connections,
             peers_unauthenticated,
             sessions,
+            media_threads,
             peer_connections,
             nack_resent,
             nack_refused,

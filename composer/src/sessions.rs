@@ -73,7 +73,7 @@ pub(crate) async fn open_viewer(
         media: Arc::clone(&media),
         scale_level: Arc::clone(&scale_level),
     };
-    spawn_media_thread(shared, Arc::clone(&viewer), frames_rx, handles);
+    let media_thread = spawn_media_thread(shared, Arc::clone(&viewer), frames_rx, handles);
     lock(&shared.sessions).insert(
         id,
         SessionEntry {
@@ -89,6 +89,7 @@ pub(crate) async fn open_viewer(
             control_malformed: 0,
             created: Instant::now(),
             next_frame: 0,
+            media_thread,
         },
     );
     shared.metrics.sessions.inc();
@@ -96,14 +97,32 @@ pub(crate) async fn open_viewer(
     Ok((token, sdp))
 }
 
+/// How long an ended session waits for its media thread (a frame being encoded, a packet
+/// waiting in the pacer at most 250 ms).
+const MEDIA_THREAD_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+
 pub(crate) async fn end_session(shared: &Shared, id: SessionId) {
     let entry = lock(&shared.sessions).remove(&id);
     lock(&shared.compositor).close_session(id);
     lock(&shared.latency).session_ended(id);
-    if let Some(e) = entry {
+    if let Some(mut e) = entry {
         shared.metrics.sessions.dec();
-        // Dropping the entry drops the frame sender: the media thread ends.
-        e.viewer.close().await;
+        let thread = e.media_thread.take();
+        let viewer = Arc::clone(&e.viewer);
+        // Dropping the entry drops the frame sender: the media thread's loop ends.
+        drop(e);
+        viewer.close().await;
+        // Waited for here, while the runtime it sends through still runs (a thread left
+        // sending, or waiting in the pacer, when the runtime stops panics on its timer).
+        if let Some(thread) = thread {
+            let joined = tokio::time::timeout(MEDIA_THREAD_GRACE, tokio::task::spawn_blocking(move || thread.join()));
+            match joined.await {
+                Ok(Ok(Ok(()))) => {}
+                Ok(Ok(Err(_))) => tracing::error!(session = id, "the media thread panicked"),
+                Ok(Err(e)) => tracing::warn!(session = id, "waiting for the media thread: {e}"),
+                Err(_) => tracing::warn!(session = id, "the media thread did not end within {MEDIA_THREAD_GRACE:?}"),
+            }
+        }
         tracing::info!(session = id, "session ended");
     }
 }

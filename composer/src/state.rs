@@ -82,6 +82,9 @@ pub(crate) struct SessionEntry {
     pub(crate) control_malformed: u64,
     pub(crate) created: Instant,
     pub(crate) next_frame: u64,
+    /// The media thread, joined when the session ends (it sends through the runtime, which
+    /// must outlive it).
+    pub(crate) media_thread: Option<std::thread::JoinHandle<()>>,
 }
 
 pub(crate) struct Shared {

@@ -102,6 +102,8 @@ async fn a_client_negotiates_receives_h264_and_sends_poses() {
     // The session list over HTTP; deleting needs the token.
     let (status, list) = http(composer.http_addr(), "GET", "/v1/sessions", &[], "").await;
     assert_eq!(status, 200);
+    let (_, metrics) = http(composer.http_addr(), "GET", "/metrics", &[], "").await;
+    assert!(metrics.contains("nephele_composer_media_threads 1\n"), "{metrics}");
     assert!(list.contains(&format!("\"session\":{}", client.session)), "{list}");
     let path = format!("/v1/sessions/{}", client.session);
     let (status, _) = http(composer.http_addr(), "DELETE", &path, &[("Authorization", "Bearer nope")], "").await;
@@ -109,6 +111,10 @@ async fn a_client_negotiates_receives_h264_and_sends_poses() {
     let bearer = format!("Bearer {}", client.token);
     let (status, _) = http(composer.http_addr(), "DELETE", &path, &[("Authorization", &bearer)], "").await;
     assert_eq!(status, 204);
+    // The session's media thread ended before the answer: none is left sending through the
+    // runtime (shutdown ends sessions the same way).
+    let (_, metrics) = http(composer.http_addr(), "GET", "/metrics", &[], "").await;
+    assert!(metrics.contains("nephele_composer_media_threads 0\n"), "{metrics}");
     let (status, _) = http(composer.http_addr(), "DELETE", &path, &[("Authorization", &bearer)], "").await;
     assert_eq!(status, 404);
     assert!(composer.sessions().is_empty());
