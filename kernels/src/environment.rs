@@ -76,6 +76,22 @@ pub struct GiServeSettings {
     pub shade_covered: bool,
 }
 
+impl GiServeSettings {
+    /// How the G-buffer and direct light are path traced: the direct-light-only mode (the
+    /// camera ray, shadow rays at its hit, one bounce that finds lights and sky for MIS) at
+    /// [`Self::samples_per_pixel`], noise from `seed`. The trainer renders its served-like
+    /// inputs with the same options (`nephele train gi --input-spp`).
+    pub fn g_buffer_options(&self, seed: u64) -> RenderOptions {
+        RenderOptions {
+            samples_per_pixel: self.samples_per_pixel,
+            max_bounces: 1,
+            seed,
+            background: Background::Environment,
+            direct_only: true,
+        }
+    }
+}
+
 /// Two samples at half resolution: `nephele bench gi` (BENCHMARKS.md, "environment served by
 /// the farm") measured 0.54 us per view pixel for a stereo pair at 256x256 per eye on this
 /// 2-core VM, -0.2 dB against 4 samples and 1.5x faster; 1 sample loses another 0.3 dB.
@@ -227,13 +243,7 @@ impl GiKernel {
         camera: &Camera,
         occluders: &[SolidGrid],
     ) -> Result<(RenderOutput, Vec<GBufferPixel>), KernelError> {
-        let options = RenderOptions {
-            samples_per_pixel: self.settings.samples_per_pixel,
-            max_bounces: 1,
-            seed: 0,
-            background: Background::Environment,
-            direct_only: true,
-        };
+        let options = self.settings.g_buffer_options(0);
         let out = self
             .renderer
             .render_behind(camera, &options, occluders, &|_| {})

@@ -34,6 +34,7 @@ use glam::{Mat4, Vec3};
 use nephele_geometry::SplitMix64;
 use nephele_geometry::camera::{Camera, CameraError};
 use nephele_imaging::image::{FloatImage, ImageError};
+use nephele_kernels::environment::GiServeSettings;
 use nephele_pathtracer::integrator::{Aov, Background};
 use nephele_pathtracer::scenes::{self, SceneLookupError};
 use nephele_pathtracer::{RenderError, RenderOptions, Renderer};
@@ -378,14 +379,8 @@ pub fn with_served_inputs(spec: &GiSpec, frame: &GiFrame, spp: u32, b: &GiBuffer
     let scene = scenes::builtin_at(&spec.scene, frame.time)?;
     // Noise of its own per frame, unlike the dataset's (its name picks the stream).
     let seed = frame.name.bytes().fold(spec.seed ^ 0x5E_4E_ED, |h, c| h.wrapping_mul(0x100_0000_01B3) ^ u64::from(c));
-    let options = RenderOptions {
-        samples_per_pixel: spp,
-        max_bounces: 1,
-        seed,
-        background: Background::Environment,
-        direct_only: true,
-    };
-    let out = Renderer::new(scene.scene)?.render(&spec.camera(frame)?, &options, &|_| {})?;
+    let served = GiServeSettings { samples_per_pixel: spp, ..GiServeSettings::default() };
+    let out = Renderer::new(scene.scene)?.render(&spec.camera(frame)?, &served.g_buffer_options(seed), &|_| {})?;
     if (out.width, out.height) != (b.width, b.height) {
         return Err(GiDataError::Manifest {
             path: PathBuf::from(&frame.name),
