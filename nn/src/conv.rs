@@ -222,12 +222,7 @@ pub fn conv_forward(
     input: &[f32],
     output: &mut [f32],
 ) -> Result<(), NnError> {
-    shape.validate()?;
-    check_len("convolution parameters", shape.param_count(), params.len())?;
-    check_len("convolution input", width * height * shape.inputs, input.len())?;
-    check_len("convolution output", width * height * shape.outputs, output.len())?;
-    conv_forward_in(simd, shape, params, width, height, input, output, None);
-    Ok(())
+    conv_forward_in(simd, shape, params, width, height, input, output, None)
 }
 
 /// [`conv_forward`] for the output pixels `mask` selects only (a mask of the image's size);
@@ -243,17 +238,13 @@ pub fn conv_forward_masked(
     output: &mut [f32],
     mask: &PixelMask,
 ) -> Result<(), NnError> {
-    shape.validate()?;
-    check_len("convolution parameters", shape.param_count(), params.len())?;
-    check_len("convolution input", width * height * shape.inputs, input.len())?;
-    check_len("convolution output", width * height * shape.outputs, output.len())?;
     if (mask.width, mask.height) != (width, height) {
         return Err(NnError::Config(format!("a {}x{} mask for a {width}x{height} image", mask.width, mask.height)));
     }
-    conv_forward_in(simd, shape, params, width, height, input, output, Some(mask));
-    Ok(())
+    conv_forward_in(simd, shape, params, width, height, input, output, Some(mask))
 }
 
+/// Both forward passes, after checking the shape and the buffers.
 #[allow(clippy::too_many_arguments)]
 fn conv_forward_in(
     simd: SimdMode,
@@ -264,7 +255,11 @@ fn conv_forward_in(
     input: &[f32],
     output: &mut [f32],
     mask: Option<&PixelMask>,
-) {
+) -> Result<(), NnError> {
+    shape.validate()?;
+    check_len("convolution parameters", shape.param_count(), params.len())?;
+    check_len("convolution input", width * height * shape.inputs, input.len())?;
+    check_len("convolution output", width * height * shape.outputs, output.len())?;
     let (weights, bias) = params.split_at(shape.weight_count());
     let image = Image { inputs: shape.inputs, outputs: shape.outputs, kernel: shape.kernel, width, height };
     output.par_chunks_mut(width * shape.outputs * ROWS_PER_TASK).enumerate().for_each(|(task, rows)| {
@@ -272,6 +267,7 @@ fn conv_forward_in(
             ForwardRows { image, weights, bias, input, first_row: task * ROWS_PER_TASK, rows, relu: shape.relu, mask };
         simd.arch().dispatch(op);
     });
+    Ok(())
 }
 
 /// Sizes of one convolution over one image (a dense layer over `n` rows is a 1x1 convolution
