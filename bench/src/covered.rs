@@ -21,6 +21,7 @@ use nephele_imaging::image::{RgbaImage, linear_to_srgb};
 use nephele_kernels::environment::{GiKernel, GiServeSettings};
 use nephele_kernels::kernel::{RayKernel, all_pixels};
 use nephele_master::scenes::{Catalog, ROOM_VIEW};
+use nephele_nn::PixelMask;
 use nephele_pathtracer::bvh::{Bvh, TraversalStats};
 use nephele_pathtracer::material::luminance;
 use nephele_pathtracer::scenes;
@@ -134,7 +135,7 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
                 })
             })
             .collect();
-        let near = dilate(&covered, w as usize, h as usize, 8);
+        let near = PixelMask::from_flags(w as usize, h as usize, covered.clone())?.dilated(8);
         let [left, right] = stereo_pair(&camera, 0.063)?;
         let (mut g_plain, mut g_behind) = (Vec::new(), Vec::new());
         let (mut rays, mut shaded, mut light_blocked) = ((0, 0), (0, 0), 0);
@@ -249,7 +250,7 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
                 String::new()
             },
             psnr(&behind.color, &plain.color, |i| !covered[i]),
-            psnr(&behind.color, &plain.color, |i| !covered[i] && near[i]),
+            psnr(&behind.color, &plain.color, |i| !covered[i] && near.get(i % w as usize, i / w as usize)),
             100.0 * darker as f64 / visible as f64,
         );
         ensure!(plain_stats.hidden == 0, "a render without occluders hid samples");
@@ -278,21 +279,4 @@ pub fn run(args: CoveredArgs, progress: &dyn Progress) -> Result<()> {
         }
     );
     Ok(())
-}
-
-/// `mask` grown by `radius` pixels (a square neighbourhood).
-fn dilate(mask: &[bool], w: usize, h: usize, radius: usize) -> Vec<bool> {
-    let mut out = vec![false; mask.len()];
-    for y in 0..h {
-        for x in 0..w {
-            if mask[y * w + x] {
-                for yy in y.saturating_sub(radius)..(y + radius + 1).min(h) {
-                    for xx in x.saturating_sub(radius)..(x + radius + 1).min(w) {
-                        out[yy * w + xx] = true;
-                    }
-                }
-            }
-        }
-    }
-    out
 }
