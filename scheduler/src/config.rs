@@ -145,7 +145,8 @@ pub struct SchedulerConfig {
     pub history_max_age: Duration,
     /// Refuse new sessions while any user is starved (NEPHELE's admission control)...
     pub admission_control: bool,
-    /// ...and for this long after the last round in which someone was starved. Starvation
+    /// ...and for this long after the last round in which someone still open was starved
+    /// (a starved user who leaves frees the farm: the hold goes with it). Starvation
     /// flickers on a loaded farm (a user is starved only while its work waits for dispatch),
     /// so an instant check alone lets sessions in between two starved rounds.
     pub admission_hold: Duration,

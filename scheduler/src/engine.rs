@@ -268,6 +268,9 @@ struct Session {
     last_complete: Option<Time>,
     /// Batches in flight over the tasks of its frames ("loaded tasks").
     loaded: u64,
+    /// The last planning round that found it starved: admission holds for
+    /// `admission_hold` after it, while the session stays open.
+    last_starved: Option<Time>,
     /// Moving average of the work (rays x cost) its frames asked the farm to render: the
     /// parts it rendered itself, not those it shared or took from the history.
     work_per_frame: Option<f64>,
@@ -375,7 +378,6 @@ pub struct Scheduler {
     rr_cursor: usize,
     bindings: BTreeMap<ObjectId, WorkerId>,
     starved_now: usize,
-    last_starved: Option<Time>,
     stats: Stats,
 }
 
@@ -410,7 +412,6 @@ impl Scheduler {
             rr_cursor: 0,
             bindings: BTreeMap::new(),
             starved_now: 0,
-            last_starved: None,
             stats: Stats::default(),
         })
     }
@@ -516,14 +517,17 @@ impl Scheduler {
     }
 
     /// NEPHELE's admission control: refuse while any user is starved (and for
-    /// `admission_hold` after the last starved round).
+    /// `admission_hold` after a round that found one starved). Only open sessions count: a
+    /// starved user who leaves frees the farm, and the next one is admitted at once rather
+    /// than after the hold.
     pub fn admission(&self, now: Time) -> Admission {
         let now = self.now.max(now);
         if !self.config.admission_control {
             return Admission::Admit;
         }
-        let recently = self.last_starved.is_some_and(|t| now.since(t) < self.config.admission_hold);
-        if recently || self.sessions.values().any(|s| self.is_starved(s, now)) {
+        let hold = self.config.admission_hold;
+        let recently = |s: &Session| s.last_starved.is_some_and(|t| now.since(t) < hold);
+        if self.sessions.values().any(|s| recently(s) || self.is_starved(s, now)) {
             return Admission::Refuse { retry_after: self.retry_after() };
         }
         Admission::Admit
@@ -596,6 +600,7 @@ impl Scheduler {
                 interval: None,
                 last_complete: None,
                 loaded: 0,
+                last_starved: None,
                 work_per_frame: None,
                 released: 0,
                 completed: 0,
@@ -1658,7 +1663,11 @@ impl Scheduler {
         self.starved_now = order.iter().filter(|o| !o.0).count();
         if self.starved_now > 0 {
             self.stats.starved_rounds += 1;
-            self.last_starved = Some(now);
+            for o in order.iter().filter(|o| !o.0) {
+                if let Some(s) = self.sessions.get_mut(&o.3) {
+                    s.last_starved = Some(now);
+                }
+            }
         }
         let sessions: Vec<SessionId> = order.iter().map(|o| o.3).collect();
         let room = self.workers.values().filter(|w| self.has_room(w)).count();
