@@ -41,7 +41,7 @@ pub use hashgrid::{FEATURES_PER_LEVEL, HashGrid, HashGridConfig};
 pub use mlp::{Activation, Mlp, MlpConfig, MlpWorkspace};
 pub use resmlp::{ResidualMlp, ResidualMlpConfig, ResidualWorkspace};
 pub use simd::SimdMode;
-pub use unet::{UNet, UNetConfig, UNetWorkspace};
+pub use unet::{StudentStart, UNet, UNetConfig, UNetWorkspace};
 
 /// Invalid network configurations and mismatched buffers.
 #[derive(Debug, thiserror::Error, PartialEq)]

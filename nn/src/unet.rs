@@ -7,8 +7,9 @@
 //! stereo network (`eyes = 2`) takes both eyes' inputs stacked per pixel (left then right),
 //! shares every layer but the first and has two heads, left then right: one pass for both
 //! eyes. [`UNet::stereo_from_single`] builds the stereo student from a trained single-eye
-//! teacher as the paper does: every weight copied except the first layer (it sees twice the
-//! channels) and the right-eye head.
+//! teacher: every weight copied except the first layer (it sees twice the channels) and the
+//! right-eye head, which start fresh as in the paper or, closer to the teacher, from its
+//! first layer over the mean of both eyes and its head ([`StudentStart`]).
 //!
 //! # Why not burn (or candle)
 //!
@@ -34,6 +35,19 @@ use crate::conv::{
 };
 use crate::simd::SimdMode;
 use crate::{InitRng, NnError, check_len};
+
+/// How the stereo student's first layer and right-eye head start ([`UNet::stereo_from_single`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum StudentStart {
+    /// As the paper: fresh (He-initialised) weights.
+    #[default]
+    Fresh,
+    /// From the teacher: the first layer applies the teacher's first layer to the mean of both
+    /// eyes' inputs (half its weights on each eye's channels), the right head is a copy of the
+    /// teacher's head; so the untrained student already gives the teacher's output for
+    /// inputs the two eyes share.
+    FromTeacher,
+}
 
 /// The network's shape.
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -177,8 +191,8 @@ impl UNet {
     }
 
     /// The stereo student of a single-eye teacher: every layer copied but the first (it sees
-    /// both eyes) and the right-eye head, which keep the fresh initialisation of `seed`.
-    pub fn stereo_from_single(single: &UNet, seed: u64) -> Result<UNet, NnError> {
+    /// both eyes) and the right-eye head, which start as `start` says.
+    pub fn stereo_from_single(single: &UNet, start: StudentStart, seed: u64) -> Result<UNet, NnError> {
         if single.config.eyes != 1 {
             return Err(NnError::Config("the teacher must be a single-eye network".into()));
         }
@@ -190,6 +204,31 @@ impl UNet {
             let source = single.layer_params(index);
             let start = stereo.offsets[index];
             stereo.params[start..start + source.len()].copy_from_slice(source);
+        }
+        if start == StudentStart::FromTeacher {
+            // The first layer sees the mean of both eyes' inputs through the teacher's
+            // weights: half of them on each eye's channels, the teacher's biases.
+            let (inputs, outputs) = (single.config.inputs, single.config.channels[0]);
+            let teacher = single.layer_params(0);
+            let first = &mut stereo.params[..stereo.offsets[1]];
+            for tap in 0..9 {
+                for eye in 0..2 {
+                    for i in 0..inputs {
+                        let from = &teacher[(tap * inputs + i) * outputs..][..outputs];
+                        let to = &mut first[(tap * 2 * inputs + eye * inputs + i) * outputs..][..outputs];
+                        for (t, f) in to.iter_mut().zip(from) {
+                            *t = 0.5 * f;
+                        }
+                    }
+                }
+            }
+            let (weights, biases) = (9 * 2 * inputs * outputs, 9 * inputs * outputs);
+            first[weights..].copy_from_slice(&teacher[biases..]);
+            // The right head starts as the teacher's (the left head's) copy.
+            let n = layers.len();
+            let head = single.layer_params(n - 1).to_vec();
+            let start = stereo.offsets[n];
+            stereo.params[start..start + head.len()].copy_from_slice(&head);
         }
         Ok(stereo)
     }
@@ -635,7 +674,7 @@ mod tests {
     #[test]
     fn the_stereo_student_copies_all_but_the_first_layer_and_the_right_head() {
         let single = UNet::new(config(1), 1).expect("single");
-        let stereo = UNet::stereo_from_single(&single, 2).expect("stereo");
+        let stereo = UNet::stereo_from_single(&single, StudentStart::Fresh, 2).expect("stereo");
         let fresh = UNet::new(config(2), 2).expect("fresh");
         let n = stereo.layer_count();
         assert_eq!(n, single.layer_count() + 1);
@@ -647,7 +686,32 @@ mod tests {
         assert_eq!(stereo.layer_params(n - 2), single.layer_params(n - 2), "left head = the teacher's head");
         assert_eq!(stereo.layer_params(n - 1), fresh.layer_params(n - 1), "right head: fresh");
         assert_ne!(stereo.layer_params(n - 1), single.layer_params(n - 2));
-        assert!(UNet::stereo_from_single(&stereo, 3).is_err());
+        assert!(UNet::stereo_from_single(&stereo, StudentStart::Fresh, 3).is_err());
+    }
+
+    #[test]
+    fn a_student_started_from_the_teacher_gives_its_output_when_the_eyes_agree() {
+        let single = UNet::new(config(1), 1).expect("single");
+        let stereo = UNet::stereo_from_single(&single, StudentStart::FromTeacher, 2).expect("stereo");
+        let n = stereo.layer_count();
+        for i in 1..n - 1 {
+            assert_eq!(stereo.layer_params(i), single.layer_params(i), "layer {i} copied");
+        }
+        assert_eq!(stereo.layer_params(n - 1), single.layer_params(n - 2), "right head = the teacher's head");
+        // Both eyes given the same image: both heads give the teacher's output for it (up to
+        // the rounding of the halved weights' sums).
+        let (width, height) = (8, 8);
+        let mut rng = InitRng::new(9);
+        let one: Vec<f32> = (0..width * height * 3).map(|_| rng.uniform(1.0)).collect();
+        let both: Vec<f32> = one.chunks(3).flat_map(|p| p.iter().chain(p).copied().collect::<Vec<_>>()).collect();
+        let (mut ws1, mut ws2) = (UNetWorkspace::new(), UNetWorkspace::new());
+        let teacher = single.forward(width, height, &one, &mut ws1).expect("teacher")[0].to_vec();
+        let heads = stereo.forward(width, height, &both, &mut ws2).expect("student");
+        for head in heads {
+            for (s, t) in head.iter().zip(&teacher) {
+                assert!((s - t).abs() < 1e-4 * (1.0 + t.abs()), "{s} vs {t}");
+            }
+        }
     }
 
     #[test]

@@ -215,7 +215,7 @@ impl BakeQuality {
                 student_steps: 4000,
                 crop: 32,
                 input_spp: Some(GiServeSettings::default().samples_per_pixel),
-                version: "standard-gi-v2",
+                version: "standard-gi-v3",
             }),
             BakeQuality::Quick => Some(GiRecipe {
                 size: 32,
@@ -228,7 +228,7 @@ impl BakeQuality {
                 student_steps: 60,
                 crop: 16,
                 input_spp: Some(GiServeSettings::default().samples_per_pixel),
-                version: "quick-gi-v2",
+                version: "quick-gi-v3",
             }),
             BakeQuality::Off => None,
         }
@@ -258,7 +258,7 @@ pub fn ensure_environment(
 ) -> Result<Option<BakedObject>> {
     use nephele_kernels::environment::stereo_path;
     use nephele_train::gi::data::{GiSpec, render_gi_dataset};
-    use nephele_train::gi::stereo::{load_pairs, train_stereo};
+    use nephele_train::gi::stereo::{StudentOptions, load_pairs, train_stereo};
     use nephele_train::gi::train::{GiTrainOptions, evaluate_single_eye, load_single_eye, train_single_eye};
 
     let Some(recipe) = quality.gi_recipe() else { return Ok(None) };
@@ -323,7 +323,7 @@ pub fn ensure_environment(
         &teacher,
         &pairs,
         &options,
-        1.0,
+        StudentOptions::default(),
         None,
         0,
         &mut |s| bar.set_position(u64::from(s.step)),

@@ -7,7 +7,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use nephele_kernels::gi::GiModel;
-use nephele_train::gi::stereo::{evaluate_pairs, load_pairs, shade_pairs, train_stereo};
+use nephele_nn::StudentStart;
+use nephele_train::gi::stereo::{StudentOptions, evaluate_pairs, load_pairs, shade_pairs, train_stereo};
 use nephele_train::gi::train::{
     GiCheckpoint, GiStep, GiTrainOptions, evaluate_single_eye, load_single_eye, train_single_eye,
 };
@@ -55,15 +56,27 @@ pub struct Args {
     /// truth). --channels must be the teacher's.
     #[arg(long)]
     teacher: Option<PathBuf>,
-    /// Weight of the spatial coherence loss for the stereo student (0 turns it off).
-    #[arg(long, default_value_t = 1.0)]
+    /// Weight of the spatial coherence loss for the stereo student (0 turns it off; 1
+    /// costs each eye about 0.3 dB more than 0.3 for little more coherence).
+    #[arg(long, default_value_t = StudentOptions::default().coherence_weight)]
     coherence_weight: f32,
+    /// How the stereo student's first layer and right-eye head start: `teacher` (the
+    /// teacher's first layer over the mean of both eyes, its head for both eyes) or `fresh`
+    /// (random, as the paper has it). Every other layer is the teacher's either way.
+    #[arg(long, value_enum, default_value_t = Start::Teacher)]
+    student_start: Start,
     /// Train (and score) on inputs rendered as the farm serves them, at this many samples per
     /// pixel (the served kernel's: 2), instead of the dataset's direct light, which shares the
     /// target's samples; the target stays the dataset's converged image. A model so trained
     /// takes the farm's noisy inputs to the converged light (`nephele up` trains its room so).
     #[arg(long)]
     input_spp: Option<u32>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Start {
+    Teacher,
+    Fresh,
 }
 
 pub fn run(args: Args, progress: &Progress) -> Result<()> {
@@ -161,18 +174,23 @@ fn student(args: &Args, options: &GiTrainOptions, teacher_path: &std::path::Path
         .with_context(|| format!("loading {}", args.data.display()))?;
     let eval = load_pairs(&args.data, &features, false, args.input_spp)?;
     println!(
-        "train gi (stereo student of {}): {} training pairs, coherence weight {}",
+        "train gi (stereo student of {}): {} training pairs, coherence weight {}, first layer and right head {:?}",
         teacher_path.display(),
         pairs.len(),
-        args.coherence_weight
+        args.coherence_weight,
+        args.student_start
     );
+    let student_start = match args.student_start {
+        Start::Teacher => StudentStart::FromTeacher,
+        Start::Fresh => StudentStart::Fresh,
+    };
     let (checkpoint_path, resume) = resume_from(args, options)?;
     let bar = progress.bar(u64::from(options.steps), "GI stereo student", "steps");
     let (model, state) = train_stereo(
         &teacher,
         &pairs,
         options,
-        args.coherence_weight,
+        StudentOptions { coherence_weight: args.coherence_weight, start: student_start },
         resume,
         args.checkpoint_every,
         &mut show_progress(&bar, "GI stereo student"),

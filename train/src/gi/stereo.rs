@@ -1,5 +1,6 @@
 //! The stereo student (the stereo GI paper, section 3): one U-Net pass for both eyes,
-//! initialised from the single-eye teacher ([`nephele_nn::UNet::stereo_from_single`]) and
+//! initialised from the single-eye teacher ([`nephele_nn::UNet::stereo_from_single`]; by
+//! default its first layer and right head too, [`StudentStart::FromTeacher`]) and
 //! trained without stereo ground truth: each eye's head learns the teacher's output for that
 //! eye, and the spatial coherence loss (eq. 1, [`super::warp`]) pulls the right eye's image,
 //! warped onto the left, towards the left eye's.
@@ -11,7 +12,7 @@ use std::path::Path;
 
 use nephele_geometry::SplitMix64;
 use nephele_kernels::gi::{GI_INPUTS, GI_OUTPUTS, GiFeatures, GiModel, decode_output};
-use nephele_nn::{UNet, UNetWorkspace};
+use nephele_nn::{StudentStart, UNet, UNetWorkspace};
 
 use super::data::{Eye, GiFrame, load_frame, read_manifest};
 use super::train::{
@@ -19,6 +20,23 @@ use super::train::{
     sample_of,
 };
 use super::warp::Warp;
+
+/// What the student's training adds to [`GiTrainOptions`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StudentOptions {
+    /// Weight of the spatial coherence loss (eq. 1; 0 turns it off).
+    pub coherence_weight: f32,
+    /// How the first layer and the right head start (the rest is the teacher's).
+    pub start: StudentStart,
+}
+
+impl Default for StudentOptions {
+    fn default() -> Self {
+        // A weight of 0.3 keeps most of the coherence loss's effect at the least cost to
+        // each eye's fidelity (BENCHMARKS.md, "2026-12-06g").
+        StudentOptions { coherence_weight: 0.3, start: StudentStart::FromTeacher }
+    }
+}
 
 /// One stereo pair ready for training or evaluation.
 #[derive(Debug, Clone)]
@@ -124,7 +142,7 @@ pub fn train_stereo(
     teacher: &GiModel,
     pairs: &[StereoSample],
     options: &GiTrainOptions,
-    coherence_weight: f32,
+    student: StudentOptions,
     resume: Option<GiCheckpoint>,
     checkpoint_every: u32,
     on_step: &mut dyn FnMut(GiStep),
@@ -134,6 +152,7 @@ pub fn train_stereo(
     if pairs.is_empty() {
         return Err(GiTrainError::Options("no stereo training pairs (nephele dataset gi --train-pairs)".into()));
     }
+    let coherence_weight = student.coherence_weight;
     if !(coherence_weight.is_finite() && coherence_weight >= 0.0) {
         return Err(GiTrainError::Options(format!("coherence weight {coherence_weight}")));
     }
@@ -148,7 +167,7 @@ pub fn train_stereo(
     let features = teacher.header.features;
     let (mut network, mut adam, mut state) =
         resume_or_start(resume, options, features, options.network(2), 0x7374_6572, || {
-            Ok(UNet::stereo_from_single(&teacher.network, options.seed)?)
+            Ok(UNet::stereo_from_single(&teacher.network, student.start, options.seed)?)
         })?;
     let mut rng = SplitMix64::new(state.rng);
     let mut ws = UNetWorkspace::new();
@@ -312,11 +331,17 @@ mod tests {
 
         let student_options = GiTrainOptions { steps: 80, crop: 16, ..options.clone() };
         let mut losses = Vec::new();
-        let (student, state) =
-            train_stereo(&teacher, &pairs, &student_options, 1.0, None, 0, &mut |s| losses.push(s.loss), &mut |_| {
-                Ok(())
-            })
-            .expect("student");
+        let (student, state) = train_stereo(
+            &teacher,
+            &pairs,
+            &student_options,
+            StudentOptions::default(),
+            None,
+            0,
+            &mut |s| losses.push(s.loss),
+            &mut |_| Ok(()),
+        )
+        .expect("student");
         assert_eq!((student.eyes(), state.step), (2, 80));
         let early: f32 = losses[..10].iter().sum::<f32>() / 10.0;
         let late: f32 = losses[losses.len() - 10..].iter().sum::<f32>() / 10.0;
@@ -329,7 +354,9 @@ mod tests {
         assert!(twice.psnr.iter().all(|p| p.is_finite()));
         // A student of other channels than its teacher is refused.
         let other = GiTrainOptions { channels: vec![4, 4], ..student_options };
-        assert!(train_stereo(&teacher, &pairs, &other, 1.0, None, 0, &mut |_| {}, &mut |_| Ok(())).is_err());
+        let refused =
+            train_stereo(&teacher, &pairs, &other, StudentOptions::default(), None, 0, &mut |_| {}, &mut |_| Ok(()));
+        assert!(refused.is_err());
     }
 
     #[test]
