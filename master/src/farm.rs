@@ -95,6 +95,12 @@ impl Default for FarmConfig {
     }
 }
 
+/// `nephele master`'s admission that looks ahead (`--admit-up-to`): new users are refused
+/// while the asked work would pass this share of the farm's measured throughput. The
+/// library's live configuration leaves it off, for farms embedded in tests that open users
+/// at rates their small farms cannot all carry.
+pub const DEFAULT_ADMIT_UP_TO: f64 = 0.9;
+
 /// The scheduler defaults, adjusted for a live farm of CPU workers over TCP: a batch is
 /// presumed lost after 50 ms at the least (the core's 8 ms suits GPU kernels; a CPU path
 /// tracer on a shared machine misses that by noise alone, and a dead worker is noticed by its
@@ -103,8 +109,8 @@ pub fn live_scheduler_config() -> SchedulerConfig {
     SchedulerConfig {
         min_batch_timeout: Duration::from_millis(50),
         heartbeat_timeout: Some(Duration::from_secs(2)),
-        // Opt-in live (`nephele master --admit-up-to`): the end-to-end tests open several
-        // users at rates their small test farms cannot all carry.
+        // `nephele master` turns it on ([`DEFAULT_ADMIT_UP_TO`]); farms embedded in tests
+        // open several users at rates their small farms cannot all carry.
         admit_up_to: None,
         ..SchedulerConfig::default()
     }

@@ -104,6 +104,10 @@ impl UpService {
                 "1",
                 "--ready-secs",
                 &ready_secs,
+                // The tests open users at rates their path-traced test farms cannot all carry;
+                // admission by starvation alone, as before the look-ahead became the default.
+                "--admit-up-to",
+                "off",
             ])
             .args(extra)
             .env("NEPHELE_LOG", std::env::var("NEPHELE_LOG").unwrap_or_else(|_| "info".into()))

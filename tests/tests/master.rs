@@ -92,7 +92,16 @@ impl MasterProcess {
 
     fn start_with(extra: &[&str], env: &[(&str, &str)]) -> MasterProcess {
         let mut child = Command::new(nephele_bin())
-            .args(["--quiet", "master", "--http", "127.0.0.1:0", "--farm-listen", "127.0.0.1:0"])
+            .args([
+                "--quiet",
+                "master",
+                "--http",
+                "127.0.0.1:0",
+                "--farm-listen",
+                "127.0.0.1:0",
+                "--admit-up-to",
+                "off",
+            ])
             .args(extra)
             .envs(env.iter().copied())
             .env("NEPHELE_LOG", if logs() { "debug" } else { "warn" })

@@ -4,7 +4,9 @@ use std::io::Write;
 use std::time::Duration;
 
 use anyhow::{Context, Result, ensure};
-use nephele_master::farm::{DEFAULT_PREVIOUS_FRAMES, FarmConfig, live_scheduler_config};
+
+use crate::commands::AdmitUpTo;
+use nephele_master::farm::{DEFAULT_ADMIT_UP_TO, DEFAULT_PREVIOUS_FRAMES, FarmConfig, live_scheduler_config};
 use nephele_master::service::{Master, MasterConfig};
 use nephele_proto::{FrameConfig, ReuseLimits};
 use nephele_scheduler::Policy;
@@ -45,9 +47,10 @@ pub struct Args {
     /// Admission that looks ahead: refuse a new user (503, Retry-After 5 s) while the work
     /// the admitted users ask for (frame rate x the rays their own frames render, shared rays
     /// counted once) plus the newcomer's would pass this fraction of the farm's measured
-    /// throughput, e.g. 0.9. Without it only Algorithm 1's starvation refusal applies.
-    #[arg(long, value_name = "FRACTION")]
-    admit_up_to: Option<f64>,
+    /// throughput. Default 0.9 under the nephele policy; `off` leaves only Algorithm 1's
+    /// starvation refusal (users are then admitted until someone is starved).
+    #[arg(long, value_name = "FRACTION|off")]
+    admit_up_to: Option<AdmitUpTo>,
     /// Largest ray batch, pixels.
     #[arg(long, value_name = "N")]
     max_batch_rays: Option<u32>,
@@ -128,11 +131,14 @@ pub fn run(args: Args) -> Result<()> {
     if args.no_derived_views {
         scheduler.derived_views = None;
     }
-    if let Some(fraction) = args.admit_up_to {
-        ensure!(fraction.is_finite() && fraction > 0.0, "--admit-up-to must be a positive fraction, e.g. 0.9");
-        ensure!(scheduler.admission_control, "--admit-up-to needs the nephele policy's admission control");
-        scheduler.admit_up_to = Some(fraction);
-    }
+    scheduler.admit_up_to = match args.admit_up_to {
+        None => scheduler.admission_control.then_some(DEFAULT_ADMIT_UP_TO),
+        Some(AdmitUpTo(None)) => None,
+        Some(AdmitUpTo(Some(fraction))) => {
+            ensure!(scheduler.admission_control, "--admit-up-to needs the nephele policy's admission control");
+            Some(fraction)
+        }
+    };
     if let Some(n) = args.max_batch_rays {
         scheduler.max_batch_rays = n;
     }

@@ -87,6 +87,15 @@ mod tests {
         assert!(parse_vec3("1,nan,2").is_err());
         assert_eq!(parse_background("white"), Ok([1.0; 3]));
         assert!(parse_background("2,0,0").is_err());
+        assert_eq!("0.9".parse::<AdmitUpTo>(), Ok(AdmitUpTo(Some(0.9))));
+        assert_eq!("OFF".parse::<AdmitUpTo>(), Ok(AdmitUpTo(None)));
+        for bad in ["0", "-1", "nan", "inf", "most"] {
+            assert!(bad.parse::<AdmitUpTo>().is_err(), "{bad}");
+        }
+        // `up` hands its value on to the master as text.
+        for admit in [AdmitUpTo(Some(0.75)), AdmitUpTo(None)] {
+            assert_eq!(admit.to_string().parse::<AdmitUpTo>(), Ok(admit));
+        }
     }
 }
 
@@ -152,6 +161,34 @@ impl FarmSecretArgs {
             Ok(text) => Ok(Some(FarmSecret::from_text(&text, SECRET_ENV)?)),
             Err(std::env::VarError::NotPresent) => Ok(None),
             Err(e) => anyhow::bail!("${SECRET_ENV}: {e}"),
+        }
+    }
+}
+
+/// `--admit-up-to` of `master` and `up`: a fraction of the farm's measured throughput, or
+/// `off` (only Algorithm 1's starvation refusal).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AdmitUpTo(pub Option<f64>);
+
+impl std::str::FromStr for AdmitUpTo {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        if text.eq_ignore_ascii_case("off") {
+            return Ok(AdmitUpTo(None));
+        }
+        match text.parse::<f64>() {
+            Ok(f) if f.is_finite() && f > 0.0 => Ok(AdmitUpTo(Some(f))),
+            _ => Err(format!("'{text}': a positive fraction such as 0.9, or off")),
+        }
+    }
+}
+
+impl std::fmt::Display for AdmitUpTo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            Some(fraction) => write!(f, "{fraction}"),
+            None => f.write_str("off"),
         }
     }
 }

@@ -81,9 +81,10 @@ pub struct Args {
     #[arg(long, default_value_t = 120)]
     ready_secs: u64,
     /// Admission that looks ahead (the master's `--admit-up-to`): refuse new users while the
-    /// asked work would pass this fraction of the farm's measured throughput, e.g. 0.9.
-    #[arg(long, value_name = "FRACTION")]
-    admit_up_to: Option<f64>,
+    /// asked work would pass this fraction of the farm's measured throughput (default 0.9),
+    /// or `off`.
+    #[arg(long, value_name = "FRACTION|off")]
+    admit_up_to: Option<crate::commands::AdmitUpTo>,
     /// Render every view of a headset or a quilt in full (the master's `--no-derived-views`).
     #[arg(long)]
     no_derived_views: bool,
@@ -283,8 +284,8 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     if let Some(file) = args.viewer_key.file() {
         master.arg("--viewer-key-file").arg(file);
     }
-    if let Some(fraction) = args.admit_up_to {
-        master.args(["--admit-up-to", &fraction.to_string()]);
+    if let Some(admit) = args.admit_up_to {
+        master.args(["--admit-up-to", &admit.to_string()]);
     }
     if args.no_derived_views {
         master.arg("--no-derived-views");
