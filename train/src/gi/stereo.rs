@@ -352,6 +352,25 @@ mod tests {
         // The teacher run twice gives the same kind of evaluation.
         let twice = evaluate_pairs(&eval, &shade_pairs(&teacher, &eval).expect("shade"));
         assert!(twice.psnr.iter().all(|p| p.is_finite()));
+        // The coherence loss aligns the eyes: on the training pairs, the left image and the
+        // warped right one differ less with a strong weight than with none.
+        let coherence_of = |weight: f32| {
+            let student = StudentOptions { coherence_weight: weight, ..StudentOptions::default() };
+            let (model, _) =
+                train_stereo(&teacher, &pairs, &student_options, student, None, 0, &mut |_| {}, &mut |_| Ok(()))
+                    .expect("student");
+            let mut ws = UNetWorkspace::new();
+            let total: f64 = pairs
+                .iter()
+                .map(|p| {
+                    let heads = model.network.forward(p.width, p.height, &p.stacked, &mut ws).expect("forward");
+                    p.warp.coherence(heads[0], heads[1], GI_OUTPUTS).0
+                })
+                .sum();
+            total / pairs.len() as f64
+        };
+        let (none, strong) = (coherence_of(0.0), coherence_of(10.0));
+        assert!(strong < 0.8 * none, "coherence error {none} without the loss, {strong} with it");
         // A student of other channels than its teacher is refused.
         let other = GiTrainOptions { channels: vec![4, 4], ..student_options };
         let refused =
