@@ -208,10 +208,10 @@ impl UNet {
         if start == StudentStart::FromTeacher {
             // The first layer sees the mean of both eyes' inputs through the teacher's
             // weights: half of them on each eye's channels, the teacher's biases.
-            let (inputs, outputs) = (single.config.inputs, single.config.channels[0]);
+            let (inputs, outputs, taps) = (single.config.inputs, layers[0].outputs, layers[0].kernel.pow(2));
             let teacher = single.layer_params(0);
             let first = &mut stereo.params[..stereo.offsets[1]];
-            for tap in 0..9 {
+            for tap in 0..taps {
                 for eye in 0..2 {
                     for i in 0..inputs {
                         let from = &teacher[(tap * inputs + i) * outputs..][..outputs];
@@ -222,13 +222,13 @@ impl UNet {
                     }
                 }
             }
-            let (weights, biases) = (9 * 2 * inputs * outputs, 9 * inputs * outputs);
+            let (weights, biases) = (taps * 2 * inputs * outputs, taps * inputs * outputs);
             first[weights..].copy_from_slice(&teacher[biases..]);
             // The right head starts as the teacher's (the left head's) copy.
             let n = layers.len();
-            let head = single.layer_params(n - 1).to_vec();
-            let start = stereo.offsets[n];
-            stereo.params[start..start + head.len()].copy_from_slice(&head);
+            let head = single.layer_params(n - 1);
+            let at = stereo.offsets[n];
+            stereo.params[at..at + head.len()].copy_from_slice(head);
         }
         Ok(stereo)
     }
