@@ -56,8 +56,9 @@ pub struct Args {
     /// truth). --channels must be the teacher's.
     #[arg(long)]
     teacher: Option<PathBuf>,
-    /// Weight of the spatial coherence loss for the stereo student (0 turns it off; 1
-    /// costs each eye about 0.3 dB more than 0.3 for little more coherence).
+    /// Weight of the spatial coherence loss for the stereo student (0 turns it off). With few
+    /// training pairs (24) it costs each eye a few tenths of a dB for little coherence on
+    /// unseen pairs; with 64 it pays (BENCHMARKS.md, "2026-12-06g").
     #[arg(long, default_value_t = StudentOptions::default().coherence_weight)]
     coherence_weight: f32,
     /// How the stereo student's first layer and right-eye head start: `teacher` (the
