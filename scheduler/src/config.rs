@@ -157,7 +157,8 @@ pub struct SchedulerConfig {
     /// throughput. `None`: only the starvation refusal. Off in the simulator's baselines.
     pub admit_up_to: Option<f64>,
     /// `Retry-After` of a refusal for capacity (users leave, or nothing changes, on a scale of
-    /// seconds).
+    /// seconds); 1 s at most while an admitted session's work estimate is still young (its
+    /// first frames, rendered whole before any reuse, overstate it).
     pub capacity_retry: Duration,
     /// Frames of one session that may be in flight at once.
     pub max_frames_in_flight: usize,

@@ -60,6 +60,12 @@ use crate::assign::{self, CameraKey, OccupancyGrid, PixelSet, TaskClass};
 use crate::config::{MAX_FPS, Policy, SchedulerConfig};
 use crate::history::{History, ResultKey};
 use crate::snapshot::{FarmSnapshot, QueueSnapshot, SessionSnapshot, Stats, WorkerSnapshot};
+
+/// Frames after which a session's work estimate counts as settled (with the default
+/// smoothing 0.2 its first frame then weighs under 11 %).
+const ESTIMATE_SETTLING_FRAMES: u64 = 10;
+/// `Retry-After` of a capacity refusal while some admitted session's estimate is settling.
+const SETTLING_RETRY: Duration = Duration::from_secs(1);
 use crate::{BatchId, FrameId, IdMap, ObjectId, SchedError, SessionId, TaskId, Time, WorkerId};
 
 /// An object instance the farm can render.
@@ -546,7 +552,13 @@ impl Scheduler {
         let mean = measured.iter().sum::<f64>() / measured.len() as f64;
         let asked: f64 = self.sessions.values().map(|s| s.fps * s.work_per_frame.unwrap_or(mean)).sum();
         let capacity: f64 = self.workers.values().filter(|w| !w.draining).map(|w| w.measured).sum();
-        (capacity > 0.0 && asked + fps * mean > share * capacity).then_some(self.config.capacity_retry)
+        if !(capacity > 0.0 && asked + fps * mean > share * capacity) {
+            return None;
+        }
+        // A young estimate is mostly its session's first frames, rendered whole before any
+        // previous frame could be reused: it falls within a second or so, so ask again soon.
+        let settling = self.sessions.values().any(|s| s.released < ESTIMATE_SETTLING_FRAMES);
+        Some(if settling { self.config.capacity_retry.min(SETTLING_RETRY) } else { self.config.capacity_retry })
     }
 
     /// Time for the farm to work off its queue, whole seconds in 1..=30.

@@ -685,14 +685,19 @@ fn admission_looks_ahead_at_the_farms_capacity() {
         let d = s.open_session(SessionSpec { target_fps: 0.1 * fps, objects: vec![OBJ] }, ms(5));
         (a, b, c, d, s)
     };
-    let (_, b, c, d, s) = run(Some(0.9));
+    let (_, b, c, d, mut s) = run(Some(0.9));
     assert!(b.is_ok(), "two users fit: {b:?}");
     assert!(
-        matches!(c, Err(SchedError::Refused { retry_after }) if retry_after == Duration::from_secs(5)),
-        "a third would pass 90 % of the capacity: {c:?}"
+        matches!(c, Err(SchedError::Refused { retry_after }) if retry_after == Duration::from_secs(1)),
+        "a third would pass 90 % of the capacity; the estimates are young, so ask again in 1 s: {c:?}"
     );
     assert!(d.is_ok(), "a slower one still fits: {d:?}");
     assert_eq!((s.stats().sessions_refused, s.stats().sessions_refused_capacity), (1, 1));
+    // Once every admitted session's estimate has settled, the refusal says 5 s.
+    s.sessions.values_mut().for_each(|x| x.released = ESTIMATE_SETTLING_FRAMES);
+    let fps = s.sessions.values().map(|x| x.fps).fold(0.0, f64::max);
+    let c = s.open_session(SessionSpec { target_fps: fps, objects: vec![OBJ] }, ms(6));
+    assert!(matches!(c, Err(SchedError::Refused { retry_after }) if retry_after == Duration::from_secs(5)), "{c:?}");
     // Off: only starvation refuses.
     let (_, b, c, d, s) = run(None);
     assert!(b.is_ok() && c.is_ok() && d.is_ok());
