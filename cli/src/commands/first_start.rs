@@ -198,11 +198,11 @@ pub struct GiRecipe {
 impl BakeQuality {
     /// Standard: 64x64 frames at 64 spp, the networks trained on inputs rendered as the farm
     /// serves them (2 samples) towards the converged target, the teacher 4000 steps, the
-    /// student 4000 from the teacher on 64 stereo pairs (about 2.5 minutes of training on two
+    /// student 8000 from the teacher on 64 stereo pairs (about 2.5 minutes of training on two
     /// cores; served at half resolution 1.6-2.1 dB above the earlier 600 / 1000 steps on clean
     /// inputs: BENCHMARKS.md, "2026-12-06f"; the student within 0.3 dB of its teacher as
-    /// served: "2026-12-06g"). Quick: seconds, a barely trained model, for trying the service
-    /// and for the tests.
+    /// served, day and night: "2026-12-06h" (4000 steps left the night's 0.65 dB under it)).
+    /// Quick: seconds, a barely trained model, for trying the service and for the tests.
     pub fn gi_recipe(self) -> Option<GiRecipe> {
         match self {
             BakeQuality::Standard => Some(GiRecipe {
@@ -213,10 +213,10 @@ impl BakeQuality {
                 spp: 64,
                 bounces: 4,
                 teacher_steps: 4000,
-                student_steps: 4000,
+                student_steps: 8000,
                 crop: 32,
                 input_spp: Some(GiServeSettings::default().samples_per_pixel),
-                version: "standard-gi-v4",
+                version: "standard-gi-v5",
             }),
             BakeQuality::Quick => Some(GiRecipe {
                 size: 32,
