@@ -270,7 +270,7 @@ pub fn ensure_environment(
     println!(
         "first start: training the global-illumination model of '{name}' into {} (recipe {}; later starts reuse it)",
         path.display(),
-        quality.folder()
+        recipe.version
     );
     let start = Instant::now();
     std::fs::create_dir_all(dir).with_context(|| format!("creating the asset folder {}", dir.display()))?;
