@@ -3,10 +3,15 @@
 //! once, one dispatch per convolution or pooling, every dispatch of a pass in one submission,
 //! the decoder's upsampling and skip concatenation read in place by the convolution that
 //! consumes them (no buffer for either). Checked against the CPU forward in `unet_tests.rs`.
+//!
+//! A pass may compute only the output pixels a mask selects ([`GpuUNet::forward_masked`], the
+//! twin of [`nephele_nn::UNet::forward_masked`]): each layer's mask
+//! ([`nephele_nn::UNetConfig::layer_masks`], made on the CPU) travels bit-packed in one buffer,
+//! and an invocation whose pixel it leaves out writes 0 and returns.
 
 use std::sync::Arc;
 
-use nephele_nn::conv::ConvShape;
+use nephele_nn::conv::{ConvShape, PixelMask};
 use nephele_nn::{UNet, UNetConfig};
 use wgpu::util::DeviceExt;
 
@@ -51,18 +56,38 @@ impl GpuUNet {
     /// One forward pass over an image of `width x height` (inputs as
     /// [`nephele_nn::UNet::forward`] takes them); returns each head's output, left first.
     pub fn forward(&self, width: usize, height: usize, input: &[f32]) -> Result<Vec<Vec<f32>>, GpuError> {
+        self.forward_masked(width, height, input, None)
+    }
+
+    /// [`Self::forward`] for the output pixels `needed` selects (all when `None`): each layer
+    /// computes only what those pixels read through the layers after it; the heads' other
+    /// pixels are 0, as [`nephele_nn::UNet::forward_masked`] gives them.
+    pub fn forward_masked(
+        &self,
+        width: usize,
+        height: usize,
+        input: &[f32],
+        needed: Option<&PixelMask>,
+    ) -> Result<Vec<Vec<f32>>, GpuError> {
         let c = &self.config;
         c.check_size(width, height).map_err(|e| GpuError::Unsupported(e.to_string()))?;
         let expected = width * height * c.eyes * c.inputs;
         if input.len() != expected {
             return Err(GpuError::Unsupported(format!("{} input values for {expected}", input.len())));
         }
+        let masks = needed
+            .map(|n| c.layer_masks(width, height, n))
+            .transpose()
+            .map_err(|e| GpuError::Unsupported(e.to_string()))?;
+        let (mask_words, mask_offsets) = pack_masks(masks.as_deref());
         let device = &self.ctx.device;
         let levels = c.levels();
         let size = |level: usize| ((width >> level) as u32, (height >> level) as u32);
         let words: Vec<u32> = input.iter().map(|v| v.to_bits()).collect();
         let input_buf = upload(&self.ctx, "U-Net input", &words)?;
         let empty = upload(&self.ctx, "nothing", &[])?;
+        let mask_buf = upload(&self.ctx, "U-Net layer masks", &mask_words)?;
+        let mask = |index: usize| (&mask_buf, mask_offsets.as_ref().map(|o| o[index]));
         let max = self.ctx.limits().max_storage_buffer_binding_size;
         let buffer = |label: &str, floats: u64| -> Result<wgpu::Buffer, GpuError> {
             if 4 * floats > max {
@@ -94,7 +119,8 @@ impl GpuUNet {
                     (0, _) => &pooled[level - 1],
                     _ => &outputs[index - 1],
                 };
-                self.conv(&mut encoder, index, (w, h), (source, layer.inputs as u32, false), (&empty, 0), &out);
+                let source = (source, layer.inputs as u32, false);
+                self.conv(&mut encoder, index, (w, h), source, (&empty, 0), mask(index), &out);
                 outputs.push(out);
             }
             if level + 1 < levels {
@@ -113,11 +139,11 @@ impl GpuUNet {
             let out_a = buffer("U-Net activations", pixels((w, h)) * self.layers[a].outputs as u64)?;
             let below_channels = c.channels[level + 1] as u32;
             let skip = (&outputs[2 * level + 1], c.channels[level] as u32);
-            self.conv(&mut encoder, a, (w, h), (&outputs[below], below_channels, true), skip, &out_a);
+            self.conv(&mut encoder, a, (w, h), (&outputs[below], below_channels, true), skip, mask(a), &out_a);
             outputs.push(out_a);
             let out_b = buffer("U-Net activations", pixels((w, h)) * self.layers[b].outputs as u64)?;
             let source = (&outputs[a], self.layers[b].inputs as u32, false);
-            self.conv(&mut encoder, b, (w, h), source, (&empty, 0), &out_b);
+            self.conv(&mut encoder, b, (w, h), source, (&empty, 0), mask(b), &out_b);
             outputs.push(out_b);
             below = b;
         }
@@ -129,7 +155,7 @@ impl GpuUNet {
         for head in first_head..self.layers.len() {
             let out = buffer("U-Net head", head_floats)?;
             let source = (&outputs[below], self.layers[head].inputs as u32, false);
-            self.conv(&mut encoder, head, full, source, (&empty, 0), &out);
+            self.conv(&mut encoder, head, full, source, (&empty, 0), mask(head), &out);
             let readback = device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("U-Net readback"),
                 size: 4 * head_floats,
@@ -146,7 +172,9 @@ impl GpuUNet {
     }
 
     /// Records layer `index` over a `w x h` image: input `a` (`ca` channels, at half
-    /// resolution when `a_half`) then `b` (`cb` channels) per pixel, into `out`.
+    /// resolution when `a_half`) then `b` (`cb` channels) per pixel, into `out`; only the
+    /// pixels of the layer's mask (bit-packed at a word offset of `masks`) when it has one.
+    #[allow(clippy::too_many_arguments)]
     fn conv(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -154,6 +182,7 @@ impl GpuUNet {
         (w, h): (u32, u32),
         (a, ca, a_half): (&wgpu::Buffer, u32, bool),
         (b, cb): (&wgpu::Buffer, u32),
+        (masks, mask_offset): (&wgpu::Buffer, Option<u32>),
         out: &wgpu::Buffer,
     ) {
         let layer = self.layers[index];
@@ -167,12 +196,12 @@ impl GpuUNet {
             u32::from(layer.relu),
             u32::from(a_half),
             self.offsets[index],
-            0,
-            0,
+            u32::from(mask_offset.is_some()),
+            mask_offset.unwrap_or(0),
             0,
         ];
         let values = u64::from(w) * u64::from(h) * layer.outputs as u64;
-        self.dispatch(encoder, &self.conv, &words, &[&self.params, a, b, out], values);
+        self.dispatch(encoder, &self.conv, &words, &[&self.params, a, b, out, masks], values);
     }
 
     fn pool_into(
@@ -219,10 +248,35 @@ impl GpuUNet {
     }
 }
 
+/// Every layer's mask bit-packed (pixel `p` of layer `i` is bit `p % 32` of word
+/// `offsets[i] + p / 32`), and those offsets; one unused word and `None` without masks.
+fn pack_masks(masks: Option<&[PixelMask]>) -> (Vec<u32>, Option<Vec<u32>>) {
+    let Some(masks) = masks else { return (vec![0], None) };
+    let mut words = Vec::new();
+    let mut offsets = Vec::with_capacity(masks.len());
+    for mask in masks {
+        offsets.push(words.len() as u32);
+        let (w, h) = (mask.width(), mask.height());
+        let start = words.len();
+        words.resize(start + (w * h).div_ceil(32), 0);
+        for p in (0..w * h).filter(|&p| mask.get(p % w, p / w)) {
+            words[start + p / 32] |= 1 << (p % 32);
+        }
+    }
+    words.push(0);
+    (words, Some(offsets))
+}
+
 /// The farm's GI kernel runs its networks through this ([`nephele_kernels::gi::UNetDevice`]).
 impl nephele_kernels::gi::UNetDevice for GpuUNet {
-    fn forward(&self, width: usize, height: usize, input: &[f32]) -> Result<Vec<Vec<f32>>, String> {
-        GpuUNet::forward(self, width, height, input).map_err(|e| e.to_string())
+    fn forward(
+        &self,
+        width: usize,
+        height: usize,
+        input: &[f32],
+        needed: Option<&PixelMask>,
+    ) -> Result<Vec<Vec<f32>>, String> {
+        GpuUNet::forward_masked(self, width, height, input, needed).map_err(|e| e.to_string())
     }
 
     fn label(&self) -> String {

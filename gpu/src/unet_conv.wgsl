@@ -4,7 +4,9 @@
 // network's one parameter buffer. The input is `a` then `b` per pixel (the decoder's
 // concatenation, read in place): `a` at half resolution with nearest upsampling when
 // `a_half` is 1 (the level below), `b` (the skip) at full resolution; `cb` is 0 elsewhere.
-// One invocation per output value.
+// One invocation per output value. With `masked` 1 only the pixels whose bit is set in
+// `mask` (bit `pixel % 32` of word `mask_offset + pixel / 32`) are computed, the others
+// written 0 (the CPU's `conv_forward_masked` computes the same set).
 
 struct ConvParams {
     width: u32,
@@ -16,9 +18,9 @@ struct ConvParams {
     relu: u32,
     a_half: u32,
     weights: u32,
+    masked: u32,
+    mask_offset: u32,
     pad0: u32,
-    pad1: u32,
-    pad2: u32,
 };
 
 @group(0) @binding(0) var<uniform> p: ConvParams;
@@ -26,6 +28,7 @@ struct ConvParams {
 @group(0) @binding(2) var<storage, read> in_a: array<f32>;
 @group(0) @binding(3) var<storage, read> in_b: array<f32>;
 @group(0) @binding(4) var<storage, read_write> out: array<f32>;
+@group(0) @binding(5) var<storage, read> mask: array<u32>;
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -35,6 +38,10 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     }
     let o = index % p.co;
     let pixel = index / p.co;
+    if (p.masked == 1u && ((mask[p.mask_offset + pixel / 32u] >> (pixel % 32u)) & 1u) == 0u) {
+        out[index] = 0.0;
+        return;
+    }
     let x = i32(pixel % p.width);
     let y = i32(pixel / p.width);
     let ci = p.ca + p.cb;

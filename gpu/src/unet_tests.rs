@@ -49,6 +49,53 @@ fn the_wgsl_unet_agrees_with_the_cpu_forward() {
     }
 }
 
+/// The masked pass (the room's pixels that objects cover are not shaded) against the CPU's:
+/// masks with a covered blob, isolated pixels, whole borders and nothing at all; the needed
+/// pixels within the tolerance of the CPU's, every other output pixel exactly 0 on both.
+#[test]
+fn the_masked_wgsl_unet_agrees_with_the_cpu_masked_forward() {
+    use nephele_nn::PixelMask;
+    let ctx = context();
+    for (eyes, channels, (w, h), seed) in [(1, vec![4, 8], (16, 12), 6), (2, vec![8, 16, 32], (24, 16), 7)] {
+        let config = UNetConfig { inputs: 13, eyes, outputs: 3, channels };
+        let net = UNet::new(config.clone(), seed).expect("network");
+        let gpu_net = GpuUNet::new(ctx.clone(), &net).expect("gpu network");
+        let input = inputs(w * h * eyes * 13, seed as u32);
+        let blob = move |x: usize, y: usize| !(x > w / 4 && x < 3 * w / 4 && y > h / 5 && y < 4 * h / 5);
+        type Selects = Box<dyn Fn(usize, usize) -> bool>;
+        let masks: [(&str, Selects); 4] = [
+            ("outside a covered blob", Box::new(blob)),
+            ("isolated pixels", Box::new(|x, y| (x * 7 + y * 3) % 11 == 0)),
+            ("the borders", Box::new(move |x, y| x == 0 || y == 0 || x == w - 1 || y == h - 1)),
+            ("nothing", Box::new(|_, _| false)),
+        ];
+        for (what, selected) in masks {
+            let flags: Vec<bool> = (0..w * h).map(|p| selected(p % w, p / w)).collect();
+            let needed = PixelMask::from_flags(w, h, flags.clone()).expect("mask");
+            let mut ws = UNetWorkspace::new();
+            let cpu: Vec<Vec<f32>> = net
+                .forward_masked(w, h, &input, Some(&needed), &mut ws)
+                .expect("cpu")
+                .iter()
+                .map(|s| s.to_vec())
+                .collect();
+            let gpu = gpu_net.forward_masked(w, h, &input, Some(&needed)).expect("gpu");
+            assert_eq!(gpu.len(), eyes);
+            for (c, g) in cpu.iter().zip(&gpu) {
+                for (i, (a, b)) in c.iter().zip(g).enumerate() {
+                    if !flags[i / 3] {
+                        assert!(*a == 0.0 && *b == 0.0, "{what} {w}x{h} [{i}]: not needed, cpu {a} gpu {b}");
+                    }
+                    assert!(
+                        b.is_finite() && (a - b).abs() <= TOLERANCE * a.abs().max(1.0),
+                        "{what} {config:?} {w}x{h} [{i}]: cpu {a} gpu {b}"
+                    );
+                }
+            }
+        }
+    }
+}
+
 #[test]
 fn bad_sizes_and_inputs_are_refused() {
     let net = UNet::new(UNetConfig { inputs: 13, eyes: 1, outputs: 3, channels: vec![4, 8] }, 1).expect("net");

@@ -33,9 +33,10 @@
 //! rays to the room's lights that it stops bring no direct light, so the network, which
 //! turns direct light into global illumination, darkens the room under and behind them.
 //!
+//! The GPU twin of the network takes the same mask ([`GiDevices`]).
+//!
 //! Not yet: the G-buffer's camera rays are still traced behind the objects (the network's
-//! halo reads them, and a ray's hit decides whether it is covered); the GPU twin of the
-//! network runs every pixel; the objects' light on the room (they absorb what reaches them; no bounce off
+//! halo reads them, and a ray's hit decides whether it is covered); the objects' light on the room (they absorb what reaches them; no bounce off
 //! them), shadows of the glass shell (no solid grid), the ball's motion (the room is
 //! rendered at one moment, [`GiServeSettings::time_s`]).
 
@@ -319,7 +320,7 @@ impl GiKernel {
             (Some(stereo), [left, right]) => {
                 let eyes = [left.1.as_slice(), right.1.as_slice()];
                 let shaded = match stereo_device {
-                    Some(device) => stereo.shade_on(device, w, h, &eyes),
+                    Some(device) => stereo.shade_on(device, w, h, &eyes, needed),
                     None => stereo.shade_where(w, h, &eyes, needed, &mut ws).inspect(|_| count(&ws)),
                 }
                 .map_err(failed)?;
@@ -330,7 +331,7 @@ impl GiKernel {
             _ => {
                 for (_, pixels) in &buffers {
                     let shaded = match single_device {
-                        Some(device) => self.single.shade_on(device, w, h, &[pixels]),
+                        Some(device) => self.single.shade_on(device, w, h, &[pixels], needed),
                         None => self.single.shade_where(w, h, &[pixels], needed, &mut ws).inspect(|_| count(&ws)),
                     }
                     .map_err(failed)?;

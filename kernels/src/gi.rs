@@ -124,9 +124,16 @@ pub enum GiModelError {
 
 /// A U-Net's forward pass on another device than the CPU: the GPU crate's WGSL twin
 /// (`nephele_gpu::GpuUNet`), resident there with its parameters. The same inputs and outputs
-/// as [`UNet::forward`] (pixel-major, eyes interleaved; one output image per head, left first).
+/// as [`UNet::forward_masked`] (pixel-major, eyes interleaved; one output image per head, left
+/// first; with `needed`, only those output pixels computed, the others 0).
 pub trait UNetDevice: Send + Sync + std::fmt::Debug {
-    fn forward(&self, width: usize, height: usize, input: &[f32]) -> Result<Vec<Vec<f32>>, String>;
+    fn forward(
+        &self,
+        width: usize,
+        height: usize,
+        input: &[f32],
+        needed: Option<&PixelMask>,
+    ) -> Result<Vec<Vec<f32>>, String>;
     /// The device, for logs and errors.
     fn label(&self) -> String;
 }
@@ -250,7 +257,7 @@ impl GiModel {
         Ok(Shaded { eyes: heads.iter().map(|head| decode_image(head)).collect(), non_finite_inputs: bad })
     }
 
-    /// [`Self::shade`] with the network run on `device` (which must hold this model's
+    /// [`Self::shade_where`] with the network run on `device` (which must hold this model's
     /// network: [`UNetDevice`]).
     pub fn shade_on(
         &self,
@@ -258,10 +265,11 @@ impl GiModel {
         width: usize,
         height: usize,
         eyes: &[&[GBufferPixel]],
+        needed: Option<&PixelMask>,
     ) -> Result<Shaded, GiModelError> {
         let (input, bad) = self.inputs(width, height, eyes)?;
         let failed = |message: String| GiModelError::Device { device: device.label(), message };
-        let heads = device.forward(width, height, &input).map_err(failed)?;
+        let heads = device.forward(width, height, &input, needed).map_err(failed)?;
         let expected = width * height * GI_OUTPUTS;
         if heads.len() != self.eyes() || heads.iter().any(|h| h.len() != expected) {
             return Err(failed(format!("{} heads for a {}-eye model", heads.len(), self.eyes())));
@@ -393,11 +401,17 @@ mod tests {
     }
 
     impl UNetDevice for CpuDevice {
-        fn forward(&self, width: usize, height: usize, input: &[f32]) -> Result<Vec<Vec<f32>>, String> {
+        fn forward(
+            &self,
+            width: usize,
+            height: usize,
+            input: &[f32],
+            needed: Option<&PixelMask>,
+        ) -> Result<Vec<Vec<f32>>, String> {
             let mut ws = UNetWorkspace::new();
             let mut heads: Vec<Vec<f32>> = self
                 .network
-                .forward(width, height, input, &mut ws)
+                .forward_masked(width, height, input, needed, &mut ws)
                 .map_err(|e| e.to_string())?
                 .iter()
                 .map(|h| h.to_vec())
@@ -428,10 +442,10 @@ mod tests {
         let eyes = [pixels.as_slice(), pixels.as_slice()];
         let cpu = m.shade(4, 4, &eyes, &mut UNetWorkspace::new()).expect("cpu");
         let device = CpuDevice { network: m.network.clone(), drop_a_head: false };
-        assert_eq!(m.shade_on(&device, 4, 4, &eyes).expect("device"), cpu);
+        assert_eq!(m.shade_on(&device, 4, 4, &eyes, None).expect("device"), cpu);
         let broken = CpuDevice { network: m.network.clone(), drop_a_head: true };
-        let err = m.shade_on(&broken, 4, 4, &eyes).expect_err("one head for two eyes");
+        let err = m.shade_on(&broken, 4, 4, &eyes, None).expect_err("one head for two eyes");
         assert!(err.to_string().contains("test device"), "{err}");
-        assert!(m.shade_on(&device, 4, 4, &eyes[..1]).is_err(), "one eye for a stereo model");
+        assert!(m.shade_on(&device, 4, 4, &eyes[..1], None).is_err(), "one eye for a stereo model");
     }
 }

@@ -64,6 +64,57 @@ pub struct UNetConfig {
 }
 
 impl UNetConfig {
+    /// The output pixels each convolution (in [`UNetConfig::layers`] order) must compute for
+    /// the network's output at the pixels `needed` selects: walking back from the heads, a
+    /// 3x3 convolution needs its input one pixel around what it computes, an upsampling the
+    /// coarse pixels under it, a pooling the fine 2x2 blocks, a concatenation both halves.
+    pub fn layer_masks(&self, width: usize, height: usize, needed: &PixelMask) -> Result<Vec<PixelMask>, NnError> {
+        let c = self;
+        c.check_size(width, height)?;
+        if (needed.width(), needed.height()) != (width, height) {
+            return Err(NnError::Config(format!(
+                "a {}x{} mask for a {width}x{height} image",
+                needed.width(),
+                needed.height()
+            )));
+        }
+        let layers = c.layers();
+        let levels = c.levels();
+        let mut masks: Vec<PixelMask> = (0..layers.len())
+            .map(|i| PixelMask::none(width >> level_of(i, levels), height >> level_of(i, levels)))
+            .collect();
+        // What a layer reads of its input for the pixels it computes.
+        let read = |masks: &[PixelMask], i: usize| masks[i].dilated(layers[i].kernel / 2);
+        let first_head = layers.len() - c.eyes;
+        for head in first_head..layers.len() {
+            masks[head] = needed.clone();
+            let input = read(&masks, head);
+            masks[first_head - 1].union_with(&input);
+        }
+        // Decoder, finest level first: step `s` works at level `levels - 2 - s`.
+        for step in (0..levels - 1).rev() {
+            let level = levels - 2 - step;
+            let (a, b) = (2 * levels + 2 * step, 2 * levels + 2 * step + 1);
+            let input = read(&masks, b);
+            masks[a].union_with(&input);
+            let joined = read(&masks, a);
+            masks[2 * level + 1].union_with(&joined);
+            let below = if step == 0 { 2 * levels - 1 } else { b - 2 };
+            masks[below].union_with(&joined.coarsened());
+        }
+        // Encoder, coarsest level first.
+        for level in (0..levels).rev() {
+            let (a, b) = (2 * level, 2 * level + 1);
+            let input = read(&masks, b);
+            masks[a].union_with(&input);
+            if level > 0 {
+                let pooled = read(&masks, a);
+                masks[2 * level - 1].union_with(&pooled.refined());
+            }
+        }
+        Ok(masks)
+    }
+
     pub fn validate(&self) -> Result<(), NnError> {
         if self.inputs == 0 || self.outputs == 0 || !(self.eyes == 1 || self.eyes == 2) {
             return Err(NnError::Config(format!(
@@ -366,55 +417,10 @@ impl UNet {
         Ok(ws.outputs[first_head..].iter().map(Vec::as_slice).collect())
     }
 
-    /// The output pixels each convolution (in [`UNetConfig::layers`] order) must compute for
-    /// the network's output at the pixels `needed` selects: walking back from the heads, a
-    /// 3x3 convolution needs its input one pixel around what it computes, an upsampling the
-    /// coarse pixels under it, a pooling the fine 2x2 blocks, a concatenation both halves.
+    /// The output pixels each convolution must compute for the output at the pixels `needed`
+    /// selects ([`UNetConfig::layer_masks`]).
     pub fn layer_masks(&self, width: usize, height: usize, needed: &PixelMask) -> Result<Vec<PixelMask>, NnError> {
-        let c = &self.config;
-        c.check_size(width, height)?;
-        if (needed.width(), needed.height()) != (width, height) {
-            return Err(NnError::Config(format!(
-                "a {}x{} mask for a {width}x{height} image",
-                needed.width(),
-                needed.height()
-            )));
-        }
-        let layers = c.layers();
-        let levels = c.levels();
-        let mut masks: Vec<PixelMask> = (0..layers.len())
-            .map(|i| PixelMask::none(width >> level_of(i, levels), height >> level_of(i, levels)))
-            .collect();
-        // What a layer reads of its input for the pixels it computes.
-        let read = |masks: &[PixelMask], i: usize| masks[i].dilated(layers[i].kernel / 2);
-        let first_head = layers.len() - c.eyes;
-        for head in first_head..layers.len() {
-            masks[head] = needed.clone();
-            let input = read(&masks, head);
-            masks[first_head - 1].union_with(&input);
-        }
-        // Decoder, finest level first: step `s` works at level `levels - 2 - s`.
-        for step in (0..levels - 1).rev() {
-            let level = levels - 2 - step;
-            let (a, b) = (2 * levels + 2 * step, 2 * levels + 2 * step + 1);
-            let input = read(&masks, b);
-            masks[a].union_with(&input);
-            let joined = read(&masks, a);
-            masks[2 * level + 1].union_with(&joined);
-            let below = if step == 0 { 2 * levels - 1 } else { b - 2 };
-            masks[below].union_with(&joined.coarsened());
-        }
-        // Encoder, coarsest level first.
-        for level in (0..levels).rev() {
-            let (a, b) = (2 * level, 2 * level + 1);
-            let input = read(&masks, b);
-            masks[a].union_with(&input);
-            if level > 0 {
-                let pooled = read(&masks, a);
-                masks[2 * level - 1].union_with(&pooled.refined());
-            }
-        }
-        Ok(masks)
+        self.config.layer_masks(width, height, needed)
     }
 
     /// Backward pass of the last [`UNet::forward`] with `ws`: `d_heads` holds the loss
