@@ -557,7 +557,9 @@ impl Scheduler {
         }
         // A young estimate is mostly its session's first frames, rendered whole before any
         // previous frame could be reused: it falls within a second or so, so ask again soon.
-        let settling = self.sessions.values().any(|s| s.released < ESTIMATE_SETTLING_FRAMES);
+        // A session that has released nothing has no estimate of its own (and may never get
+        // one: a viewer that never sends a pose), so it does not count.
+        let settling = self.sessions.values().any(|s| (1..ESTIMATE_SETTLING_FRAMES).contains(&s.released));
         Some(if settling { self.config.capacity_retry.min(SETTLING_RETRY) } else { self.config.capacity_retry })
     }
 

@@ -693,8 +693,12 @@ fn admission_looks_ahead_at_the_farms_capacity() {
     );
     assert!(d.is_ok(), "a slower one still fits: {d:?}");
     assert_eq!((s.stats().sessions_refused, s.stats().sessions_refused_capacity), (1, 1));
-    // Once every admitted session's estimate has settled, the refusal says 5 s.
+    // Once every admitted session's estimate has settled, the refusal says 5 s; a session
+    // that has released no frame (no estimate of its own, perhaps never) does not hold it at 1 s.
     s.sessions.values_mut().for_each(|x| x.released = ESTIMATE_SETTLING_FRAMES);
+    if let Some(x) = s.sessions.values_mut().next() {
+        x.released = 0;
+    }
     let fps = s.sessions.values().map(|x| x.fps).fold(0.0, f64::max);
     let c = s.open_session(SessionSpec { target_fps: fps, objects: vec![OBJ] }, ms(6));
     assert!(matches!(c, Err(SchedError::Refused { retry_after }) if retry_after == Duration::from_secs(5)), "{c:?}");
