@@ -36,9 +36,10 @@
 //! The GPU twin of the network takes the same mask ([`GiDevices`]).
 //!
 //! Not yet: the G-buffer's camera rays are still traced behind the objects (the network's
-//! halo reads them, and a ray's hit decides whether it is covered); the objects' light on the room (they absorb what reaches them; no bounce off
-//! them), shadows of the glass shell (no solid grid), the ball's motion (the room is
-//! rendered at one moment, [`GiServeSettings::time_s`]).
+//! halo reads them, and a ray's hit decides whether it is covered); the objects' light on
+//! the room (they absorb what reaches them; no bounce off them), shadows of the glass shell
+//! (no solid grid), the ball's motion (the room is rendered at one moment,
+//! [`GiServeSettings::time_s`]).
 
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};

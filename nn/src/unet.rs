@@ -69,8 +69,7 @@ impl UNetConfig {
     /// 3x3 convolution needs its input one pixel around what it computes, an upsampling the
     /// coarse pixels under it, a pooling the fine 2x2 blocks, a concatenation both halves.
     pub fn layer_masks(&self, width: usize, height: usize, needed: &PixelMask) -> Result<Vec<PixelMask>, NnError> {
-        let c = self;
-        c.check_size(width, height)?;
+        self.check_size(width, height)?;
         if (needed.width(), needed.height()) != (width, height) {
             return Err(NnError::Config(format!(
                 "a {}x{} mask for a {width}x{height} image",
@@ -78,14 +77,14 @@ impl UNetConfig {
                 needed.height()
             )));
         }
-        let layers = c.layers();
-        let levels = c.levels();
+        let layers = self.layers();
+        let levels = self.levels();
         let mut masks: Vec<PixelMask> = (0..layers.len())
             .map(|i| PixelMask::none(width >> level_of(i, levels), height >> level_of(i, levels)))
             .collect();
         // What a layer reads of its input for the pixels it computes.
         let read = |masks: &[PixelMask], i: usize| masks[i].dilated(layers[i].kernel / 2);
-        let first_head = layers.len() - c.eyes;
+        let first_head = layers.len() - self.eyes;
         for head in first_head..layers.len() {
             masks[head] = needed.clone();
             let input = read(&masks, head);

@@ -60,13 +60,13 @@ use crate::assign::{self, CameraKey, OccupancyGrid, PixelSet, TaskClass};
 use crate::config::{MAX_FPS, Policy, SchedulerConfig};
 use crate::history::{History, ResultKey};
 use crate::snapshot::{FarmSnapshot, QueueSnapshot, SessionSnapshot, Stats, WorkerSnapshot};
+use crate::{BatchId, FrameId, IdMap, ObjectId, SchedError, SessionId, TaskId, Time, WorkerId};
 
 /// Frames after which a session's work estimate counts as settled (with the default
 /// smoothing 0.2 its first frame then weighs under 11 %).
 const ESTIMATE_SETTLING_FRAMES: u64 = 10;
 /// `Retry-After` of a capacity refusal while some admitted session's estimate is settling.
 const SETTLING_RETRY: Duration = Duration::from_secs(1);
-use crate::{BatchId, FrameId, IdMap, ObjectId, SchedError, SessionId, TaskId, Time, WorkerId};
 
 /// An object instance the farm can render.
 #[derive(Debug, Clone, PartialEq)]
