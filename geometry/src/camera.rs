@@ -20,7 +20,7 @@
 //! `fx = P00 w / 2`, `cx = (1 - P02) w / 2`, `fy = P11 h / 2`, `cy = (1 + P12) h / 2`;
 //! [`Camera::from_view_projection`] applies this and [`Camera::projection_matrix`] inverts it.
 
-use glam::{Affine3A, Mat3, Mat4, Vec2, Vec3, Vec4};
+use glam::{Affine3A, Mat3, Mat4, Quat, Vec2, Vec3, Vec4};
 use std::f32::consts::PI;
 
 /// Largest accepted image side, in pixels.
@@ -440,6 +440,34 @@ impl Camera {
         let (w, h, intrinsics) = (self.width, self.height, (self.fx, self.fy, cx, cy));
         Self::from_parts(w, h, intrinsics, camera_to_world, world_to_camera)
     }
+
+    /// Where this camera will be if it goes on moving as it did since `earlier`: `k` times the
+    /// motion from `earlier` to `self` added again (position along the line, orientation about
+    /// the same axis at the same rate; `k = 1` one more step). Intrinsics and size are this
+    /// camera's. `None` when the two differ in image size or the motion is not a number;
+    /// `k` is clamped to `[0, 8]` (a prediction farther out is a guess). The scheduler's
+    /// render-ahead predicts a user's next pose with it (issue 16).
+    pub fn extrapolate(&self, earlier: &Camera, k: f32) -> Option<Camera> {
+        if (self.width, self.height) != (earlier.width, earlier.height) || !k.is_finite() {
+            return None;
+        }
+        let k = k.clamp(0.0, 8.0);
+        let rotation = |c: &Camera| Quat::from_mat3(&Mat3::from_mat4(c.camera_to_world)).normalize();
+        let (from, to) = (rotation(earlier), rotation(self));
+        // The step's rotation, taken the short way round, scaled by `k` about its axis.
+        let mut step = (to * from.inverse()).normalize();
+        if step.w < 0.0 {
+            step = -step;
+        }
+        let (axis, angle) = step.to_axis_angle();
+        let turn = if angle.abs() < 1e-7 { Quat::IDENTITY } else { Quat::from_axis_angle(axis, angle * k) };
+        let position = self.position() + (self.position() - earlier.position()) * k;
+        let pose = Mat4::from_rotation_translation((turn * to).normalize(), position);
+        if !pose.is_finite() {
+            return None;
+        }
+        Camera::from_intrinsics(self.width, self.height, self.fx, self.fy, self.cx, self.cy, pose).ok()
+    }
 }
 
 /// Stereo rig: two cameras offset by ±ipd/2 along the centre camera's +X (left eye at -X), same
@@ -510,6 +538,43 @@ mod tests {
             let (a, b, tol) = ($a, $b, $tol);
             assert!((a - b).abs().max_element() <= tol, "{a} != {b} (tol {tol})");
         }};
+    }
+
+    #[test]
+    fn extrapolation_goes_on_along_an_orbit_and_a_turn() {
+        let orbit = |degrees: f32| {
+            let a = degrees.to_radians();
+            Camera::look_at(64, 48, 0.9, Vec3::new(3.0 * a.sin(), -3.0 * a.cos(), 0.7), Vec3::ZERO, Vec3::Z)
+                .expect("camera")
+        };
+        // 2 degrees a frame about the object: one and two frames ahead.
+        for (k, degrees) in [(1.0, 4.0), (2.0, 6.0), (0.5, 3.0)] {
+            let predicted = orbit(2.0).extrapolate(&orbit(0.0), k).expect("prediction");
+            let truth = orbit(degrees);
+            // The position goes on along the chord: off the circle by about r * angle^2.
+            let chord_error = 3.0 * (degrees - 2.0f32).to_radians().powi(2) * 2.0;
+            assert_near!(predicted.position(), truth.position(), chord_error);
+            assert_near!(predicted.forward(), (Vec3::ZERO - predicted.position()).normalize(), 2e-2);
+            assert_near!(predicted.up(), truth.up(), 1e-4);
+            assert_eq!(predicted.intrinsics(), truth.intrinsics());
+        }
+        // A head turning in place: the position stays, the turn goes on exactly.
+        let turn = |degrees: f32| {
+            let pose = Mat4::from_rotation_translation(Quat::from_rotation_y(degrees.to_radians()), Vec3::ONE);
+            Camera::from_fov_x(32, 32, 1.0, pose).expect("camera")
+        };
+        let predicted = turn(10.0).extrapolate(&turn(7.0), 2.0).expect("prediction");
+        assert_near!(predicted.position(), Vec3::ONE, 1e-6);
+        assert_near!(predicted.forward(), turn(16.0).forward(), 1e-5);
+        // Standing still, k = 0, another image size, a non-finite k.
+        let still = turn(5.0).extrapolate(&turn(5.0), 3.0).expect("prediction");
+        assert_near!(still.forward(), turn(5.0).forward(), 1e-6);
+        assert_near!(orbit(2.0).extrapolate(&orbit(0.0), 0.0).expect("k = 0").position(), orbit(2.0).position(), 1e-6);
+        assert!(turn(5.0).extrapolate(&orbit(0.0), 1.0).is_none());
+        assert!(orbit(2.0).extrapolate(&orbit(0.0), f32::NAN).is_none());
+        // Far out is clamped: k = 100 goes 8 steps.
+        let far = turn(1.0).extrapolate(&turn(0.0), 100.0).expect("prediction");
+        assert_near!(far.forward(), turn(9.0).forward(), 1e-5);
     }
 
     #[test]

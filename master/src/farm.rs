@@ -203,7 +203,13 @@ impl Farm {
         config: FarmConfig,
         catalog: Catalog,
     ) -> Result<(Farm, tokio::task::JoinHandle<()>, mpsc::UnboundedReceiver<String>), SchedError> {
-        let mut scheduler = Scheduler::new(config.scheduler.clone())?;
+        let mut scheduler_config = config.scheduler.clone();
+        if config.previous_frames == 0 {
+            // A render ahead is used as the worker's previous render of the view: nothing to
+            // render it for when workers keep none.
+            scheduler_config.render_ahead = None;
+        }
+        let mut scheduler = Scheduler::new(scheduler_config)?;
         for object in catalog.objects() {
             let occupancy = catalog.occupancy(&object.asset).cloned();
             let full_frame = catalog.is_environment(&object.asset);
@@ -235,6 +241,7 @@ impl Farm {
             pose_to_plan_ms: Samples::default(),
             previous_frames: config.previous_frames.min(ReuseLimits::MAX_PREVIOUS_FRAMES),
         };
+
         let task = tokio::spawn(actor.run(receiver));
         let inner = Inner {
             events,
@@ -952,7 +959,12 @@ impl Actor {
             tracing::error!(object = batch.object.0, "batch for an object not in the catalog");
             return;
         };
-        let (session, frame) = batch.frames.first().copied().unwrap_or((SessionId(0), FrameId(0)));
+        // A render ahead feeds no frame: it names its session (whose previous render it
+        // becomes on the worker) and no frame.
+        let (session, frame) = match batch.ahead_for {
+            Some(session) => (session, FrameId(u64::MAX)),
+            None => batch.frames.first().copied().unwrap_or((SessionId(0), FrameId(0))),
+        };
         // An environment need not light what the objects in front of it hide, in every
         // session the batch feeds (issue 13).
         let occluders = if self.catalog.is_environment(&object.asset) {
@@ -998,6 +1010,7 @@ impl Actor {
             reuse: ReuseLimits {
                 previous_frames: self.previous_frames,
                 rows_complete: batch.rows_complete,
+                ahead: batch.ahead_for.is_some(),
                 ..ReuseLimits::default()
             },
             occluders,

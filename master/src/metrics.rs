@@ -186,6 +186,13 @@ impl Collector for FarmCollector {
             ("tasks_created", "Ray tasks created", s.tasks_created),
             ("shared_joins", "Views that joined a live task (rendered once, fanned out)", s.shared_joins),
             ("history_hits", "Views served from the history table", s.history_hits),
+            ("ahead_tasks", "Views rendered ahead of their frames while the farm was idle", s.ahead_tasks),
+            ("ahead_rays", "Rays of the views rendered ahead", s.ahead_rays),
+            (
+                "ahead_views_covered",
+                "Predicted views left to a render ahead of another user's view near them",
+                s.ahead_views_covered,
+            ),
             ("rays_requested", "Rays the frames asked for", s.rays_requested),
             ("rays_dispatched", "Rays sent to workers, re-issues included", s.rays_dispatched),
             ("rays_completed", "Rays of batches that came back", s.rays_completed),

@@ -47,7 +47,8 @@ pub const MAGIC: [u8; 4] = *b"NPHL";
 ///    (`ReuseLimits::previous_frames`).
 /// 9: an environment's batch carries the solid matter of the objects standing in it
 ///    (`RayBatch::occluders`).
-pub const PROTOCOL_VERSION: u16 = 9;
+/// 10: renders ahead of a session's next frames (`ReuseLimits::ahead`).
+pub const PROTOCOL_VERSION: u16 = 10;
 
 /// The [`ErrorMessage`] that tells a peer why its connection is being closed.
 pub fn error_message(error: &ProtoError) -> Message {

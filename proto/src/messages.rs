@@ -238,6 +238,11 @@ pub struct ReuseLimits {
     /// bounding box it lacks are empty space; otherwise they are unknown, and whatever a
     /// later view reads there is rendered.
     pub rows_complete: bool,
+    /// A render ahead of the session's next frames (issue 16, the scheduler's render-ahead
+    /// while the farm is idle): render it in full, keep it as the session's previous render
+    /// of this view of the asset (to serve its next `previous_frames` batches), and send no
+    /// result, since no frame shows it. Needs `previous_frames >= 1` and no derived views.
+    pub ahead: bool,
 }
 
 impl ReuseLimits {
@@ -253,7 +258,7 @@ impl Default for ReuseLimits {
     /// The defaults of `nephele_share::Settings` (BENCHMARKS.md, "Shared rays between adjacent
     /// views"): 6 degrees, contrast 0.2; no reuse of previous frames.
     fn default() -> ReuseLimits {
-        ReuseLimits { max_angle_deg: 6.0, max_contrast: 0.2, previous_frames: 0, rows_complete: false }
+        ReuseLimits { max_angle_deg: 6.0, max_contrast: 0.2, previous_frames: 0, rows_complete: false, ahead: false }
     }
 }
 

@@ -92,6 +92,8 @@ fn reuse_limits() -> impl Strategy<Value = ReuseLimits> {
             max_contrast,
             previous_frames,
             rows_complete,
+            // Valid batches hold derived views, which a render ahead may not.
+            ahead: false,
         })
 }
 
@@ -630,6 +632,19 @@ fn derived_views_and_reuse_limits_are_checked() {
     }
     let mut bad = batch.clone();
     bad.reuse.previous_frames = ReuseLimits::MAX_PREVIOUS_FRAMES + 1;
+    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::Count { .. }));
+    // A render ahead: kept for later batches (previous_frames >= 1), no derived views.
+    let mut ahead = batch.clone();
+    ahead.derived.clear();
+    ahead.reuse = ReuseLimits { previous_frames: 3, ahead: true, ..ReuseLimits::default() };
+    let mut bytes = Vec::new();
+    encode_frame(&Message::RayBatch(ahead.clone()), &mut bytes, &cfg()).expect("valid");
+    assert_eq!(decode_one(&bytes).expect("frame").expect("valid"), Message::RayBatch(ahead.clone()));
+    let mut bad = ahead.clone();
+    bad.reuse.previous_frames = 0;
+    assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::Count { .. }));
+    let mut bad = ahead;
+    bad.derived = batch.derived.clone();
     assert!(matches!(rejected(&unchecked(MessageKind::RayBatch, &bad)).error, ValidationError::Count { .. }));
     let mut bad = batch;
     bad.derived = vec![bad.derived[0].clone(); validate::MAX_VIEWS as usize + 1];

@@ -172,8 +172,18 @@ fn ray_batch(m: &RayBatch) -> Result<(), ValidationError> {
     for grid in &m.occluders {
         grid.validate()?;
     }
-    let ReuseLimits { max_angle_deg, max_contrast, previous_frames, .. } = m.reuse;
+    let ReuseLimits { max_angle_deg, max_contrast, previous_frames, ahead, .. } = m.reuse;
     count("reuse previous_frames", previous_frames as usize, 0, ReuseLimits::MAX_PREVIOUS_FRAMES as usize)?;
+    if ahead {
+        // Kept to serve the session's next batches, and shown by no frame.
+        count(
+            "reuse previous_frames of a render ahead",
+            previous_frames as usize,
+            1,
+            ReuseLimits::MAX_PREVIOUS_FRAMES as usize,
+        )?;
+        count("derived views of a render ahead", m.derived.len(), 0, 0)?;
+    }
     if !(0.0..=90.0).contains(&max_angle_deg) {
         return Err(ValidationError::OutOfRange {
             field: "reuse max_angle_deg",

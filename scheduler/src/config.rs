@@ -105,6 +105,27 @@ pub struct DerivedViews {
     pub work_fraction: f64,
 }
 
+/// The history table renders ahead (issue 16, NEPHELE eq. 12): while the farm has spare
+/// capacity (nothing waits, every worker idle), each moving user's next view of each object
+/// is predicted from its last two poses and rendered before the frame asks for it, the views
+/// that the most users' views lie near first. The worker keeps such a render as the user's
+/// source for its next frames (`nephele_worker`'s previous renders), so the frame takes it by
+/// reprojection and renders only the leftovers; nothing of it is shown by itself. A busy farm
+/// never renders ahead.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RenderAhead {
+    /// Share of the farm's time until the next frame release that ahead work may take (the
+    /// rest is margin for the throughput estimate's error: a frame released while ahead work
+    /// still runs waits behind it).
+    pub budget_fraction: f64,
+}
+
+impl Default for RenderAhead {
+    fn default() -> RenderAhead {
+        RenderAhead { budget_fraction: 0.5 }
+    }
+}
+
 impl Default for DerivedViews {
     fn default() -> DerivedViews {
         DerivedViews { max_view_angle_deg: 4.0, work_fraction: 0.45 }
@@ -140,6 +161,11 @@ pub struct SchedulerConfig {
     pub derived_views: Option<DerivedViews>,
     /// Entries of the history table of recent results (0 disables it).
     pub history_capacity: usize,
+    /// Views rendered ahead of their frames while the farm is idle (`None`: never). Off by
+    /// default: it pays only where workers keep previous renders for reuse and the farm's
+    /// idle time is not the machine's (BENCHMARKS.md, 2026-12-07: on two cores shared with
+    /// the composer it cost latency); `nephele master --render-ahead` turns it on.
+    pub render_ahead: Option<RenderAhead>,
     /// How old a history entry may be and still be reused (static objects only; the age bounds
     /// the staleness of anything animated).
     pub history_max_age: Duration,
@@ -206,6 +232,7 @@ impl SchedulerConfig {
             sharing: nephele.then(ShareTolerance::default),
             derived_views: nephele.then(DerivedViews::default),
             history_capacity: if nephele { 4096 } else { 0 },
+            render_ahead: None,
             history_max_age: Duration::from_millis(500),
             admission_control: nephele,
             admission_hold: Duration::from_secs(1),
@@ -252,6 +279,11 @@ impl SchedulerConfig {
             if !steps.iter().all(|s| s.is_finite() && *s > 0.0) {
                 return bad("sharing tolerances must be finite and positive");
             }
+        }
+        if let Some(r) = self.render_ahead
+            && !(r.budget_fraction.is_finite() && r.budget_fraction > 0.0 && r.budget_fraction <= 1.0)
+        {
+            return bad("render_ahead's budget_fraction must lie in (0, 1]");
         }
         if let Some(d) = self.derived_views {
             if !(d.max_view_angle_deg.is_finite() && (0.0..=90.0).contains(&d.max_view_angle_deg)) {

@@ -57,7 +57,7 @@ use nephele_geometry::camera::Camera;
 use serde::{Deserialize, Serialize};
 
 use crate::assign::{self, CameraKey, OccupancyGrid, PixelSet, TaskClass};
-use crate::config::{MAX_FPS, Policy, SchedulerConfig};
+use crate::config::{DerivedViews, MAX_FPS, Policy, SchedulerConfig};
 use crate::history::{History, ResultKey};
 use crate::snapshot::{FarmSnapshot, QueueSnapshot, SessionSnapshot, Stats, WorkerSnapshot};
 use crate::{BatchId, FrameId, IdMap, ObjectId, SchedError, SessionId, TaskId, Time, WorkerId};
@@ -132,6 +132,9 @@ pub struct BatchSpec {
     /// It holds every pixel of its task's coverage in the rows it spans (no row is split
     /// with another batch), so the pixels of its bounding box it lacks are empty.
     pub rows_complete: bool,
+    /// A render ahead for this session's next frames ([`crate::RenderAhead`]): the worker
+    /// keeps it as the session's source and sends no result (`frames` is empty).
+    pub ahead_for: Option<SessionId>,
 }
 
 /// A view whose pixels in a batch's rows are derived from that batch (see [`BatchSpec`]).
@@ -264,6 +267,13 @@ struct Session {
     period: Duration,
     objects: Vec<ObjectId>,
     views: Vec<Camera>,
+    /// When `views` arrived, and the pose before them with its time: the motion that
+    /// render-ahead extrapolates.
+    pose_at: Option<Time>,
+    earlier_pose: Option<(Time, Vec<Camera>)>,
+    /// The release the last renders ahead were made for, and those still running.
+    ahead_release: Option<Time>,
+    ahead_tasks: Vec<TaskId>,
     next_release: Option<Time>,
     frames: VecDeque<Frame>,
     next_frame: u64,
@@ -306,8 +316,11 @@ struct Task {
     done: bool,
     /// Its pixels ride on another task's batches (it is no key for others).
     derived: bool,
-    /// The session whose frame created it.
+    /// The session whose frame created it (or that it renders ahead for).
     creator: SessionId,
+    /// Rendered ahead of any frame for its creator ([`crate::RenderAhead`]): no frame
+    /// subscribes, the worker keeps it, it leaves when done.
+    ahead: bool,
 }
 
 impl Task {
@@ -606,6 +619,10 @@ impl Scheduler {
                 period: Duration::from_secs_f64(1.0 / spec.target_fps),
                 objects,
                 views: Vec::new(),
+                pose_at: None,
+                earlier_pose: None,
+                ahead_release: None,
+                ahead_tasks: Vec::new(),
                 next_release: None,
                 frames: VecDeque::new(),
                 next_frame: 0,
@@ -636,6 +653,10 @@ impl Scheduler {
         for frame in &frames {
             self.unsubscribe(id, frame);
         }
+        let ahead = self.sessions.get(&id).map(|s| s.ahead_tasks.clone()).unwrap_or_default();
+        for tid in ahead {
+            self.drop_ahead(tid);
+        }
         self.sessions.remove(&id);
         self.stats.sessions_closed += 1;
         Ok(())
@@ -665,8 +686,9 @@ impl Scheduler {
             }
         }
         let s = self.sessions.get_mut(&id).ok_or(SchedError::UnknownSession(id))?;
-        s.views.clear();
-        s.views.extend_from_slice(views);
+        let earlier = std::mem::replace(&mut s.views, views.to_vec());
+        s.earlier_pose = s.pose_at.map(|at| (at, earlier));
+        s.pose_at = Some(now);
         if s.next_release.is_none() {
             s.next_release = Some(now);
         }
@@ -884,6 +906,15 @@ impl Scheduler {
         let Some(b) = self.batches.get_mut(&batch) else { return };
         let BatchState::InFlight { worker, est_s, .. } = b.state else { return };
         let tid = b.task;
+        if self.tasks.get(&tid).is_some_and(|t| t.ahead) {
+            // A render ahead is not worth a second try (the frame renders what it needs).
+            self.detach(batch, worker, est_s);
+            if let Some(b) = self.batches.get_mut(&batch) {
+                b.state = BatchState::Done;
+            }
+            self.drop_ahead(tid);
+            return;
+        }
         if failure {
             b.failures += 1;
             if !b.previous.contains(&worker) {
@@ -976,6 +1007,11 @@ impl Scheduler {
     }
 
     fn task_done(&mut self, tid: TaskId, now: Time) {
+        if self.tasks.get(&tid).is_some_and(|t| t.ahead) {
+            self.stats.ahead_tasks_done += 1;
+            self.drop_ahead(tid);
+            return;
+        }
         let (key, subscribers, batches) = match self.tasks.get_mut(&tid) {
             Some(t) => {
                 t.done = true;
@@ -1189,17 +1225,20 @@ impl Scheduler {
                 let (tid, source) = match reuse.filter(|(tid, _)| self.tasks.contains_key(tid)) {
                     Some(found) => found,
                     None => match self.create_task(sid, camera, oid, key, budget, reference_rate) {
-                        Some(tid) => match self.adjacent_key(tid, &created) {
-                            Some(key_task) if self.derive_from(key_task, tid) => {
-                                self.stats.views_derived += 1;
-                                self.stats.rays_derived += self.tasks.get(&tid).map_or(0, |t| t.rays);
-                                (tid, PartSource::Derived)
+                        Some(tid) => {
+                            self.count_created(tid);
+                            match self.adjacent_key(tid, &created) {
+                                Some(key_task) if self.derive_from(key_task, tid) => {
+                                    self.stats.views_derived += 1;
+                                    self.stats.rays_derived += self.tasks.get(&tid).map_or(0, |t| t.rays);
+                                    (tid, PartSource::Derived)
+                                }
+                                _ => {
+                                    created.push(tid);
+                                    (tid, PartSource::Rendered)
+                                }
                             }
-                            _ => {
-                                created.push(tid);
-                                (tid, PartSource::Rendered)
-                            }
-                        },
+                        }
                         None => continue, // not in view
                     },
                 };
@@ -1312,12 +1351,6 @@ impl Scheduler {
         let tid = TaskId(self.next_task);
         self.next_task += 1;
         let batches = self.add_batches(tid, &coverage.pixels, cost, whole);
-        self.stats.tasks_created += 1;
-        self.stats.rays_created += coverage.rays;
-        match class {
-            TaskClass::Heavy => self.stats.tasks_heavy += 1,
-            TaskClass::Light => self.stats.tasks_light += 1,
-        }
         let task = Task {
             object: oid,
             camera: *camera,
@@ -1336,12 +1369,165 @@ impl Scheduler {
             done: false,
             derived: false,
             creator,
+            ahead: false,
         };
         self.tasks.insert(tid, task);
         if let Some(k) = key {
             self.live.insert(k, tid);
         }
         Some(tid)
+    }
+
+    /// Counts a task a frame created.
+    fn count_created(&mut self, tid: TaskId) {
+        let Some(t) = self.tasks.get(&tid) else { return };
+        self.stats.tasks_created += 1;
+        self.stats.rays_created += t.rays;
+        match t.class {
+            TaskClass::Heavy => self.stats.tasks_heavy += 1,
+            TaskClass::Light => self.stats.tasks_light += 1,
+        }
+    }
+
+    /// The history table renders ahead (issue 16; NEPHELE eq. 12 ranks rays by the views that
+    /// will share them). While the farm has spare capacity (nothing waits for dispatch and
+    /// every worker is idle), each moving session's next view of each object is predicted
+    /// from its last two poses at its next release ([`Camera::extrapolate`]) and rendered
+    /// now, the predictions that the most current views (of every session) lie near first,
+    /// within `budget_fraction` of the farm's time until the earliest release; a prediction
+    /// within the derived views' angle of one already sent is left to it. The worker keeps
+    /// such a render as the session's previous render (and lends it to other sessions' views
+    /// near it), so the frame then takes it by reprojection and renders only its leftovers.
+    /// Once per release and session; a still session is left to the history table.
+    fn render_ahead(&mut self, now: Time) {
+        let Some(config) = self.config.render_ahead else { return };
+        let active = self.workers.values().filter(|w| !w.draining);
+        if !self.pending_all.is_empty() || active.clone().any(|w| !w.in_flight.is_empty()) {
+            return;
+        }
+        let farm_rate: f64 = active.map(|w| w.measured).sum();
+        let Some(earliest) = self.sessions.values().filter_map(|s| s.next_release).min() else { return };
+        if farm_rate <= 0.0 || earliest <= now {
+            return;
+        }
+        let mut budget = config.budget_fraction * secs(earliest.since(now)) * farm_rate;
+        let limit =
+            self.config.derived_views.map_or(DerivedViews::default().max_view_angle_deg, |d| d.max_view_angle_deg);
+        let limit = limit.to_radians();
+        // (views near it, release, session, view index, object, predicted camera, direction
+        // from the object's centre)
+        type Candidate = (usize, Time, SessionId, usize, ObjectId, Camera, glam::Vec3);
+        let mut candidates: Vec<Candidate> = Vec::new();
+        for (&sid, s) in &self.sessions {
+            let (Some(release), Some(at), Some((earlier_at, earlier))) = (s.next_release, s.pose_at, &s.earlier_pose)
+            else {
+                continue;
+            };
+            if s.ahead_release == Some(release) || !s.ahead_tasks.is_empty() || earlier.len() != s.views.len() {
+                continue;
+            }
+            let step = secs(at.since(*earlier_at));
+            if step <= 0.0 || release < at {
+                continue;
+            }
+            let k = (secs(release.since(at)) / step) as f32;
+            for (vi, (camera, before)) in s.views.iter().zip(earlier).enumerate() {
+                if camera == before {
+                    continue; // still: the history table serves it
+                }
+                let Some(predicted) = camera.extrapolate(before, k) else { continue };
+                for &oid in &s.objects {
+                    let Some(info) = self.objects.get(&oid).filter(|o| !o.full_frame) else { continue };
+                    let centre = info.bounds.center();
+                    let Some(direction) = (predicted.position() - centre).try_normalize() else { continue };
+                    let near = |c: &Camera| {
+                        (c.position() - centre)
+                            .try_normalize()
+                            .is_some_and(|d| f64::from(d.dot(direction).clamp(-1.0, 1.0).acos()) <= limit)
+                    };
+                    let shares = self
+                        .sessions
+                        .values()
+                        .filter(|other| other.objects.contains(&oid))
+                        .map(|other| other.views.iter().filter(|c| near(c)).count())
+                        .sum::<usize>();
+                    candidates.push((shares, release, sid, vi, oid, predicted, direction));
+                }
+            }
+        }
+        candidates.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)).then(a.3.cmp(&b.3)));
+        // Renders ahead sent this round: a prediction near one of them (another user looking
+        // at the object from nearby) is served by it on the worker, not rendered again.
+        let mut sent: Vec<(ObjectId, glam::Vec3)> = Vec::new();
+        for (_, release, sid, _, oid, camera, direction) in candidates {
+            let covered =
+                sent.iter().any(|&(o, d)| o == oid && f64::from(d.dot(direction).clamp(-1.0, 1.0).acos()) <= limit);
+            if covered {
+                if let Some(s) = self.sessions.get_mut(&sid) {
+                    s.ahead_release = Some(release);
+                }
+                self.stats.ahead_views_covered += 1;
+                continue;
+            }
+            let Some(info) = self.objects.get(&oid) else { continue };
+            let Some(coverage) =
+                assign::estimate_coverage(&camera, &info.bounds, info.occupancy.as_ref(), self.config.band_rows)
+            else {
+                continue;
+            };
+            let work = coverage.rays as f64 * info.cost_per_ray;
+            if work > budget {
+                continue;
+            }
+            budget -= work;
+            let Some(tid) = self.create_task(sid, &camera, oid, None, f64::INFINITY, None) else { continue };
+            let batches = match self.tasks.get_mut(&tid) {
+                Some(t) => {
+                    t.ahead = true;
+                    t.refs = 1;
+                    t.batches.clone()
+                }
+                None => continue,
+            };
+            if let Some(s) = self.sessions.get_mut(&sid) {
+                s.ahead_release = Some(release);
+                s.ahead_tasks.push(tid);
+            }
+            self.stats.ahead_tasks += 1;
+            self.stats.ahead_rays += coverage.rays;
+            sent.push((oid, direction));
+            for batch in batches {
+                // The least backlog, biased to the worker that last rendered the object (where
+                // the frame's own batches will look first).
+                let switch = secs(self.config.object_switch_cost);
+                let worker = self
+                    .workers
+                    .iter()
+                    .filter(|(_, w)| !w.draining)
+                    .map(|(&id, w)| (w.backlog_s + if w.last_object == Some(oid) { 0.0 } else { switch }, id))
+                    .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
+                    .map(|(_, id)| id);
+                match worker {
+                    Some(worker) => self.dispatch(batch, worker, now),
+                    None => {
+                        self.drop_ahead(tid);
+                        break;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Ends a render ahead: its batches still out are cancelled, it leaves its session.
+    fn drop_ahead(&mut self, tid: TaskId) {
+        let Some(sid) = self.tasks.get(&tid).filter(|t| t.ahead).map(|t| t.creator) else { return };
+        if let Some(s) = self.sessions.get_mut(&sid) {
+            s.ahead_tasks.retain(|&t| t != tid);
+        }
+        if let Some(t) = self.tasks.get_mut(&tid) {
+            t.refs = 1;
+        }
+        self.unref(tid);
     }
 
     /// Splits `pixels` into pending batches of task `tid` (the task's books are the caller's).
@@ -1691,6 +1877,7 @@ impl Scheduler {
         if room > 0 {
             self.fill(&sessions, true, room, now);
         }
+        self.render_ahead(now);
     }
 
     /// Fills workers with room, user by user in `order`, shared tasks before dedicated ones.
@@ -1943,6 +2130,7 @@ impl Scheduler {
             derived,
             work_rays: work / t.cost.max(f64::MIN_POSITIVE),
             rows_complete,
+            ahead_for: t.ahead.then_some(t.creator),
         };
         let tid = b.task;
         self.outbox.push(Action::Dispatch { worker, batch: Box::new(spec) });

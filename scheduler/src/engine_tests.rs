@@ -1002,3 +1002,158 @@ fn a_batch_says_whether_it_holds_whole_rows_of_its_task() {
         }
     }
 }
+
+/// NEPHELE with render-ahead on, no heartbeats, no timeouts.
+fn ahead_config() -> SchedulerConfig {
+    let mut cfg = config(Policy::Nephele);
+    cfg.render_ahead = Some(crate::RenderAhead::default());
+    cfg.heartbeat_timeout = None;
+    cfg.min_batch_timeout = Duration::from_secs(10);
+    cfg
+}
+
+fn aheads(actions: &[Action]) -> Vec<(WorkerId, BatchSpec)> {
+    dispatches(actions).into_iter().filter(|(_, b)| b.ahead_for.is_some()).collect()
+}
+
+#[test]
+fn an_idle_farm_renders_a_moving_users_next_view_ahead() {
+    let mut s = scheduler(ahead_config());
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    s.add_worker(WorkerId(2), 1e6, ms(0)).expect("worker");
+    // 10 fps, turning 2 degrees every 20 ms (a pose per 20 ms, as the client sends them).
+    let a = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
+    s.pose(a, &[camera_at(2.0)], ms(20)).expect("pose");
+    // Frame 0 released at 0 renders; nothing ahead while it runs.
+    let actions = s.tick(ms(20));
+    assert!(!dispatches(&actions).is_empty());
+    assert!(aheads(&actions).is_empty(), "a busy farm renders nothing ahead");
+    let all = run_to_quiet(&mut s, actions, ms(25));
+    assert_eq!(completions(&all).len(), 1);
+    // Once the farm is idle, the next release (100 ms) is predicted: 2 degrees per 20 ms from
+    // the pose of 20 ms, 80 ms on, is 10 degrees.
+    let ahead = aheads(&all);
+    assert!(!ahead.is_empty(), "the idle farm renders ahead");
+    for (_, b) in &ahead {
+        assert_eq!(b.ahead_for, Some(a));
+        assert!(b.frames.is_empty(), "no frame waits for a render ahead");
+        let expected = camera_at(10.0).position();
+        assert!(b.camera.position().distance(expected) < 0.05, "{} vs {expected}", b.camera.position());
+    }
+    let stats = s.stats().clone();
+    assert_eq!(stats.ahead_tasks, 1);
+    assert_eq!(stats.ahead_tasks_done, 1, "run_to_quiet completed it");
+    assert_eq!(stats.tasks_created, 1, "a render ahead is not a frame's task");
+    assert!(!all.iter().any(|x| matches!(x, Action::ReleaseResult { .. })), "no result went to the composer");
+    // Once per release: the idle farm does not render the same prediction again.
+    assert!(aheads(&s.tick(ms(30))).is_empty());
+    // The frame of 100 ms renders as usual; after it, the next release is predicted again.
+    s.pose(a, &[camera_at(20.0)], ms(100)).expect("pose");
+    let all = {
+        let first = s.tick(ms(100));
+        run_to_quiet(&mut s, first, ms(105))
+    };
+    assert_eq!(completions(&all).len(), 1);
+    assert!(!aheads(&all).is_empty());
+    assert_eq!(s.stats().ahead_tasks, 2);
+    assert!(s.live_tasks() <= 1, "done renders ahead leave the scheduler");
+}
+
+#[test]
+fn render_ahead_waits_for_spare_capacity_motion_and_being_asked() {
+    // Off by default.
+    let mut off = scheduler(SchedulerConfig { heartbeat_timeout: None, ..config(Policy::Nephele) });
+    off.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    let a = open(&mut off, 10.0, &[camera_at(0.0)], ms(0));
+    off.pose(a, &[camera_at(2.0)], ms(20)).expect("pose");
+    let all = {
+        let first = off.tick(ms(20));
+        run_to_quiet(&mut off, first, ms(25))
+    };
+    assert!(aheads(&all).is_empty());
+    assert_eq!(off.stats().ahead_tasks, 0);
+    // A user standing still: the history table serves the same pose, nothing is predicted.
+    let mut s = scheduler(ahead_config());
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    let still = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
+    s.pose(still, &[camera_at(0.0)], ms(20)).expect("pose");
+    let all = {
+        let first = s.tick(ms(20));
+        run_to_quiet(&mut s, first, ms(25))
+    };
+    assert!(aheads(&all).is_empty());
+    // Ahead work must fit the farm's spare time before the next release: a budget of a
+    // billionth of it fits nothing.
+    let mut cfg = ahead_config();
+    cfg.render_ahead = Some(crate::RenderAhead { budget_fraction: 1e-9 });
+    let mut tight = scheduler(cfg);
+    tight.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    let b = open(&mut tight, 10.0, &[camera_at(0.0)], ms(0));
+    tight.pose(b, &[camera_at(2.0)], ms(20)).expect("pose");
+    let all = {
+        let first = tight.tick(ms(20));
+        run_to_quiet(&mut tight, first, ms(25))
+    };
+    assert!(aheads(&all).is_empty(), "ahead work must end before the next release");
+}
+
+#[test]
+fn renders_ahead_go_first_where_most_views_share_them_and_are_never_retried() {
+    let mut cfg = ahead_config();
+    cfg.render_ahead = Some(crate::RenderAhead { budget_fraction: 1.0 });
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e7, ms(0)).expect("worker");
+    // Two users a degree apart, one far round the object.
+    let near_a = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
+    let near_b = open(&mut s, 10.0, &[camera_at(1.0)], ms(0));
+    let far = open(&mut s, 10.0, &[camera_at(120.0)], ms(0));
+    s.pose(far, &[camera_at(121.0)], ms(20)).expect("pose");
+    s.pose(near_a, &[camera_at(0.5)], ms(20)).expect("pose");
+    s.pose(near_b, &[camera_at(1.5)], ms(20)).expect("pose");
+    let all = {
+        let first = s.tick(ms(20));
+        run_to_quiet(&mut s, first, ms(25))
+    };
+    let mut order: Vec<SessionId> = aheads(&all).iter().filter_map(|(_, b)| b.ahead_for).collect();
+    order.dedup();
+    // The pair's predictions (a degree apart) share one render, sent first; the far user's
+    // comes after it.
+    assert_eq!(order.len(), 2, "{order:?}");
+    assert!(order[0] == near_a || order[0] == near_b, "shared first: {order:?}");
+    assert_eq!(order[1], far);
+    assert_eq!(s.stats().ahead_tasks, 2);
+    assert_eq!(s.stats().ahead_views_covered, 1);
+    // A render ahead whose worker is lost is dropped, not re-issued; closing a session ends
+    // its renders ahead.
+    let mut s = scheduler(ahead_config());
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    let a = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
+    s.pose(a, &[camera_at(2.0)], ms(20)).expect("pose");
+    let first = s.tick(ms(20));
+    for (w, b) in dispatches(&first) {
+        s.batch_done(w, b.id, ms(25)).expect("done");
+    }
+    let ahead = aheads(&s.tick(ms(25)));
+    assert!(!ahead.is_empty());
+    let reissued = s.stats().batches_reissued;
+    s.add_worker(WorkerId(2), 1e6, ms(26)).expect("worker");
+    s.remove_worker(WorkerId(1), ms(26)).expect("removed");
+    assert_eq!(s.stats().batches_reissued, reissued, "not re-issued");
+    assert!(aheads(&s.tick(ms(27))).is_empty(), "not sent again for the same release");
+    assert_eq!(s.pending_batches(), 0);
+    assert!(s.batch_done(WorkerId(2), ahead[0].1.id, ms(28)).is_err(), "it is gone");
+    // A session closed while its render ahead runs: the batches are cancelled.
+    let mut s = scheduler(ahead_config());
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    let a = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
+    s.pose(a, &[camera_at(2.0)], ms(20)).expect("pose");
+    for (w, b) in dispatches(&s.tick(ms(20))) {
+        s.batch_done(w, b.id, ms(25)).expect("done");
+    }
+    let ahead = aheads(&s.tick(ms(25)));
+    assert!(!ahead.is_empty());
+    s.close_session(a, ms(26)).expect("closed");
+    let cancels = s.tick(ms(26)).iter().filter(|x| matches!(x, Action::Cancel { .. })).count();
+    assert_eq!(cancels, ahead.len());
+    assert_eq!(s.live_tasks(), 0);
+}

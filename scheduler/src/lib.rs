@@ -74,7 +74,7 @@ mod history;
 pub mod snapshot;
 
 pub use assign::{CameraKey, Coverage, OccupancyGrid, PixelRect, PixelSet, TaskClass};
-pub use config::{DerivedViews, Policy, SchedulerConfig, ShareTolerance};
+pub use config::{DerivedViews, Policy, RenderAhead, SchedulerConfig, ShareTolerance};
 pub use engine::{
     Action, Admission, BatchSpec, DerivedSpec, DropReason, FramePart, ObjectInfo, PartSource, Scheduler, SessionSpec,
 };

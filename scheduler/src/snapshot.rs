@@ -44,6 +44,13 @@ pub struct Stats {
     /// worker reprojects them and renders only the leftovers (counted in `rays_created`).
     pub views_derived: u64,
     pub rays_derived: u64,
+    /// Renders ahead of their frames while the farm was idle ([`crate::RenderAhead`]): tasks
+    /// sent, finished, and their rays (not in `tasks_created` / `rays_created`).
+    pub ahead_tasks: u64,
+    pub ahead_tasks_done: u64,
+    pub ahead_rays: u64,
+    /// Predicted views left to a render ahead sent for another user's view near them.
+    pub ahead_views_covered: u64,
     /// Rays sent to workers, re-issues included.
     pub rays_dispatched: u64,
     /// Rays of batches that came back.

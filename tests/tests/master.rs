@@ -646,6 +646,72 @@ fn a_live_farm_renders_frames_end_to_end_and_survives_a_killed_worker() {
     assert!(workers[0].wait(Duration::from_secs(15)).success());
 }
 
+/// `--render-ahead`: a farm idle between the frames of a slow user renders its predicted next
+/// view ahead; the worker keeps it and sends the composer nothing for it; frames go on
+/// arriving with every covered pixel.
+#[test]
+fn an_idle_farm_renders_a_moving_users_next_view_ahead_unseen() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let assets = dir.path().join("assets");
+    std::fs::create_dir(&assets).expect("assets");
+    let master = MasterProcess::start(&["--render-ahead"]);
+    let _worker = start_worker(master.farm, &assets, "alpha", &dir.path().join("alpha.log"));
+    let mut composer = connect_composer(master.farm, "composer-test").expect("composer registered");
+    wait_for_farm(&master, "a worker", |s| s["workers"].as_array().is_some_and(|w| w.len() == 1));
+    let (width, height) = (64, 48);
+    let r = open_session(
+        &master,
+        json!({ "sdp": OFFER, "scene": "diffuse", "views": 1, "width": width, "height": height, "target_fps": 5 }),
+    );
+    assert_eq!(r.status, 201, "{}", r.body);
+    let sid = match composer.next() {
+        Message::OpenStream(open) => open.session_id,
+        other => panic!("expected the offer, got {other:?}"),
+    };
+    let view = object_view("diffuse", width, height);
+    let mut reference = Reference::new("diffuse");
+    let next = Arc::new(AtomicU32::new(1));
+    let poses = PoseSender::start(composer.writer.clone(), sid, object_view("diffuse", width, height), next);
+    let mut plans = 0;
+    let start = Instant::now();
+    let state = loop {
+        let plan = composer.next_plan();
+        plans += 1;
+        // Every pixel the object covers arrives (values: a reused pixel is resampled).
+        let expected = reference.for_pose(plan.pose_sequence, &view.pose(plan.pose_sequence));
+        let tasks: Vec<u64> = plan.parts.iter().map(|p| p.task_id).collect();
+        let covered = (0..expected.len()).filter(|&p| expected.opacity[p] > 0.0).count();
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            composer.collect_results();
+            let seen: HashSet<u32> =
+                tasks.iter().filter_map(|t| composer.store.get(t)).flatten().flat_map(|r| r.pixels.clone()).collect();
+            if (0..expected.len()).all(|p| expected.opacity[p] == 0.0 || seen.contains(&(p as u32))) {
+                break;
+            }
+            assert!(Instant::now() < deadline, "frame {}: {covered} covered pixels not all delivered", plan.frame_id);
+            thread::sleep(Duration::from_millis(5));
+        }
+        let state = farm_state(&master);
+        if plans >= 6 && state["scheduler"]["stats"]["ahead_tasks_done"].as_u64() >= Some(2) {
+            break state;
+        }
+        assert!(start.elapsed() < WAIT, "no render ahead in {plans} frames: {:#}", state["scheduler"]["stats"]);
+    };
+    drop(poses);
+    let stats = &state["scheduler"]["stats"];
+    assert!(stats["ahead_rays"].as_u64() > Some(0), "{stats:#}");
+    assert_eq!(stats["batches_reissued"], 0, "{stats:#}");
+    composer.collect_results();
+    let unseen = composer.store.values().flatten().filter(|r| r.ids.frame_id == u64::MAX).count();
+    assert_eq!(unseen, 0, "a render ahead reached the composer");
+    let metrics = scrape_metrics(master.http);
+    assert!(
+        metrics.lines().any(|l| l.starts_with("nephele_master_ahead_tasks_total") && !l.ends_with(" 0")),
+        "{metrics}"
+    );
+}
+
 #[test]
 fn admission_control_refuses_while_a_user_is_starved_and_bad_requests_are_answered() {
     let dir = tempfile::tempdir().expect("temp dir");

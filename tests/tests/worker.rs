@@ -654,6 +654,74 @@ fn a_users_next_frames_come_from_the_previous_render_until_it_is_renewed() {
     }
 }
 
+/// A render ahead (`ReuseLimits::ahead`, the scheduler's render-ahead while the farm is idle):
+/// the worker renders it in full, sends nothing to the composer, and keeps it, so that the
+/// user's next frame near it is taken from it with only the leftovers rendered, as is another
+/// user's view near it; a view far from it is rendered in full.
+#[test]
+fn a_render_ahead_is_kept_unseen_and_serves_the_users_next_frame() {
+    let spp = 4;
+    let assets = assets();
+    let composer = Composer::start();
+    let mut master = Master::new();
+    let _worker = WorkerProcess::start(master.addr(), assets.path(), "ahead", &["--spp", "4", "--bounces", "1"]);
+    let w = master.accept_worker();
+    let scene = scenes::builtin("diffuse").expect("scene");
+    let (eye, target, fov_y) = scene.default_view();
+    let kernel = PathTracedKernel::new(Renderer::new(scene.scene).expect("renderer"), spp, 1).expect("kernel");
+    let view = |degrees: f32| {
+        let turn = glam::Quat::from_rotation_z(degrees.to_radians());
+        let camera = Camera::look_at(64, 48, fov_y, target + turn * (eye - target), target, Vec3::Z).expect("camera");
+        (camera, ViewProjection::of_camera(&camera, 0.05, 100.0))
+    };
+    let previous_frames = ReuseLimits::DEFAULT_PREVIOUS_FRAMES;
+    let all: Vec<u32> = (0..64 * 48).collect();
+    let batch = |id: u64, degrees: f32, ahead: bool| RayBatch {
+        ids: BatchIds { batch_id: id, task_id: id, session_id: 11, frame_id: id, view_index: 0 },
+        asset_id: "diffuse".into(),
+        camera: view(degrees).1,
+        pixels: all.clone(),
+        deadline_in_us: None,
+        composer: composer.addr.to_string(),
+        derived: Vec::new(),
+        reuse: ReuseLimits { previous_frames, rows_complete: true, ahead, ..ReuseLimits::default() },
+        occluders: Vec::new(),
+    };
+    let done = |master: &mut Master| match master.next() {
+        Event::Message(_, Message::BatchDone(done)) => done,
+        other => panic!("unexpected {other:?}"),
+    };
+    master.send(w, &Message::RayBatch(batch(1, 1.0, true)));
+    let ahead = done(&mut master);
+    assert_eq!(ahead.stats.rays / u64::from(spp), all.len() as u64, "rendered in full");
+    assert!(composer.results.recv_timeout(Duration::from_millis(300)).is_err(), "no frame shows a render ahead");
+    // The frame half a degree on: taken from the render ahead.
+    let frame = batch(2, 1.5, false);
+    master.send(w, &Message::RayBatch(frame.clone()));
+    let done_frame = done(&mut master);
+    let result = composer.results.recv_timeout(WAIT).expect("result");
+    assert_eq!((result.ids, &result.pixels), (frame.ids, &frame.pixels));
+    let rendered = done_frame.stats.rays / u64::from(spp);
+    assert!(rendered < all.len() as u64 / 2, "{rendered} of {} pixels rendered", all.len());
+    let (truth, _) = kernel.render_pixels(&view(1.5).0, &all).expect("reference");
+    let (reused, mean, _) = compare_with_truth(&result, &truth, 0..48);
+    assert!(reused > 0);
+    assert!(mean < 0.08, "reused pixels differ by {mean} on average");
+    // Another user looking from nearby, with no render of its own here, takes from it too;
+    // one looking from far round the object renders in full.
+    let mut near = batch(3, 2.0, false);
+    near.ids.session_id = 12;
+    master.send(w, &Message::RayBatch(near));
+    let rendered = done(&mut master).stats.rays / u64::from(spp);
+    assert!(rendered < all.len() as u64 / 2, "lent: {rendered} pixels rendered");
+    let _ = composer.results.recv_timeout(WAIT).expect("result");
+    let mut far = batch(4, 40.0, false);
+    far.ids.session_id = 13;
+    master.send(w, &Message::RayBatch(far));
+    assert_eq!(done(&mut master).stats.rays / u64::from(spp), all.len() as u64, "no source near: in full");
+    let _ = composer.results.recv_timeout(WAIT).expect("result");
+}
+
 /// A result with reused pixels against the kernel's own render `truth` of the whole 64-pixel
 /// wide view: pixels outside the rows `sourced` had no source, so they are the kernel's own,
 /// exactly; a pixel that differs (reused) never loses full coverage nor invents solid

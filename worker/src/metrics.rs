@@ -39,6 +39,8 @@ pub struct WorkerMetrics {
     pub(crate) derived_pixels_rendered: Counter,
     pub(crate) previous_frame_pixels: Counter,
     pub(crate) previous_frame_pixels_rendered: Counter,
+    pub(crate) ahead_renders: Counter,
+    pub(crate) ahead_declined: Counter,
     pub(crate) environment_samples: Counter,
     pub(crate) environment_samples_hidden: Counter,
 }
@@ -106,6 +108,18 @@ impl WorkerMetrics {
             "Pixels of those batches that reprojection could not vouch for, rendered by the kernel",
             Counter::default(),
         );
+        let ahead_renders = register(
+            &mut registry,
+            "ahead_renders",
+            "Renders ahead of a session's next frames (the farm was idle), kept as its previous render",
+            Counter::default(),
+        );
+        let ahead_declined = register(
+            &mut registry,
+            "ahead_declined",
+            "Renders ahead not made: reuse of the asset measured dearer than rendering, or a whole-view kernel",
+            Counter::default(),
+        );
         let environment_samples = register(
             &mut registry,
             "environment_samples",
@@ -134,6 +148,8 @@ impl WorkerMetrics {
             derived_pixels_rendered,
             previous_frame_pixels,
             previous_frame_pixels_rendered,
+            ahead_renders,
+            ahead_declined,
             environment_samples,
             environment_samples_hidden,
         }

@@ -590,12 +590,58 @@ fn render_or_reuse(
     }
 }
 
+/// A render ahead of the session's next frames (`ReuseLimits::ahead`, the scheduler's
+/// render-ahead while the farm is idle): rendered in full and kept as the session's previous
+/// render of this view, so that its next batches take it by reprojection; no result is sent,
+/// since no frame shows it. Not made (and answered at once) for an asset whose reuse measured
+/// dearer than rendering, or a kernel that shades whole views.
+async fn render_ahead(shared: &Arc<Shared>, batch: RayBatch) -> Result<BatchDone, (ErrorCode, String)> {
+    let RayBatch { ids, asset_id, camera: wire, pixels, reuse, .. } = batch;
+    let camera = wire.camera().map_err(|e| (ErrorCode::InvalidField, format!("camera: {e}")))?;
+    let worker = shared.clone();
+    let (stats, render_time, made) = tokio::task::spawn_blocking(move || {
+        let kernel = worker.loader.load(&asset_id).map_err(|e| (e.code(), e.to_string()))?;
+        if kernel.shades_whole_views() || worker.previous.reuse_measured_dearer(&asset_id) {
+            return Ok((nephele_kernels::kernel::KernelStats::default(), Duration::ZERO, false));
+        }
+        let start = Instant::now();
+        let (results, stats) = worker
+            .pool
+            .install(|| kernel.render_pixels(&camera, &pixels))
+            .map_err(|e| (ErrorCode::RenderFailed, e.to_string()))?;
+        let elapsed = start.elapsed();
+        // Not recorded as the cost of a full render: made on an idle farm, it would make
+        // frames' full renders look cheaper than they are against reuse.
+        let absent = if reuse.rows_complete { Absent::Empty } else { Absent::Unknown };
+        let centre = kernel.bounds().center();
+        let kept = Previous { camera, pixels, results, absent };
+        let slot = (ids.session_id, asset_id.as_str());
+        worker.previous.remember_ahead(slot, kept, centre, reuse.max_angle_deg, reuse.previous_frames);
+        worker.metrics.render_ms.observe(elapsed.as_secs_f64() * 1e3);
+        Ok((stats, elapsed, true))
+    })
+    .await
+    .map_err(|e| (ErrorCode::Internal, format!("render task: {e}")))??;
+    if made {
+        shared.metrics.ahead_renders.inc();
+    } else {
+        shared.metrics.ahead_declined.inc();
+    }
+    let render_time_us = render_time.as_micros() as u64;
+    tracing::debug!(batch = ids.batch_id, made, rays = stats.rays, render_us = render_time_us, "render ahead kept");
+    let pixels = if made { stats.rays as u32 } else { 0 };
+    Ok(BatchDone { ids, pixels, render_time_us, stats: wire_stats(stats) })
+}
+
 /// Loads, renders, checks and sends one batch; returns what to tell the master.
 async fn render_and_deliver(
     shared: &Arc<Shared>,
     batch: RayBatch,
     cancelled: &AtomicBool,
 ) -> Result<BatchDone, (ErrorCode, String)> {
+    if batch.reuse.ahead {
+        return render_ahead(shared, batch).await;
+    }
     let RayBatch { ids, asset_id, camera: wire, pixels, composer, derived, reuse, occluders, .. } = batch;
     let camera = wire.camera().map_err(|e| (ErrorCode::InvalidField, format!("camera: {e}")))?;
     let derived_cameras = derived

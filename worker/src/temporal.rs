@@ -65,6 +65,9 @@ struct Slot {
     /// Later batches it has served.
     served: u32,
     rendered_at: Instant,
+    /// A render ahead (the scheduler's, while the farm was idle): other sessions' views near
+    /// it may take from it too.
+    ahead: bool,
 }
 
 /// The worker's previous full renders, bounded in count, pixels and age.
@@ -204,29 +207,88 @@ impl PreviousRenders {
             return Plan::Render(Why::Off);
         }
         let mut all = self.slots.lock().unwrap_or_else(PoisonError::into_inner);
-        let Some(slots) = all.get_mut(&(session, asset.to_owned())) else { return Plan::Render(Why::NoSource) };
         let now = Instant::now();
-        slots.retain(|s| now.duration_since(s.rendered_at) < Self::MAX_AGE);
-        let Some(k) = Self::nearest(slots, camera, centre, max_angle_deg) else { return Plan::Render(Why::NoSource) };
-        if slots[k].served >= previous_frames {
+        let own = (session, asset.to_owned());
+        let found = match all.get_mut(&own) {
+            Some(slots) => {
+                slots.retain(|s| now.duration_since(s.rendered_at) < Self::MAX_AGE);
+                Self::nearest(slots, camera, centre, max_angle_deg).map(|k| (own.clone(), k))
+            }
+            None => None,
+        };
+        // No render of its own near it: another session's render ahead of this asset near
+        // it (users looking at the object from nearby; the scheduler renders one for them).
+        let found = found.or_else(|| {
+            all.iter()
+                .filter(|((s, a), _)| *s != session && a == asset)
+                .flat_map(|(key, slots)| {
+                    slots
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, s)| s.ahead && now.duration_since(s.rendered_at) < Self::MAX_AGE)
+                        .filter(|(_, s)| {
+                            s.source.camera.width() == camera.width() && s.source.camera.height() == camera.height()
+                        })
+                        .map(move |(k, s)| (key, k, angle_at(centre, s.source.camera.position(), camera.position())))
+                })
+                .filter(|&(_, _, angle)| angle <= max_angle_deg)
+                .min_by(|a, b| a.2.total_cmp(&b.2))
+                .map(|(key, k, _)| (key.clone(), k))
+        });
+        let Some((key, k)) = found else { return Plan::Render(Why::NoSource) };
+        let Some(slot) = all.get_mut(&key).and_then(|slots| slots.get_mut(k)) else {
+            return Plan::Render(Why::NoSource);
+        };
+        if slot.served >= previous_frames {
             return Plan::Render(Why::ServedOut);
         }
         if !self.pays(asset) {
             return Plan::Render(Why::NotPaying);
         }
-        slots[k].served += 1;
-        Plan::Reuse(slots[k].source.clone())
+        slot.served += 1;
+        Plan::Reuse(slot.source.clone())
+    }
+
+    /// Whether the costs measured so far say that taking `asset`'s batches from previous
+    /// renders is no cheaper than rendering them (a render ahead of such an asset is not made).
+    pub fn reuse_measured_dearer(&self, asset: &str) -> bool {
+        let costs = self.costs.lock().unwrap_or_else(PoisonError::into_inner);
+        costs.get(asset).is_some_and(|c| matches!((c.full, c.reused), (Some(full), Some(reused)) if reused >= full))
     }
 
     /// Keeps a full render as the source of its slot (replacing the slot it renews, or a new
     /// one), and drops the oldest renders beyond the bounds.
     pub fn remember(
         &self,
-        (session, asset): (u64, &str),
+        slot: (u64, &str),
         source: Previous,
         centre: Vec3,
         max_angle_deg: f32,
         previous_frames: u32,
+    ) {
+        self.keep(slot, source, (centre, max_angle_deg), previous_frames, false);
+    }
+
+    /// [`Self::remember`] for a render ahead of the session's next frames (the scheduler's
+    /// render-ahead): it serves its full `previous_frames`, new slot or not.
+    pub fn remember_ahead(
+        &self,
+        slot: (u64, &str),
+        source: Previous,
+        centre: Vec3,
+        max_angle_deg: f32,
+        previous_frames: u32,
+    ) {
+        self.keep(slot, source, (centre, max_angle_deg), previous_frames, true);
+    }
+
+    fn keep(
+        &self,
+        (session, asset): (u64, &str),
+        source: Previous,
+        (centre, max_angle_deg): (Vec3, f32),
+        previous_frames: u32,
+        ahead: bool,
     ) {
         if previous_frames == 0 || source.pixels.len() > self.max_pixels {
             return;
@@ -238,10 +300,11 @@ impl PreviousRenders {
         let slot = match renewed {
             Some(k) => {
                 slots.swap_remove(k);
-                Slot { source: Arc::new(source), served: 0, rendered_at: now }
+                Slot { source: Arc::new(source), served: 0, rendered_at: now, ahead }
             }
             None => {
-                Slot { source: Arc::new(source), served: staggered_start(asset, previous_frames), rendered_at: now }
+                let served = if ahead { 0 } else { staggered_start(asset, previous_frames) };
+                Slot { source: Arc::new(source), served, rendered_at: now, ahead }
             }
         };
         slots.push(slot);
@@ -384,6 +447,42 @@ mod tests {
             renders.record("cheap", Made::Reused, 1000, ms(2));
         }
         assert_eq!(reused_of(&renders, 4), 4);
+    }
+
+    #[test]
+    fn a_render_ahead_serves_its_full_count_and_renews_the_slot() {
+        let renders = PreviousRenders::new(1 << 20);
+        // A new slot of "ad" starts served out (3 of 3): a render ahead starts at 0.
+        let key = (5, "ad");
+        assert_eq!(staggered_start("ad", 3), 3);
+        renders.remember_ahead(key, render(camera(0.0, 64), 100), Vec3::ZERO, 6.0, 3);
+        for _ in 0..3 {
+            assert!(reuses(renders.plan(key, &camera(1.0, 64), Vec3::ZERO, 6.0, 3)));
+        }
+        assert!(!reuses(renders.plan(key, &camera(1.0, 64), Vec3::ZERO, 6.0, 3)), "served out");
+        // The next render ahead renews the slot in place.
+        renders.remember_ahead(key, render(camera(2.0, 64), 100), Vec3::ZERO, 6.0, 3);
+        assert!(reuses(renders.plan(key, &camera(2.5, 64), Vec3::ZERO, 6.0, 3)));
+        assert_eq!(renders.held(), 100);
+        // Another user near it, with no render of its own, takes from it too (the count is
+        // the render's); one of another size or asset, or too far, does not.
+        assert!(reuses(renders.plan((6, "ad"), &camera(3.0, 64), Vec3::ZERO, 6.0, 3)));
+        assert!(!reuses(renders.plan((6, "ad"), &camera(3.0, 80), Vec3::ZERO, 6.0, 3)));
+        assert!(!reuses(renders.plan((6, "other"), &camera(3.0, 64), Vec3::ZERO, 6.0, 3)));
+        assert!(!reuses(renders.plan((6, "ad"), &camera(12.0, 64), Vec3::ZERO, 6.0, 3)));
+        assert!(reuses(renders.plan((7, "ad"), &camera(1.5, 64), Vec3::ZERO, 6.0, 3)), "third use");
+        assert!(!reuses(renders.plan((8, "ad"), &camera(2.0, 64), Vec3::ZERO, 6.0, 3)), "served out");
+        // A full render (not ahead) stays its own session's.
+        renders.remember((9, "ad"), render(camera(30.0, 64), 100), Vec3::ZERO, 6.0, 3);
+        assert!(!reuses(renders.plan((10, "ad"), &camera(30.0, 64), Vec3::ZERO, 6.0, 3)));
+        // Costs: unknown or reuse cheaper is not "dearer"; reuse at twice the cost is.
+        assert!(!renders.reuse_measured_dearer("ad"));
+        renders.record("ad", Made::Full, 1000, Duration::from_millis(10));
+        renders.record("ad", Made::Reused, 1000, Duration::from_millis(5));
+        assert!(!renders.reuse_measured_dearer("ad"));
+        renders.record("yy", Made::Full, 1000, Duration::from_millis(10));
+        renders.record("yy", Made::Reused, 1000, Duration::from_millis(20));
+        assert!(renders.reuse_measured_dearer("yy"));
     }
 
     #[test]

@@ -67,6 +67,16 @@ pub struct Args {
     /// the nephele policy, 0 for the baselines.
     #[arg(long, value_name = "N")]
     previous_frames: Option<u32>,
+    /// Render ahead (nephele policy, previous frames above 0): while the farm is idle (nothing
+    /// waiting, every worker free) and there is time before the next frame is due, each
+    /// moving user's next view of each object is predicted from its last two poses and
+    /// rendered ahead, the views that most users' views lie near first; the worker keeps it
+    /// as the user's previous render (lending it to other users' views near it), so the
+    /// frame then renders only what reprojection leaves. A busy farm never renders ahead.
+    /// Off by default: on two cores shared by workers and composer it made frames later, not
+    /// sooner (BENCHMARKS.md, 2026-12-07); meant for farms on hardware of their own.
+    #[arg(long)]
+    render_ahead: bool,
     /// A batch not back after this long (at the least; more for long queues) is re-issued.
     #[arg(long, value_name = "MS", default_value_t = 50)]
     min_batch_timeout_ms: u64,
@@ -130,6 +140,10 @@ pub fn run(args: Args) -> Result<()> {
     }
     if args.no_derived_views {
         scheduler.derived_views = None;
+    }
+    if args.render_ahead {
+        ensure!(args.policy == Policy::Nephele, "--render-ahead needs the nephele policy");
+        scheduler.render_ahead = Some(nephele_scheduler::RenderAhead::default());
     }
     scheduler.admit_up_to = match args.admit_up_to {
         None => scheduler.admission_control.then_some(DEFAULT_ADMIT_UP_TO),

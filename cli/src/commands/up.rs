@@ -96,6 +96,10 @@ pub struct Args {
     /// `--previous-frames`; 0: every frame in full).
     #[arg(long, value_name = "N")]
     previous_frames: Option<u32>,
+    /// Render each moving user's next view ahead while the farm is idle (the master's
+    /// `--render-ahead`; off by default: on one shared machine it costs latency).
+    #[arg(long)]
+    render_ahead: bool,
     #[command(flatten)]
     tls: crate::commands::TlsArgs,
     #[command(flatten)]
@@ -292,6 +296,9 @@ pub fn run(args: Args, progress: &Progress, log_format: crate::LogFormat) -> Res
     }
     if let Some(n) = args.previous_frames {
         master.args(["--previous-frames", &n.to_string()]);
+    }
+    if args.render_ahead {
+        master.arg("--render-ahead");
     }
     // Read here too: `up` asks its master's `/v1/farm` whether the farm is whole.
     let operator_token = args.operator_token.resolve()?.map(|(token, _)| token);
