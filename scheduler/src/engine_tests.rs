@@ -1012,6 +1012,22 @@ fn ahead_config() -> SchedulerConfig {
     cfg
 }
 
+/// One worker of 1e6 rays/s and a 10-fps user that turned from 0 to `to_deg` degrees between
+/// its poses at 0 and 20 ms.
+fn one_user_turning(cfg: SchedulerConfig, to_deg: f32) -> (Scheduler, SessionId) {
+    let mut s = scheduler(cfg);
+    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
+    let a = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
+    s.pose(a, &[camera_at(to_deg)], ms(20)).expect("pose");
+    (s, a)
+}
+
+/// Ticks at 20 ms and completes everything at 25 ms.
+fn first_frame_done(s: &mut Scheduler) -> Vec<Action> {
+    let first = s.tick(ms(20));
+    run_to_quiet(s, first, ms(25))
+}
+
 fn aheads(actions: &[Action]) -> Vec<(WorkerId, BatchSpec)> {
     dispatches(actions).into_iter().filter(|(_, b)| b.ahead_for.is_some()).collect()
 }
@@ -1062,38 +1078,20 @@ fn an_idle_farm_renders_a_moving_users_next_view_ahead() {
 #[test]
 fn render_ahead_waits_for_spare_capacity_motion_and_being_asked() {
     // Off by default.
-    let mut off = scheduler(SchedulerConfig { heartbeat_timeout: None, ..config(Policy::Nephele) });
-    off.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
-    let a = open(&mut off, 10.0, &[camera_at(0.0)], ms(0));
-    off.pose(a, &[camera_at(2.0)], ms(20)).expect("pose");
-    let all = {
-        let first = off.tick(ms(20));
-        run_to_quiet(&mut off, first, ms(25))
-    };
+    let (mut off, _) = one_user_turning(SchedulerConfig { heartbeat_timeout: None, ..config(Policy::Nephele) }, 2.0);
+    let all = first_frame_done(&mut off);
     assert!(aheads(&all).is_empty());
     assert_eq!(off.stats().ahead_tasks, 0);
     // A user standing still: the history table serves the same pose, nothing is predicted.
-    let mut s = scheduler(ahead_config());
-    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
-    let still = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
-    s.pose(still, &[camera_at(0.0)], ms(20)).expect("pose");
-    let all = {
-        let first = s.tick(ms(20));
-        run_to_quiet(&mut s, first, ms(25))
-    };
+    let (mut s, _) = one_user_turning(ahead_config(), 0.0);
+    let all = first_frame_done(&mut s);
     assert!(aheads(&all).is_empty());
     // Ahead work must fit the farm's spare time before the next release: a budget of a
     // billionth of it fits nothing.
     let mut cfg = ahead_config();
     cfg.render_ahead = Some(crate::RenderAhead { budget_fraction: 1e-9 });
-    let mut tight = scheduler(cfg);
-    tight.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
-    let b = open(&mut tight, 10.0, &[camera_at(0.0)], ms(0));
-    tight.pose(b, &[camera_at(2.0)], ms(20)).expect("pose");
-    let all = {
-        let first = tight.tick(ms(20));
-        run_to_quiet(&mut tight, first, ms(25))
-    };
+    let (mut tight, _) = one_user_turning(cfg, 2.0);
+    let all = first_frame_done(&mut tight);
     assert!(aheads(&all).is_empty(), "ahead work must end before the next release");
 }
 
@@ -1125,10 +1123,7 @@ fn renders_ahead_go_first_where_most_views_share_them_and_are_never_retried() {
     assert_eq!(s.stats().ahead_views_covered, 1);
     // A render ahead whose worker is lost is dropped, not re-issued; closing a session ends
     // its renders ahead.
-    let mut s = scheduler(ahead_config());
-    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
-    let a = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
-    s.pose(a, &[camera_at(2.0)], ms(20)).expect("pose");
+    let (mut s, _) = one_user_turning(ahead_config(), 2.0);
     let first = s.tick(ms(20));
     for (w, b) in dispatches(&first) {
         s.batch_done(w, b.id, ms(25)).expect("done");
@@ -1143,10 +1138,7 @@ fn renders_ahead_go_first_where_most_views_share_them_and_are_never_retried() {
     assert_eq!(s.pending_batches(), 0);
     assert!(s.batch_done(WorkerId(2), ahead[0].1.id, ms(28)).is_err(), "it is gone");
     // A session closed while its render ahead runs: the batches are cancelled.
-    let mut s = scheduler(ahead_config());
-    s.add_worker(WorkerId(1), 1e6, ms(0)).expect("worker");
-    let a = open(&mut s, 10.0, &[camera_at(0.0)], ms(0));
-    s.pose(a, &[camera_at(2.0)], ms(20)).expect("pose");
+    let (mut s, a) = one_user_turning(ahead_config(), 2.0);
     for (w, b) in dispatches(&s.tick(ms(20))) {
         s.batch_done(w, b.id, ms(25)).expect("done");
     }
