@@ -33,6 +33,7 @@ use nephele_gpu::{DeviceChoice, GpuContext, GpuInolfKernel, GpuNgpKernel};
 use nephele_kernels::gi::{GBufferPixel, GI_INPUTS, GI_OUTPUTS, GiFeatures, GiModel};
 use nephele_kernels::inolf::kernel::{HIT_OPACITY, InolfKernel, RAY_NEAR};
 use nephele_kernels::inolf::model::InolfModel;
+use nephele_kernels::inolf::model::LossSpace;
 use nephele_kernels::inolf::synthetic::{SyntheticObject, spread, synthetic_object};
 use nephele_kernels::kernel::{PathTracedKernel, PixelResults, RayKernel, all_pixels};
 use nephele_kernels::nelf::{NelfKernel, NelfModel};
@@ -383,7 +384,7 @@ fn heads_training(scene: &Scene, rays: &[HardRay]) -> Result<Tally> {
     let mut grads = ParameterGradients::zeros(&scene.model);
     let mut workspace = HeadsWorkspace::default();
     for chunk in hits.chunks(256) {
-        let losses = heads_forward_backward(&scene.model, chunk, 0.5, &mut grads, &mut workspace)?;
+        let losses = heads_forward_backward(&scene.model, chunk, 0.5, LossSpace::Srgb, &mut grads, &mut workspace)?;
         tally.finite(losses, "losses", None);
         tally.finite(grads.values(), "gradients", None);
         grads.clear();

@@ -9,6 +9,7 @@ use anyhow::{Context, Result, bail};
 use indicatif::ProgressBar;
 use nephele_kernels::inolf::cubes::HitRule;
 use nephele_kernels::inolf::kernel::InolfKernel;
+use nephele_kernels::inolf::model::LossSpace;
 use nephele_kernels::ngp::{RadianceField, load_field, save_field};
 use nephele_train::dataset::{self, Dataset};
 use nephele_train::inolf::pipeline::{BakeProgress, BakeRecipe, bake};
@@ -82,6 +83,10 @@ pub struct Args {
     /// Learned features per PSH slot.
     #[arg(long, default_value_t = BakeRecipe::default().psh_features)]
     psh_features: u32,
+    /// log2 of the hash-table entries per level of the heads' diffuse grid (the colour the
+    /// diffuse cubes are baked from); larger tables collide less on detailed objects.
+    #[arg(long, default_value_t = BakeRecipe::default().head_table_log2)]
+    head_table_log2: u32,
     /// Densities below this (per unit length) are cut to zero before caching: the floor of
     /// what counts as matter.
     #[arg(long, default_value_t = BakeRecipe::default().density_threshold)]
@@ -108,6 +113,11 @@ pub struct Args {
     /// The same for the heads' diffuse hash grid (baked into the diffuse cubes). 0: off.
     #[arg(long, default_value_t = BakeRecipe::default().grid_decay)]
     grid_decay: f32,
+    /// Where the heads' colour loss compares a pixel with its target: srgb (the encoding the
+    /// views are stored, shown and scored in, so dark pixels weigh as the eye and PSNR weigh
+    /// them) or linear (NEPHELE eq. 8 on linear RGB).
+    #[arg(long, default_value = "srgb", value_name = "srgb|linear")]
+    head_loss: LossSpace,
     /// Which sample of the density march stands for a ray's hit point (where the heads'
     /// features are read; recorded in the asset): largest-weight (NEPHELE's, right for opaque
     /// objects), see-through (the layer where the ray's opacity reaches 0.9 when that lies 16
@@ -151,11 +161,13 @@ impl Args {
             cube_probe: self.cube_probe,
             psh_res: self.psh_res,
             psh_features: self.psh_features,
+            head_table_log2: self.head_table_log2,
             density_threshold: self.density_threshold,
             keep_diffuse_network: self.keep_diffuse_network,
             pseudo_views: self.pseudo_views,
             psh_decay: self.psh_decay,
             grid_decay: self.grid_decay,
+            head_loss: self.head_loss,
             hit_rule: self.hit_rule.0,
             seed: self.seed,
         }
@@ -347,6 +359,9 @@ mod tests {
         assert_eq!("see-through".parse(), Ok(HitRuleArg(Some(HitRule::SEE_THROUGH))));
         assert_eq!(" largest-weight".parse(), Ok(HitRuleArg(Some(HitRule::LargestWeight))));
         assert_eq!("auto".parse(), Ok(HitRuleArg(None)));
+        assert_eq!("srgb".parse(), Ok(LossSpace::Srgb));
+        assert_eq!(" linear".parse(), Ok(LossSpace::Linear));
+        assert!("rgb".parse::<LossSpace>().is_err());
         assert!("max".parse::<HitRuleArg>().expect_err("max").contains("not a hit rule"));
         assert_eq!(" 3".parse(), Ok(MarchStrideArg::Fixed(3)));
         for bad in ["0", "5", "-1", "two", ""] {

@@ -10,7 +10,8 @@
 //!   `c_s` and refined opacity `a` (sigmoids; `a` as a correction of `a_c`, see
 //!   [`specular_activation`]);
 //! * **colour** (eq. 7): `c = c_d + s * c_s`; the pixel gets `a * c` (premultiplied) and `a`;
-//! * **loss** (eq. 8): L2 on the premultiplied colour and on the opacity.
+//! * **loss** (eq. 8): L2 on the premultiplied colour and on the opacity, the colour compared
+//!   either as linear RGB or, by default, sRGB-encoded ([`LossSpace`]).
 //!
 //! Colours are linear RGB. The gradient of the loss with respect to every head output is
 //! written out in [`head_gradients`] and checked against finite differences in the tests.
@@ -207,10 +208,84 @@ pub fn combine(diffuse: &[f32], specular: &[f32]) -> ([f32; 3], f32) {
     (c, a)
 }
 
-/// Loss `|a c - target_rgb|^2 + w |a - target_a|^2` (target premultiplied, linear) and its
-/// gradient with respect to the head outputs.
+/// Where the heads' colour loss compares a pixel with its target.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LossSpace {
+    /// `|a c - target|^2` on linear RGB, premultiplied (eq. 8 as written).
+    Linear,
+    /// `|a srgb(c) - a_t srgb(c_t)|^2`: the sRGB encoding the images are stored, viewed and
+    /// scored in (PSNR), premultiplied like the radiance field's loss. A linear loss weighs an
+    /// error in a dark pixel up to 12.92^2 times less than the score does.
+    #[default]
+    Srgb,
+}
+
+impl std::str::FromStr for LossSpace {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.trim() {
+            "srgb" => Ok(LossSpace::Srgb),
+            "linear" => Ok(LossSpace::Linear),
+            _ => Err(format!("'{s}' is not a loss space (srgb or linear)")),
+        }
+    }
+}
+
+/// The sRGB encoding's derivative `d srgb(x) / dx` (IEC 61966-2-1's piecewise curve, as
+/// [`nephele_imaging::image::linear_to_srgb`]), for `x >= 0`.
 #[inline]
-pub fn head_gradients(diffuse: &[f32], specular: &[f32], target: [f32; 4], opacity_weight: f32) -> HeadGradients {
+fn srgb_slope(x: f32) -> f32 {
+    if x <= 0.003_130_8 { 12.92 } else { (1.055 / 2.4) * x.powf(1.0 / 2.4 - 1.0) }
+}
+
+/// Loss `|a c - target_rgb|^2 + w |a - target_a|^2` (target premultiplied, linear; the colour
+/// terms encoded first when `space` is [`LossSpace::Srgb`]) and its gradient with respect to
+/// the head outputs.
+#[inline]
+pub fn head_gradients(
+    diffuse: &[f32],
+    specular: &[f32],
+    target: [f32; 4],
+    opacity_weight: f32,
+    space: LossSpace,
+) -> HeadGradients {
+    match space {
+        LossSpace::Linear => head_gradients_linear(diffuse, specular, target, opacity_weight),
+        LossSpace::Srgb => head_gradients_srgb(diffuse, specular, target, opacity_weight),
+    }
+}
+
+fn head_gradients_srgb(diffuse: &[f32], specular: &[f32], target: [f32; 4], opacity_weight: f32) -> HeadGradients {
+    use nephele_imaging::image::linear_to_srgb;
+    let a = specular[3];
+    let target_alpha = target[3];
+    let mut g = HeadGradients { loss: 0.0, d_diffuse: [0.0; DIFFUSE_OUT], d_specular: [0.0; SPECULAR_OUT] };
+    let mut d_a = 0.0;
+    for k in 0..3 {
+        // The target's straight colour, encoded and premultiplied again.
+        let t = if target_alpha > 0.0 {
+            target_alpha * linear_to_srgb((target[k] / target_alpha).clamp(0.0, 1.0))
+        } else {
+            0.0
+        };
+        let c = (diffuse[k] + diffuse[3 + k] * specular[k]).max(0.0);
+        let encoded = linear_to_srgb(c);
+        let e = a * encoded - t;
+        g.loss += e * e;
+        let d_c = 2.0 * e * a * srgb_slope(c);
+        d_a += 2.0 * e * encoded;
+        g.d_diffuse[k] = d_c;
+        g.d_diffuse[3 + k] = d_c * specular[k];
+        g.d_specular[k] = d_c * diffuse[3 + k];
+    }
+    let ea = a - target_alpha;
+    g.loss += opacity_weight * ea * ea;
+    g.d_specular[3] = d_a + 2.0 * opacity_weight * ea;
+    g
+}
+
+fn head_gradients_linear(diffuse: &[f32], specular: &[f32], target: [f32; 4], opacity_weight: f32) -> HeadGradients {
     let a = specular[3];
     let mut g = HeadGradients { loss: 0.0, d_diffuse: [0.0; DIFFUSE_OUT], d_specular: [0.0; SPECULAR_OUT] };
     let mut d_a = 0.0;
@@ -237,29 +312,66 @@ mod tests {
 
     #[test]
     fn head_gradients_match_finite_differences() {
-        let diffuse = [0.3f32, 0.6, 0.2, 0.5, 0.4, 0.9];
-        let specular = [0.7f32, 0.1, 0.35, 0.8];
-        let target = [0.2, 0.5, 0.1, 1.0];
-        let g = head_gradients(&diffuse, &specular, target, 0.5);
-        let h = 1e-3;
-        for i in 0..DIFFUSE_OUT {
-            let (mut p, mut m) = (diffuse, diffuse);
-            p[i] += h;
-            m[i] -= h;
-            let num = (head_gradients(&p, &specular, target, 0.5).loss
-                - head_gradients(&m, &specular, target, 0.5).loss)
-                / (2.0 * h);
-            assert!((num - g.d_diffuse[i]).abs() < 1e-3, "diffuse {i}: {num} vs {}", g.d_diffuse[i]);
+        // Bright and dark colours (the sRGB curve is steepest near black; no colour within a
+        // step of the curve's kink at 0.0031), and targets with partial alpha; f64
+        // differences of the f32 loss.
+        let cases: [([f32; 6], [f32; 4], [f32; 4]); 3] = [
+            ([0.3, 0.6, 0.2, 0.5, 0.4, 0.9], [0.7, 0.1, 0.35, 0.8], [0.2, 0.5, 0.1, 1.0]),
+            ([0.01, 0.03, 0.02, 0.2, 0.1, 0.05], [0.05, 0.4, 0.02, 0.95], [0.004, 0.02, 0.0, 0.9]),
+            ([0.8, 0.9, 0.7, 0.9, 0.9, 0.9], [0.9, 0.8, 0.95, 0.3], [0.3, 0.2, 0.25, 0.4]),
+        ];
+        for space in [LossSpace::Linear, LossSpace::Srgb] {
+            for (diffuse, specular, target) in cases {
+                let g = head_gradients(&diffuse, &specular, target, 0.5, space);
+                let loss = |d: &[f32], s: &[f32]| f64::from(head_gradients(d, s, target, 0.5, space).loss);
+                let h = 1e-3;
+                let tolerance = |analytic: f32| 2e-3 * (1.0 + f64::from(analytic.abs()));
+                for i in 0..DIFFUSE_OUT {
+                    let (mut p, mut m) = (diffuse, diffuse);
+                    p[i] += h;
+                    m[i] -= h;
+                    let num = (loss(&p, &specular) - loss(&m, &specular)) / (2.0 * f64::from(h));
+                    let analytic = g.d_diffuse[i];
+                    assert!(
+                        (num - f64::from(analytic)).abs() < tolerance(analytic),
+                        "{space:?} diffuse {i}: {num} vs {analytic}"
+                    );
+                }
+                for i in 0..SPECULAR_OUT {
+                    let (mut p, mut m) = (specular, specular);
+                    p[i] += h;
+                    m[i] -= h;
+                    let num = (loss(&diffuse, &p) - loss(&diffuse, &m)) / (2.0 * f64::from(h));
+                    let analytic = g.d_specular[i];
+                    assert!(
+                        (num - f64::from(analytic)).abs() < tolerance(analytic),
+                        "{space:?} specular {i}: {num} vs {analytic}"
+                    );
+                }
+            }
         }
-        for i in 0..SPECULAR_OUT {
-            let (mut p, mut m) = (specular, specular);
-            p[i] += h;
-            m[i] -= h;
-            let num = (head_gradients(&diffuse, &p, target, 0.5).loss - head_gradients(&diffuse, &m, target, 0.5).loss)
-                / (2.0 * h);
-            assert!((num - g.d_specular[i]).abs() < 1e-3, "specular {i}: {num} vs {}", g.d_specular[i]);
-        }
-        let (c, a) = combine(&diffuse, &specular);
+        let (c, a) = combine(&[0.3, 0.6, 0.2, 0.5, 0.4, 0.9], &[0.7, 0.1, 0.35, 0.8]);
         assert!((c[0] - 0.8 * (0.3 + 0.5 * 0.7)).abs() < 1e-6 && a == 0.8);
+    }
+
+    #[test]
+    fn the_srgb_loss_weighs_dark_errors_as_the_score_does() {
+        // The same linear error of 0.01 costs a near-black pixel far more than a bright one in
+        // sRGB, and the same in linear.
+        let loss = |c: f32, space| {
+            let diffuse = [c + 0.01, c + 0.01, c + 0.01, 0.0, 0.0, 0.0];
+            head_gradients(&diffuse, &[0.0, 0.0, 0.0, 1.0], [c, c, c, 1.0], 0.0, space).loss
+        };
+        assert!((loss(0.02, LossSpace::Linear) - loss(0.8, LossSpace::Linear)).abs() < 1e-6);
+        assert!(loss(0.02, LossSpace::Srgb) > 20.0 * loss(0.8, LossSpace::Srgb));
+        // A perfect prediction costs nothing in either space.
+        let perfect = head_gradients(
+            &[0.1, 0.2, 0.3, 0.0, 0.0, 0.0],
+            &[0.0; 4].map(|_| 0.5),
+            [0.05, 0.1, 0.15, 0.5],
+            0.0,
+            LossSpace::Srgb,
+        );
+        assert!(perfect.loss < 1e-10, "{perfect:?}");
     }
 }

@@ -15,7 +15,7 @@ use nephele_geometry::camera::{Camera, CameraError};
 use nephele_kernels::inolf::asset::Asset;
 use nephele_kernels::inolf::cubes::{CubeError, CubeOptions, DensityCubes, HitRule};
 use nephele_kernels::inolf::encoding::PshEncoding;
-use nephele_kernels::inolf::model::{HeadsShape, InolfModel, ModelError};
+use nephele_kernels::inolf::model::{HeadsShape, InolfModel, LossSpace, ModelError};
 use nephele_kernels::inolf::psh::{PshError, PshOptions};
 use nephele_kernels::kernel::{RayKernel, all_pixels};
 use nephele_kernels::ngp::{FieldConfig, NgpError, NgpKernel, RadianceField};
@@ -50,6 +50,8 @@ pub struct BakeRecipe {
     pub head_steps: u32,
     /// Rays per step of the heads.
     pub batch: usize,
+    /// log2 of the hash-table entries per level of the heads' diffuse grid.
+    pub head_table_log2: u32,
     /// Coarse cells of the density cubes along the longest side.
     pub cubes: u32,
     /// Samples per cube side (density and diffuse cubes).
@@ -72,6 +74,8 @@ pub struct BakeRecipe {
     /// ([`TrainOptions::psh_decay`], [`TrainOptions::grid_decay`]); 0: off.
     pub psh_decay: f32,
     pub grid_decay: f32,
+    /// Where the heads' colour loss compares pixels ([`LossSpace`]).
+    pub head_loss: LossSpace,
     /// Which sample of the march is a ray's hit point; `None`: chosen from the share of
     /// training rays that see a second layer ([`choose_hit_rule`]).
     pub hit_rule: Option<HitRule>,
@@ -80,14 +84,18 @@ pub struct BakeRecipe {
 
 impl Default for BakeRecipe {
     fn default() -> Self {
+        // The steps: the best held-out lego measured from a bake under 30 minutes on a 2-core
+        // host (2026-12-07: 7000 / 5000 in 22 minutes, field 32.69 dB, i-NOLF 31.12 dB;
+        // 2000 / 3000 took 10 minutes for 30.27 / 29.91 dB; BENCHMARKS.md).
         BakeRecipe {
-            field_steps: 2000,
+            field_steps: 7000,
             field_table_log2: 19,
             field_levels: 16,
             field_finest: 2048,
             field_samples: 1 << 16,
-            head_steps: 3000,
+            head_steps: 5000,
             batch: 4096,
+            head_table_log2: HeadsShape::default().grid_log2_table,
             cubes: 64,
             cube_res: 8,
             cube_probe: CubeOptions::default().probe,
@@ -98,6 +106,7 @@ impl Default for BakeRecipe {
             pseudo_views: 0,
             psh_decay: 0.0,
             grid_decay: 0.0,
+            head_loss: LossSpace::default(),
             hit_rule: None,
             seed: 1,
         }
@@ -176,6 +185,9 @@ pub fn bake(
             return Err(BakeError::Decay { name, value });
         }
     }
+    // The heads' shape is checked before the minutes of the radiance field, not after.
+    let shape = HeadsShape { grid_log2_table: recipe.head_table_log2, ..HeadsShape::default() };
+    shape.grid().validate().map_err(ModelError::from)?;
 
     // 1. Radiance field.
     let t = Instant::now();
@@ -308,12 +320,13 @@ pub fn bake(
 
     // 4. Heads.
     let t = Instant::now();
-    let mut model = InolfModel::new(HeadsShape::default(), cb, psh, recipe.seed)?;
+    let mut model = InolfModel::new(shape, cb, psh, recipe.seed)?;
     let options = TrainOptions {
         steps: recipe.head_steps,
         batch: recipe.batch,
         psh_decay: recipe.psh_decay,
         grid_decay: recipe.grid_decay,
+        loss_space: recipe.head_loss,
         seed: recipe.seed,
         ..TrainOptions::default()
     };
@@ -326,9 +339,13 @@ pub fn bake(
     })?;
     let psnr_train = -10.0 * (f64::from(report.smoothed_loss) / 4.0).log10();
     progress.finished(format!(
-        "heads: {} steps, loss {:.6} (~{psnr_train:.1} dB on linear premultiplied RGBA of training rays), {:.0} % of drawn rays hit, {:.0} s",
+        "heads: {} steps, loss {:.6} (~{psnr_train:.1} dB on {} premultiplied RGBA of training rays), {:.0} % of drawn rays hit, {:.0} s",
         report.steps,
         report.smoothed_loss,
+        match recipe.head_loss {
+            LossSpace::Linear => "linear",
+            LossSpace::Srgb => "sRGB",
+        },
         100.0 * report.rays_hit as f64 / report.rays.max(1) as f64,
         t.elapsed().as_secs_f64()
     ));
@@ -347,7 +364,7 @@ pub fn bake(
     let description = json!({
         "dataset": source, "views": data.views.len(), "size": [w, h],
         "field_steps": if field_trained { recipe.field_steps } else { 0 }, "steps": recipe.head_steps,
-        "loss": report.smoothed_loss, "pseudo_views": recipe.pseudo_views, "psh_decay": recipe.psh_decay, "grid_decay": recipe.grid_decay, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "cube_probe": recipe.cube_probe, "psh_res": recipe.psh_res, "layered_share": share,
+        "loss": report.smoothed_loss, "pseudo_views": recipe.pseudo_views, "psh_decay": recipe.psh_decay, "grid_decay": recipe.grid_decay, "head_loss": recipe.head_loss, "cubes": recipe.cubes, "cube_res": recipe.cube_res, "cube_probe": recipe.cube_probe, "psh_res": recipe.psh_res, "layered_share": share,
     });
     let asset = to_asset(&model, cubes, Some(diffuse), recipe.keep_diffuse_network, description)?;
     Ok(Baked { asset, field })

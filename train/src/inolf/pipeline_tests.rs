@@ -464,6 +464,9 @@ fn the_library_bake_turns_posed_images_into_an_asset() {
     let mut again = Recorder::default();
     let bad = BakeRecipe { psh_decay: f32::NAN, ..recipe.clone() };
     assert!(matches!(bake(&data, "x", &bad, None, &mut again), Err(BakeError::Decay { name: "psh_decay", .. })));
+    let bad = BakeRecipe { head_table_log2: 40, ..recipe.clone() };
+    assert!(matches!(bake(&data, "x", &bad, None, &mut again), Err(BakeError::Model(_))));
+    assert!(again.stages.is_empty(), "refused before any stage: {:?}", again.stages);
     let recipe = BakeRecipe { pseudo_views: 4, psh_decay: 0.5, grid_decay: 0.5, ..recipe };
     let rebaked = bake(&data, "tiny diffuse", &recipe, Some(baked.field), &mut again).expect("bake from the field");
     assert_eq!(again.stages, ["density cubes", "pseudo-views", "i-NOLF heads"]);

@@ -18,7 +18,7 @@ use nephele_kernels::inolf::cubes::{DensityCubes, HitRule, MarchHit};
 use nephele_kernels::inolf::encoding::Corners;
 use nephele_kernels::inolf::kernel::{HIT_OPACITY, RAY_NEAR};
 use nephele_kernels::inolf::model::{
-    DIFFUSE_OUT, InolfModel, ModelError, SPECULAR_OUT, head_gradients, specular_activation,
+    DIFFUSE_OUT, InolfModel, LossSpace, ModelError, SPECULAR_OUT, head_gradients, specular_activation,
     specular_activation_derivative,
 };
 use nephele_nn::{Adam, AdamConfig, MlpWorkspace};
@@ -105,6 +105,8 @@ pub struct TrainOptions {
     pub learning_rate: f32,
     /// Weight of the opacity term of the loss.
     pub opacity_weight: f32,
+    /// Where the colour term compares a pixel with its target.
+    pub loss_space: LossSpace,
     /// Error-map tile side in pixels.
     pub tile: u32,
     /// Share of the batch drawn uniformly instead of through the error map.
@@ -125,6 +127,7 @@ impl Default for TrainOptions {
             batch: 4096,
             learning_rate: 1e-2,
             opacity_weight: 1.0,
+            loss_space: LossSpace::default(),
             tile: 16,
             uniform_fraction: 0.25,
             psh_decay: 0.0,
@@ -248,13 +251,14 @@ pub struct HeadsWorkspace {
     specular: MlpWorkspace,
 }
 
-/// Forward and backward of both heads over a batch of rays that hit (the loss of eq. 8,
-/// averaged over the batch): adds the parameters' gradients into `grads` and returns each
-/// ray's loss.
+/// Forward and backward of both heads over a batch of rays that hit (the loss of eq. 8 in
+/// `space`, averaged over the batch): adds the parameters' gradients into `grads` and returns
+/// each ray's loss.
 pub fn heads_forward_backward(
     model: &InolfModel,
     rays: &[HeadRay],
     opacity_weight: f32,
+    space: LossSpace,
     grads: &mut ParameterGradients,
     workspace: &mut HeadsWorkspace,
 ) -> Result<Vec<f32>, ModelError> {
@@ -293,6 +297,7 @@ pub fn heads_forward_backward(
             &out_s[k * SPECULAR_OUT..(k + 1) * SPECULAR_OUT],
             r.target,
             opacity_weight,
+            space,
         );
         losses.push(g.loss);
         for j in 0..DIFFUSE_OUT {
@@ -399,7 +404,14 @@ pub fn train(
                 HeadRay { origin, dir, hit, target: target_of(i) }
             })
             .collect();
-        let losses = heads_forward_backward(model, &rays, options.opacity_weight, &mut grads, &mut workspace)?;
+        let losses = heads_forward_backward(
+            model,
+            &rays,
+            options.opacity_weight,
+            options.loss_space,
+            &mut grads,
+            &mut workspace,
+        )?;
         let mut loss_sum = 0.0f64;
         for (&i, &loss) in kept.iter().zip(&losses) {
             loss_sum += f64::from(loss);
