@@ -125,8 +125,8 @@ impl GpuInolfKernel {
 
         let c = density.cubes();
         let mut a = Words::default();
-        // The hit rule (`DensityCubes::march`): the layer's opacity (2: never, for the sample
-        // of largest weight) and its gap as a distance.
+        // The hit rule (`DensityCubes::march`): the layer's opacity (2: never, for the other
+        // rules), its gap as a distance and the median depth's transmittance (-1: never).
         let (layer_opacity, layer_gap_voxels) = density.hit_rule().layer();
         let layer_gap = layer_gap_voxels * density.cubes().sample_step();
         a.f32s([RAY_NEAR, HIT_OPACITY, density.march_stride() as f32, layer_opacity]);
@@ -147,7 +147,7 @@ impl GpuInolfKernel {
             p_keys,
             p_features,
             layer_gap.to_bits(),
-            0,
+            density.hit_rule().median_transmittance().to_bits(),
         ]);
 
         let kernel = GpuInolfKernel {

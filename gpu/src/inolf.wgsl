@@ -49,7 +49,7 @@ struct Params {
     p_keys_offset: u32,
     p_features_offset: u32,
     layer_gap: f32,      // `HitRule::LayerBehind`'s gap, a distance (voxels x sample step)
-    p_pad1: u32,
+    median_level: f32,   // `HitRule::median_transmittance`: 0.5 for the median depth, -1 (never) else
 };
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -138,6 +138,7 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
     let dir = select(dir_in, vec3<f32>(0.0), abs(dir_in) < vec3<f32>(1e-20));
     var max_weight = 0.0;
     var layer_t = BIG;
+    var median_t = BIG;
     let lo = params.d_min.xyz;
     let cell_size = params.d_min.w;
     let d = vec3<i32>(params.d_dims.xyz);
@@ -271,13 +272,17 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
                     max_weight = w;
                     hit.t = t;
                 }
+                let entering = transmittance;
                 transmittance *= 1.0 - alpha;
                 if layer_t == BIG && 1.0 - transmittance >= params.layer_opacity {
                     layer_t = t;
                 }
+                if transmittance <= params.median_level && entering > params.median_level {
+                    median_t = crossing_depth(t, span, entering, params.median_level, sigma);
+                }
                 if transmittance < params.d_min_transmittance {
                     hit.opacity = clamp(1.0 - transmittance, 0.0, 1.0);
-                    return take_layer(hit, layer_t);
+                    return take_hit_point(hit, layer_t, median_t);
                 }
             }
         }
@@ -292,15 +297,23 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
         t_next[axis] += t_delta[axis];
     }
     hit.opacity = clamp(1.0 - transmittance, 0.0, 1.0);
-    return take_layer(hit, layer_t);
+    return take_hit_point(hit, layer_t, median_t);
 }
 
-// `MarchHit::take_layer`: the hit point moves to the layer when it lies more than the gap
-// behind the sample of largest weight.
-fn take_layer(hit_in: March, layer_t: f32) -> March {
+// `crossing_depth`: where the sample centred at t brings the transmittance down to `level`.
+fn crossing_depth(t: f32, span: f32, entering: f32, level: f32, sigma: f32) -> f32 {
+    let start = t - 0.5 * span;
+    return clamp(start + log(entering / level) / sigma, start, start + span);
+}
+
+// `MarchHit::take_hit_point`: the median depth where the ray crossed it; else the layer when
+// it lies more than the gap behind the sample of largest weight.
+fn take_hit_point(hit_in: March, layer_t: f32, median_t: f32) -> March {
     var hit = hit_in;
     hit.front_t = hit.t;
-    if layer_t < BIG && layer_t - hit.t > params.layer_gap {
+    if median_t < BIG {
+        hit.t = median_t;
+    } else if layer_t < BIG && layer_t - hit.t > params.layer_gap {
         hit.t = layer_t;
     }
     return hit;

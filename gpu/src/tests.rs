@@ -130,6 +130,26 @@ fn see_through_hits_agree_with_the_cpu_kernel() {
     assert!(recoloured > 5 && moved == 0, "{recoloured} pixels recoloured, {moved} depths moved");
 }
 
+/// With the median-depth hit rule the twin solves the same crossing as the CPU: they agree
+/// as closely as with the largest weight; the colours move where the hit points do, and the
+/// depths (of the sample of largest weight) stay.
+#[test]
+fn median_depth_hits_agree_with_the_cpu_kernel() {
+    let f = fixture();
+    let camera = Camera::look_at(33, 25, 0.9, Vec3::new(2.5, -1.5, 1.0), Vec3::ZERO, Vec3::Z).expect("camera");
+    let (largest, _) = f.gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
+    let mut cpu = f.cpu.clone();
+    cpu.set_hit_rule(HitRule::MedianDepth).expect("rule");
+    let gpu = GpuInolfKernel::new(context(), &cpu).expect("gpu kernel");
+    whole_frames_agree(&cpu, &gpu);
+    let (median, _) = gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
+    let recoloured =
+        (0..median.len()).filter(|&i| (0..3).any(|c| (median.color[i][c] - largest.color[i][c]).abs() > 1e-3)).count();
+    let both_hit = (0..median.len()).filter(|&i| median.opacity[i] > 0.0 && largest.opacity[i] > 0.0);
+    let moved = both_hit.filter(|&i| median.depth[i] != largest.depth[i]).count();
+    assert!(recoloured > 5 && moved == 0, "{recoloured} pixels recoloured, {moved} depths moved");
+}
+
 fn whole_frames_agree(cpu_kernel: &InolfKernel, gpu_kernel: &GpuInolfKernel) {
     let views = [
         // Around the object.

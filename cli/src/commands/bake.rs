@@ -118,13 +118,15 @@ pub struct Args {
     /// them) or linear (NEPHELE eq. 8 on linear RGB).
     #[arg(long, default_value = "srgb", value_name = "srgb|linear")]
     head_loss: LossSpace,
-    /// Which sample of the density march stands for a ray's hit point (where the heads'
-    /// features are read; recorded in the asset): largest-weight (NEPHELE's, right for opaque
-    /// objects), see-through (the layer where the ray's opacity reaches 0.9 when that lies 16
-    /// voxels or more behind the largest weight: what a glass object holds, not the glass
-    /// that flickers in front of it), or auto: see-through when most training rays meet such
-    /// a layer.
-    #[arg(long, default_value = "auto", value_name = "auto|largest-weight|see-through")]
+    /// Which point of the density march stands for a ray's hit point (where the heads'
+    /// features are read; recorded in the asset): median-depth (where the ray's opacity
+    /// crosses one half, solved inside the sample: the same surface point from every view),
+    /// largest-weight (NEPHELE's eq. 4: the centre of the sample of largest weight),
+    /// see-through (the layer where the ray's opacity reaches 0.9 when that lies 16 voxels or
+    /// more behind the largest weight: what a glass object holds, not the glass that flickers
+    /// in front of it), or auto: see-through when most training rays meet such a layer,
+    /// median-depth otherwise.
+    #[arg(long, default_value = "auto", value_name = "auto|median-depth|largest-weight|see-through")]
     hit_rule: HitRuleArg,
     #[arg(long, default_value_t = BakeRecipe::default().seed)]
     seed: u64,
@@ -141,7 +143,8 @@ impl std::str::FromStr for HitRuleArg {
             "auto" => Ok(HitRuleArg(None)),
             "largest-weight" => Ok(HitRuleArg(Some(HitRule::LargestWeight))),
             "see-through" => Ok(HitRuleArg(Some(HitRule::SEE_THROUGH))),
-            _ => Err(format!("'{s}' is not a hit rule (auto, largest-weight or see-through)")),
+            "median-depth" => Ok(HitRuleArg(Some(HitRule::MedianDepth))),
+            _ => Err(format!("'{s}' is not a hit rule (auto, median-depth, largest-weight or see-through)")),
         }
     }
 }
@@ -359,6 +362,7 @@ mod tests {
         assert_eq!("see-through".parse(), Ok(HitRuleArg(Some(HitRule::SEE_THROUGH))));
         assert_eq!(" largest-weight".parse(), Ok(HitRuleArg(Some(HitRule::LargestWeight))));
         assert_eq!("auto".parse(), Ok(HitRuleArg(None)));
+        assert_eq!("median-depth ".parse(), Ok(HitRuleArg(Some(HitRule::MedianDepth))));
         assert_eq!("srgb".parse(), Ok(LossSpace::Srgb));
         assert_eq!(" linear".parse(), Ok(LossSpace::Linear));
         assert!("rgb".parse::<LossSpace>().is_err());

@@ -134,8 +134,8 @@ impl BakeQuality {
     /// mix. Bump the suffix when a recipe or the asset format changes.
     pub fn folder(self) -> &'static str {
         match self {
-            BakeQuality::Standard => "standard-v7",
-            BakeQuality::Quick => "quick-v5",
+            BakeQuality::Standard => "standard-v8",
+            BakeQuality::Quick => "quick-v6",
             BakeQuality::Off => "path-traced",
         }
     }

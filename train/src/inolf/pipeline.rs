@@ -292,6 +292,7 @@ pub fn bake(
         "hit points: {} ({:.1} % of hit rays see a layer behind the largest weight{}), {:.1} s",
         match rule {
             HitRule::LargestWeight => "the sample of largest weight".to_string(),
+            HitRule::MedianDepth => "the median depth (where the ray's opacity crosses one half)".to_string(),
             HitRule::LayerBehind { opacity, gap } => {
                 format!("see-through, where the opacity reaches {opacity} when that lies {gap} voxels or more behind the largest weight")
             }

@@ -190,6 +190,10 @@ fn asset_without_diffuse_network_renders_from_cubes_only() {
         see_through.meta.replace("\"largest_weight\"", "{\"layer_behind\":{\"opacity\":0.9,\"gap\":16.0}}");
     let see_through = Asset::from_bytes(&see_through.to_bytes().expect("encode")).expect("decode");
     assert_eq!(InolfKernel::from_asset(see_through).expect("kernel").density().hit_rule(), HitRule::SEE_THROUGH);
+    let mut median = asset.clone();
+    median.meta = median.meta.replace("\"largest_weight\"", "\"median_depth\"");
+    let median = Asset::from_bytes(&median.to_bytes().expect("encode")).expect("decode");
+    assert_eq!(InolfKernel::from_asset(median).expect("kernel").density().hit_rule(), HitRule::MedianDepth);
     let mut older = asset.clone();
     older.meta = older.meta.replace(",\"hit_rule\":\"largest_weight\"", "");
     assert!(!older.meta.contains("hit_rule"), "{}", older.meta);
@@ -433,9 +437,9 @@ fn the_library_bake_turns_posed_images_into_an_asset() {
     let baked = bake(&data, "tiny diffuse", &recipe, None, &mut progress).expect("bake");
     assert_eq!(progress.stages, ["radiance field", "density cubes", "i-NOLF heads"]);
     assert_eq!(progress.summaries.len(), 6, "{:?}", progress.summaries);
-    // A diffuse scene is opaque: the bake keeps the largest weight and says why.
+    // A diffuse scene is opaque: the bake takes the median depth and says why.
     assert!(
-        progress.summaries[2].starts_with("hit points: the sample of largest weight ("),
+        progress.summaries[2].starts_with("hit points: the median depth (where the ray's opacity crosses one half) ("),
         "{:?}",
         progress.summaries
     );
@@ -444,7 +448,7 @@ fn the_library_bake_turns_posed_images_into_an_asset() {
     let meta: serde_json::Value = serde_json::from_str(&baked.asset.meta).expect("meta is JSON");
     assert_eq!(meta["bake"]["field_steps"], 60, "{meta}");
     assert!(meta["bake"]["layered_share"].as_f64().is_some_and(|s| s < 0.5), "{meta}");
-    assert_eq!(meta["hit_rule"], "largest_weight", "{meta}");
+    assert_eq!(meta["hit_rule"], "median_depth", "{meta}");
     let kernel = InolfKernel::from_asset(baked.asset).expect("kernel");
     let (mut baked_db, mut empty_db) = (0.0, 0.0);
     for view in &data.views {
@@ -530,6 +534,6 @@ fn only_mostly_layered_objects_are_baked_see_through() {
     use super::train::choose_hit_rule;
     assert_eq!(choose_hit_rule(0.879), HitRule::SEE_THROUGH);
     for opaque in [0.093, 0.018, 0.0, 0.5, f64::NAN] {
-        assert_eq!(choose_hit_rule(opaque), HitRule::LargestWeight, "{opaque}");
+        assert_eq!(choose_hit_rule(opaque), HitRule::MedianDepth, "{opaque}");
     }
 }

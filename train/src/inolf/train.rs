@@ -88,12 +88,13 @@ pub fn layered_share(cubes: &DensityCubes, views: &[TrainingView], stride: u32) 
 }
 
 /// The hit rule of a bake whose training rays see a second layer `share` of the time: the
-/// layered rule for a see-through object (most rays), the largest weight otherwise. Measured on
+/// layered rule for a see-through object (most rays), the median depth otherwise. Measured on
 /// the built-in objects (64 views of 128x128): the glass shell 0.88, the glossy pair 0.09, the
 /// diffuse object 0.02; the layered rule took the shell from 20.53 to 23.97 dB on held-out
-/// views and cost the opaque objects 0.3-0.4 dB (BENCHMARKS.md, 2026-12-05f).
+/// views and cost the opaque objects 0.3-0.4 dB (BENCHMARKS.md, 2026-12-05f). The median
+/// depth against the largest weight on opaque objects: BENCHMARKS.md, 2026-12-07c.
 pub fn choose_hit_rule(share: f64) -> HitRule {
-    if share > LAYERED_SHARE { HitRule::SEE_THROUGH } else { HitRule::LargestWeight }
+    if share > LAYERED_SHARE { HitRule::SEE_THROUGH } else { HitRule::MedianDepth }
 }
 
 /// Training settings.
