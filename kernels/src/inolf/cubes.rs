@@ -327,8 +327,8 @@ pub enum HitRule {
     /// (a silhouette's fringe). The largest weight's sample centre lies up to half a sample
     /// off the surface, differently from each view, so the features at the hit point learn
     /// that jitter; the crossing is the same point from every view. The lego's held-out
-    /// PSNR, same field and heads' steps: 31.12 dB with the largest weight, 31.49 with this
-    /// (BENCHMARKS.md, 2026-12-07b/c).
+    /// PSNR, same field and heads' steps: 31.12 dB with the largest weight, 31.45 with this
+    /// (BENCHMARKS.md, 2026-12-07c).
     MedianDepth,
 }
 
