@@ -154,6 +154,8 @@ fn bake_then_bench_inolf_prints_the_ablation_rows() {
     let report =
         nephele_ok(&[&["bake", "--out", &first, "--psh-res", "64", "--save-field", &field][..], &tiny].concat());
     assert!(report.contains("perfect spatial hash") && report.contains("at 64^3"), "{report}");
+    // The heads also see the field's renders at new poses by default.
+    assert!(report.contains("pseudo-views: 70 rendered by the radiance field"), "{report}");
     let report = nephele_ok(&[&["bake", "--out", &second, "--psh-res", "32", "--field", &field][..], &tiny].concat());
     assert!(report.contains("at 32^3"), "{report}");
 

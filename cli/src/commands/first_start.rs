@@ -102,6 +102,8 @@ impl BakeQuality {
                     cube_res: 13,
                     cube_probe: 12,
                     psh_res: 128,
+                    // Measured on the lego only; the objects' numbers are without them.
+                    pseudo_views: 0,
                     ..BakeRecipe::default()
                 },
             }),
@@ -123,6 +125,7 @@ impl BakeQuality {
                     cubes: 24,
                     cube_res: 5,
                     psh_res: 96,
+                    pseudo_views: 0,
                     ..BakeRecipe::default()
                 },
             }),

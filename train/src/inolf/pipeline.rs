@@ -85,8 +85,11 @@ pub struct BakeRecipe {
 impl Default for BakeRecipe {
     fn default() -> Self {
         // The steps: the best held-out lego measured from a bake under 30 minutes on a 2-core
-        // host (2026-12-07: 7000 / 5000 in 22 minutes, field 32.69 dB, i-NOLF 31.12 dB;
-        // 2000 / 3000 took 10 minutes for 30.27 / 29.91 dB; BENCHMARKS.md).
+        // host (2026-12-07: 7000 / 5000 in 16 to 22 minutes, field 32.69 dB, i-NOLF 31.45 dB
+        // with the median depth; 10000 field steps: 24 minutes for 32.91 / 31.62 dB;
+        // 2000 / 3000 took 10 minutes for 30.27 / 29.91 dB). The pseudo-views: 70 (as many as
+        // the lego's training views) gain 0.08 dB held out for about a minute (BENCHMARKS.md,
+        // 2026-12-07d).
         BakeRecipe {
             field_steps: 7000,
             field_table_log2: 19,
@@ -103,7 +106,7 @@ impl Default for BakeRecipe {
             psh_features: 8,
             density_threshold: 1.0,
             keep_diffuse_network: false,
-            pseudo_views: 0,
+            pseudo_views: 70,
             psh_decay: 0.0,
             grid_decay: 0.0,
             head_loss: LossSpace::default(),

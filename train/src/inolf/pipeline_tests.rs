@@ -431,6 +431,7 @@ fn the_library_bake_turns_posed_images_into_an_asset() {
         cubes: 16,
         cube_res: 4,
         psh_res: 48,
+        pseudo_views: 0,
         ..BakeRecipe::default()
     };
     let mut progress = Recorder::default();
