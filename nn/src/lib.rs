@@ -34,7 +34,7 @@ pub mod resmlp;
 pub mod simd;
 pub mod unet;
 
-pub use adam::{Adam, AdamConfig};
+pub use adam::{Adam, AdamConfig, LazyAdam};
 pub use conv::PixelMask;
 pub use encoding::{frequency_encode, frequency_encoded_len, sh_coefficient_count, sh_encode};
 pub use hashgrid::{FEATURES_PER_LEVEL, HashGrid, HashGridConfig};
