@@ -208,14 +208,6 @@ impl LazyAdam {
         Ok(LazyAdam { config, m: vec![0.0; len], v: vec![0.0; len], last: vec![0; len], steps: 0, tables })
     }
 
-    pub fn config(&self) -> &AdamConfig {
-        &self.config
-    }
-
-    pub fn steps(&self) -> u32 {
-        self.steps
-    }
-
     /// Changes the learning rate of the steps to come; when it differs, first brings every
     /// entry of `params` up to date at the old rate.
     pub fn set_learning_rate(&mut self, params: &mut [f32], learning_rate: f32) -> Result<(), NnError> {
