@@ -137,7 +137,7 @@ impl GpuInolfKernel {
         a.u32s([2 * voxel_words as u32, d_index, d_data, d_voxels, d_proximity, d_lut]);
         a.vec4([diffuse.min().x, diffuse.min().y, diffuse.min().z, diffuse.cell()]);
         a.uvec4([diffuse.dims()[0], diffuse.dims()[1], diffuse.dims()[2], diffuse.cube_res()]);
-        a.u32s([diffuse.channels(), c_index, c_data, 0]);
+        a.u32s([diffuse.channels(), c_index, c_data, u32::from(kernel.shape().diffuse_blend)]);
         a.vec4([psh.origin.x, psh.origin.y, psh.origin.z, psh.voxel]);
         a.u32s([
             psh.table.domain(),

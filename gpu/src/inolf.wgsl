@@ -38,7 +38,7 @@ struct Params {
     c_channels: u32,
     c_index_offset: u32,
     c_data_offset: u32,
-    c_pad: u32,
+    c_blend: u32,        // 1: the diffuse colour blended over the march's samples of largest weight (`HeadsShape::diffuse_blend`)
 
     // PSH: lattice origin and voxel, domain u, table side m, offset side r.
     p_origin: vec4<f32>, // xyz origin, w voxel
@@ -125,14 +125,30 @@ struct March {
     opacity: f32,
     t: f32,
     front_t: f32, // `MarchHit::front_t`: the sample of largest weight, the depth reported
+    blend_t: vec4<f32>, // `MarchHit::blend`: the four samples of largest weight, distances
+    blend_w: vec4<f32>, // and weights
 };
+
+// `MarchHit::keep_for_blend`: (t, w) replaces the first of the smallest kept weights.
+fn keep_for_blend(hit: ptr<function, March>, t: f32, w: f32) {
+    var smallest = 0u;
+    for (var j = 1u; j < 4u; j++) {
+        if (*hit).blend_w[j] < (*hit).blend_w[smallest] {
+            smallest = j;
+        }
+    }
+    if w > (*hit).blend_w[smallest] {
+        (*hit).blend_w[smallest] = w;
+        (*hit).blend_t[smallest] = t;
+    }
+}
 
 // `DensityCubes::march` over [t_near, infinity): DDA over coarse cells, the empty box around
 // a cell far from every cube crossed in one step, samples at t0 + (k + 1/2) span (span: the
 // sample step times the march stride); returns the coarse opacity and the distance
 // of the sample of largest blending weight.
 fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
-    var hit = March(0.0, 0.0, 0.0);
+    var hit = March(0.0, 0.0, 0.0, vec4<f32>(0.0), vec4<f32>(0.0));
     // `marchable_direction` (nephele-geometry): components under 1e-20 count as 0. Camera
     // rays are unit length, so its length check never refuses one here.
     let dir = select(dir_in, vec3<f32>(0.0), abs(dir_in) < vec3<f32>(1e-20));
@@ -268,6 +284,7 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
                 }
                 let alpha = 1.0 - exp(-sigma * span);
                 let w = transmittance * alpha;
+                keep_for_blend(&hit, t, w);
                 if w > max_weight {
                     max_weight = w;
                     hit.t = t;
@@ -498,8 +515,23 @@ fn main(
     }
     let p = origin + dir * m.t;
 
-    // Diffuse colour and tint.
-    let dif = diffuse_at(p);
+    // Diffuse colour and tint: at the hit point, or blended over the samples of largest
+    // weight (`MarchHit::normalised_blend`).
+    var dif = array<f32, 6>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    let blend_total = m.blend_w.x + m.blend_w.y + m.blend_w.z + m.blend_w.w;
+    if params.c_blend == 1u && blend_total > 0.0 {
+        for (var j = 0u; j < 4u; j++) {
+            let w = m.blend_w[j] * (1.0 / blend_total);
+            if w > 0.0 {
+                let read = diffuse_at(origin + dir * m.blend_t[j]);
+                for (var c = 0u; c < 6u; c++) {
+                    dif[c] += w * read[c];
+                }
+            }
+        }
+    } else {
+        dif = diffuse_at(p);
+    }
 
     // Specular input row: PSH features, SH of the direction, coarse opacity.
     var row = array<f32, S_IN>();

@@ -108,6 +108,25 @@ fn strided_marches_agree_with_the_cpu_kernel() {
     }
 }
 
+/// With the diffuse colour blended over the march's samples of largest weight
+/// (`HeadsShape::diffuse_blend`) the twin reads the same samples: they agree as closely, and
+/// the colours differ from the hit point's.
+#[test]
+fn blended_diffuse_agrees_with_the_cpu_kernel() {
+    let f = fixture();
+    let camera = Camera::look_at(33, 25, 0.9, Vec3::new(2.5, -1.5, 1.0), Vec3::ZERO, Vec3::Z).expect("camera");
+    let (at_hit, _) = f.gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
+    let mut cpu = f.cpu.clone();
+    cpu.set_diffuse_blend(true);
+    let gpu = GpuInolfKernel::new(context(), &cpu).expect("gpu kernel");
+    whole_frames_agree(&cpu, &gpu);
+    let (blended, _) = gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
+    let changed = (0..blended.len())
+        .filter(|&i| blended.color[i].iter().zip(&at_hit.color[i]).any(|(a, b)| (a - b).abs() > 1e-3))
+        .count();
+    assert!(changed > 20, "only {changed} colours moved");
+}
+
 /// With the see-through hit rule (a layer behind the largest weight) the twin takes the same
 /// layer as the CPU.
 #[test]

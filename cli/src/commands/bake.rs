@@ -130,6 +130,12 @@ pub struct Args {
     /// median-depth otherwise.
     #[arg(long, default_value = "auto", value_name = "auto|median-depth|largest-weight|see-through")]
     hit_rule: HitRuleArg,
+    /// Where a ray's diffuse colour is read: blended over the density march's four samples
+    /// of largest weight (true: where a pixel straddles an edge, the colour mixes both sides
+    /// as the radiance field's does; about 1.5x the heads' training time) or at the hit point
+    /// alone (false, NEPHELE's eq. 5).
+    #[arg(long, default_value_t = BakeRecipe::default().diffuse_blend, action = clap::ArgAction::Set, value_name = "true|false")]
+    diffuse_blend: bool,
     #[arg(long, default_value_t = BakeRecipe::default().seed)]
     seed: u64,
 }
@@ -173,6 +179,7 @@ impl Args {
             psh_decay: self.psh_decay,
             grid_decay: self.grid_decay,
             head_loss: self.head_loss,
+            diffuse_blend: self.diffuse_blend,
             hit_rule: self.hit_rule.0,
             seed: self.seed,
         }

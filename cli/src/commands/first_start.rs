@@ -104,6 +104,7 @@ impl BakeQuality {
                     psh_res: 128,
                     // Measured on the lego only; the objects' numbers are without them.
                     pseudo_views: 0,
+                    diffuse_blend: false,
                     ..BakeRecipe::default()
                 },
             }),
@@ -126,6 +127,7 @@ impl BakeQuality {
                     cube_res: 5,
                     psh_res: 96,
                     pseudo_views: 0,
+                    diffuse_blend: false,
                     ..BakeRecipe::default()
                 },
             }),

@@ -483,6 +483,39 @@ pub struct MarchHit {
     pub lookups: u32,
     /// Coarse cells visited (empty or not).
     pub cells: u32,
+    /// The [`BLEND_SAMPLES`] samples of largest blending weight, `(t, weight)` (`(0, 0)` where
+    /// fewer samples held matter), in no particular order: where heads with
+    /// `HeadsShape::diffuse_blend` read the diffuse colour, blended by weight.
+    pub blend: [(f32, f32); BLEND_SAMPLES],
+}
+
+/// Samples of a march whose diffuse colours a blended hit colour mixes ([`MarchHit::blend`]).
+pub const BLEND_SAMPLES: usize = 4;
+
+impl MarchHit {
+    /// Keeps `(t, w)` among the samples of largest weight (replacing the first of the
+    /// smallest, as the GPU twin does).
+    #[inline(always)]
+    fn keep_for_blend(&mut self, t: f32, w: f32) {
+        let mut smallest = 0;
+        for j in 1..BLEND_SAMPLES {
+            if self.blend[j].1 < self.blend[smallest].1 {
+                smallest = j;
+            }
+        }
+        if w > self.blend[smallest].1 {
+            self.blend[smallest] = (t, w);
+        }
+    }
+
+    /// [`MarchHit::blend`] with its weights scaled to sum to one (all zero where no sample
+    /// held matter): the mix of a blended diffuse colour.
+    #[inline]
+    pub fn normalised_blend(&self) -> [(f32, f32); BLEND_SAMPLES] {
+        let total: f32 = self.blend.iter().map(|b| b.1).sum();
+        let scale = if total > 0.0 { 1.0 / total } else { 0.0 };
+        self.blend.map(|(t, w)| (t, w * scale))
+    }
 }
 
 /// Transmittance below which marching stops.
@@ -906,6 +939,7 @@ impl DensityCubes {
                     }
                     let alpha = opacity_of_depth(sigma * span);
                     let w = transmittance * alpha;
+                    hit.keep_for_blend(t, w);
                     if w > hit.max_weight {
                         hit.max_weight = w;
                         hit.t = t;
@@ -1504,6 +1538,10 @@ mod tests {
                 hit.max_weight = w;
                 hit.t = t;
             }
+            // The largest weights, sorted afresh (the fast march keeps them on the way).
+            let mut all: Vec<(f32, f32)> = hit.blend.iter().copied().chain([(t, w)]).collect();
+            all.sort_by(|a, b| b.1.total_cmp(&a.1));
+            hit.blend.copy_from_slice(&all[..BLEND_SAMPLES]);
             transmittance *= 1.0 - alpha;
             if transmittance < MIN_TRANSMITTANCE {
                 break;
@@ -1539,6 +1577,15 @@ mod tests {
             prop_assert!(close(reference_weight_at(cubes, o, d, near, fast.t), slow.max_weight));
         }
         prop_assert!(fast.lookups <= fast.samples);
+        // The blend keeps the largest weights (their distances may differ where weights tie).
+        let sorted = |h: &MarchHit| {
+            let mut w: Vec<f32> = h.blend.iter().map(|b| b.1).collect();
+            w.sort_by(|a, b| b.total_cmp(a));
+            w
+        };
+        for (a, b) in sorted(&fast).iter().zip(sorted(&slow)) {
+            prop_assert!(close(*a, b), "blend {:?} vs {:?}", fast.blend, slow.blend);
+        }
         Ok(())
     }
 

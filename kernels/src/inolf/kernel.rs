@@ -17,7 +17,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::asset::Asset;
-use super::cubes::{DensityCubes, SparseCubes};
+use super::cubes::{BLEND_SAMPLES, DensityCubes, SparseCubes};
 use super::encoding::{CellCache, PshEncoding};
 use super::heads::{decode_diffuse, load_heads};
 use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT, combine, specular_activation};
@@ -247,6 +247,13 @@ impl InolfKernel {
         self.shape
     }
 
+    /// Reads the diffuse colour blended over the march's samples of largest weight, or at
+    /// the hit point (`HeadsShape::diffuse_blend`: what the heads were trained with; the
+    /// other reading is for comparisons).
+    pub fn set_diffuse_blend(&mut self, blend: bool) {
+        self.shape.diffuse_blend = blend;
+    }
+
     /// Multiply-adds of the specular MLP per hitting ray.
     pub fn specular_macs(&self) -> usize {
         self.specular.config().macs_per_row()
@@ -272,6 +279,9 @@ impl InolfKernel {
     ) -> Result<(u64, u64), ModelError> {
         let width = camera.width();
         let mut hits: Vec<(usize, Vec3, Vec3, f32)> = Vec::with_capacity(pixels.len());
+        // Per hit, the points and weights its diffuse colour blends (`HeadsShape::diffuse_blend`).
+        let blend = self.shape.diffuse_blend;
+        let mut blends: Vec<[(Vec3, f32); BLEND_SAMPLES]> = Vec::with_capacity(if blend { pixels.len() } else { 0 });
         // Per hit, the view depth reported: of the sample of largest weight, which a hit
         // rule may have left for a layer behind (`MarchHit::front_t`).
         let mut front_depths: Vec<f32> = Vec::with_capacity(pixels.len());
@@ -279,6 +289,7 @@ impl InolfKernel {
         let mut network_samples = 0u64;
         for (k, &p) in pixels.iter().enumerate() {
             let ray = camera.pixel_center_ray(p % width, p / width);
+            let mut blend_points = [(Vec3::ZERO, 0.0f32); BLEND_SAMPLES];
             let (opacity, t, front_t) = match (&self.hit_field, &mut field_scratch) {
                 (Some(field), Some(scratch)) => {
                     let r = field.density_hit(ray.origin, ray.direction, RAY_NEAR, scratch);
@@ -287,11 +298,21 @@ impl InolfKernel {
                 }
                 _ => {
                     let h = self.density.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY);
+                    if blend {
+                        blend_points = h.normalised_blend().map(|(bt, w)| (ray.at(bt), w));
+                    }
                     (h.opacity, h.t, h.front_t)
                 }
             };
             if opacity >= HIT_OPACITY {
                 hits.push((k, ray.at(t), ray.direction, opacity));
+                if blend {
+                    // The density network's hit has no samples kept: its hit point alone.
+                    if blend_points[0].1 == 0.0 {
+                        blend_points[0] = (ray.at(t), 1.0);
+                    }
+                    blends.push(blend_points);
+                }
                 front_depths.push(camera.view_depth(ray.at(front_t)));
             }
         }
@@ -307,17 +328,48 @@ impl InolfKernel {
                     if let Some(ahead) = hits.get(i + DIFFUSE_LOOKAHEAD) {
                         cubes.prefetch_sample(ahead.1, self.prefetch);
                     }
-                    cubes.sample(h.1, row);
-                    row.iter_mut().for_each(|v| *v = decode_diffuse(*v));
+                    if blend {
+                        let mut read = [0.0f32; DIFFUSE_OUT];
+                        row.fill(0.0);
+                        for &(p, w) in blends[i].iter().filter(|b| b.1 > 0.0) {
+                            cubes.sample(p, &mut read);
+                            for (v, &r) in row.iter_mut().zip(&read) {
+                                *v += w * decode_diffuse(r);
+                            }
+                        }
+                    } else {
+                        cubes.sample(h.1, row);
+                        row.iter_mut().for_each(|v| *v = decode_diffuse(*v));
+                    }
                 }
             }
             (_, _, Some((grid, mlp))) => {
                 let size = self.grid_bounds.size();
-                let points: Vec<[f32; 3]> =
-                    hits.iter().map(|h| ((h.1 - self.grid_bounds.min) / size).to_array()).collect();
-                let mut enc = vec![0.0; n * grid.output_dim()];
-                grid.encode_batch(&points, &mut enc)?;
-                mlp.infer(&enc, &mut diffuse, &mut MlpWorkspace::new())?;
+                let to_grid = |p: Vec3| ((p - self.grid_bounds.min) / size).to_array();
+                if blend {
+                    // Every blended point through the network, then each hit's weighted sum.
+                    let kept =
+                        |b: &[(Vec3, f32); BLEND_SAMPLES]| b.iter().filter(|b| b.1 > 0.0).copied().collect::<Vec<_>>();
+                    let per_hit: Vec<Vec<(Vec3, f32)>> = blends.iter().map(kept).collect();
+                    let points: Vec<[f32; 3]> = per_hit.iter().flatten().map(|b| to_grid(b.0)).collect();
+                    let mut enc = vec![0.0; points.len() * grid.output_dim()];
+                    grid.encode_batch(&points, &mut enc)?;
+                    let mut rows = vec![0.0; points.len() * DIFFUSE_OUT];
+                    mlp.infer(&enc, &mut rows, &mut MlpWorkspace::new())?;
+                    let mut next = rows.chunks_exact(DIFFUSE_OUT);
+                    for (row, samples) in diffuse.chunks_exact_mut(DIFFUSE_OUT).zip(&per_hit) {
+                        for (&(_, w), read) in samples.iter().zip(next.by_ref()) {
+                            for (v, &r) in row.iter_mut().zip(read) {
+                                *v += w * r;
+                            }
+                        }
+                    }
+                } else {
+                    let points: Vec<[f32; 3]> = hits.iter().map(|h| to_grid(h.1)).collect();
+                    let mut enc = vec![0.0; n * grid.output_dim()];
+                    grid.encode_batch(&points, &mut enc)?;
+                    mlp.infer(&enc, &mut diffuse, &mut MlpWorkspace::new())?;
+                }
             }
             _ => return Err(ModelError::Shape("no diffuse part".into())),
         }

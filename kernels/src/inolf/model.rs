@@ -51,6 +51,13 @@ pub struct HeadsShape {
     pub sh_degree: u32,
     pub specular_hidden: usize,
     pub specular_layers: usize,
+    /// Where the diffuse branch is read: at the hit point (`false`, assets written before
+    /// this field), or at the march's samples of largest weight blended by weight (`true`,
+    /// [`super::cubes::MarchHit::blend`]): where a pixel straddles an edge the field's density
+    /// splits the ray's weight between the two surfaces, and so does the colour (the lego's
+    /// held-out views +0.6 dB, BENCHMARKS.md 2026-12-07f).
+    #[serde(default)]
+    pub diffuse_blend: bool,
 }
 
 impl Default for HeadsShape {
@@ -68,6 +75,7 @@ impl Default for HeadsShape {
             sh_degree: 4,
             specular_hidden: 32,
             specular_layers: 2,
+            diffuse_blend: true,
         }
     }
 }

@@ -98,6 +98,7 @@ pub fn synthetic_object(scale: f32) -> Result<SyntheticObject, Box<dyn std::erro
         sh_degree: 3,
         specular_hidden: 16,
         specular_layers: 2,
+        diffuse_blend: false,
     };
     let mut model = InolfModel::new(shape, bounds, psh, 7)?;
     // Grid features of order one, so that the diffuse network's output varies in space.

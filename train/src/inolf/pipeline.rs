@@ -76,6 +76,9 @@ pub struct BakeRecipe {
     pub grid_decay: f32,
     /// Where the heads' colour loss compares pixels ([`LossSpace`]).
     pub head_loss: LossSpace,
+    /// Blend the diffuse colour over the march's samples of largest weight instead of reading
+    /// it at the hit point ([`HeadsShape::diffuse_blend`]).
+    pub diffuse_blend: bool,
     /// Which sample of the march is a ray's hit point; `None`: chosen from the share of
     /// training rays that see a second layer ([`choose_hit_rule`]).
     pub hit_rule: Option<HitRule>,
@@ -111,6 +114,7 @@ impl Default for BakeRecipe {
             psh_decay: 0.0,
             grid_decay: 0.0,
             head_loss: LossSpace::default(),
+            diffuse_blend: true,
             hit_rule: None,
             seed: 1,
         }
@@ -190,7 +194,11 @@ pub fn bake(
         }
     }
     // The heads' shape is checked before the minutes of the radiance field, not after.
-    let shape = HeadsShape { grid_log2_table: recipe.head_table_log2, ..HeadsShape::default() };
+    let shape = HeadsShape {
+        grid_log2_table: recipe.head_table_log2,
+        diffuse_blend: recipe.diffuse_blend,
+        ..HeadsShape::default()
+    };
     shape.grid().validate().map_err(ModelError::from)?;
 
     // 1. Radiance field.

@@ -85,6 +85,7 @@ fn small_shape() -> HeadsShape {
         sh_degree: 2,
         specular_hidden: 16,
         specular_layers: 1,
+        diffuse_blend: true,
     }
 }
 
