@@ -204,8 +204,12 @@ struct Scene {
 
 impl Scene {
     fn new(scale: f32) -> Result<Scene> {
-        let SyntheticObject { model, kernel: inolf } =
+        let SyntheticObject { mut model, kernel: mut inolf } =
             synthetic_object(scale).map_err(|e| anyhow::anyhow!("the synthetic object: {e}"))?;
+        // As `nephele bake` trains them: the diffuse colour blended over the march's samples of
+        // largest weight (their distances and weights are what hard rays can break).
+        model.shape.diffuse_blend = true;
+        inolf.set_diffuse_blend(true);
         let bounds = Bounds { min: Vec3::splat(-scale), max: Vec3::splat(scale) };
         let matter = vec![Vec3::ZERO, Vec3::new(0.2, 0.1, -0.1) * scale, Vec3::new(-0.8, 0.8, -0.8) * scale];
 
@@ -244,10 +248,16 @@ fn march(scene: &Scene, rays: &[HardRay]) -> Tally {
             for r in chunk {
                 let h = scene.inolf.density().march(r.origin, r.direction, RAY_NEAR * scene.scale, f32::INFINITY);
                 t.rays += 1;
-                let values = [h.opacity, h.t, h.max_weight];
-                if !values.iter().all(|v| v.is_finite()) {
+                let blend = h.normalised_blend();
+                let values = [h.opacity, h.t, h.max_weight].into_iter().chain(blend.iter().flat_map(|b| [b.0, b.1]));
+                let blend_total: f32 = blend.iter().map(|b| b.1).sum();
+                if !values.clone().all(|v| v.is_finite()) {
                     t.finite(values, "march outputs", Some(r));
-                } else if !(0.0..=1.0).contains(&h.opacity) || h.t < 0.0 || h.max_weight > h.opacity + 1e-6 {
+                } else if !(0.0..=1.0).contains(&h.opacity)
+                    || h.t < 0.0
+                    || h.max_weight > h.opacity + 1e-6
+                    || (h.opacity > 0.0 && (blend_total - 1.0).abs() > 1e-4)
+                {
                     t.out_of_range += 1;
                     t.fail(&format!("march {h:?}"), Some(r));
                 } else if r.must_be_rejected() {

@@ -513,7 +513,8 @@ impl MarchHit {
     #[inline]
     pub fn normalised_blend(&self) -> [(f32, f32); BLEND_SAMPLES] {
         let total: f32 = self.blend.iter().map(|b| b.1).sum();
-        let scale = if total > 0.0 { 1.0 / total } else { 0.0 };
+        // A denormal total's reciprocal would overflow.
+        let scale = if total >= f32::MIN_POSITIVE { 1.0 / total } else { 0.0 };
         self.blend.map(|(t, w)| (t, w * scale))
     }
 }
