@@ -347,21 +347,20 @@ impl InolfKernel {
                 let size = self.grid_bounds.size();
                 let to_grid = |p: Vec3| ((p - self.grid_bounds.min) / size).to_array();
                 if blend {
-                    // Every blended point through the network, then each hit's weighted sum.
-                    let kept =
-                        |b: &[(Vec3, f32); BLEND_SAMPLES]| b.iter().filter(|b| b.1 > 0.0).copied().collect::<Vec<_>>();
-                    let per_hit: Vec<Vec<(Vec3, f32)>> = blends.iter().map(kept).collect();
-                    let points: Vec<[f32; 3]> = per_hit.iter().flatten().map(|b| to_grid(b.0)).collect();
+                    // Every blended point through the network (each row: its hit and weight),
+                    // then each hit's weighted sum.
+                    let (row_of, points): (Vec<(usize, f32)>, Vec<[f32; 3]>) = blends
+                        .iter()
+                        .enumerate()
+                        .flat_map(|(i, b)| b.iter().filter(|b| b.1 > 0.0).map(move |&(p, w)| ((i, w), to_grid(p))))
+                        .unzip();
                     let mut enc = vec![0.0; points.len() * grid.output_dim()];
                     grid.encode_batch(&points, &mut enc)?;
                     let mut rows = vec![0.0; points.len() * DIFFUSE_OUT];
                     mlp.infer(&enc, &mut rows, &mut MlpWorkspace::new())?;
-                    let mut next = rows.chunks_exact(DIFFUSE_OUT);
-                    for (row, samples) in diffuse.chunks_exact_mut(DIFFUSE_OUT).zip(&per_hit) {
-                        for (&(_, w), read) in samples.iter().zip(next.by_ref()) {
-                            for (v, &r) in row.iter_mut().zip(read) {
-                                *v += w * r;
-                            }
+                    for (&(i, w), read) in row_of.iter().zip(rows.chunks_exact(DIFFUSE_OUT)) {
+                        for (v, &r) in diffuse[i * DIFFUSE_OUT..(i + 1) * DIFFUSE_OUT].iter_mut().zip(read) {
+                            *v += w * r;
                         }
                     }
                 } else {

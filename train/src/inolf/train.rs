@@ -272,38 +272,30 @@ pub fn heads_forward_backward(
     let e_dim = model.grid.output_dim();
     // The diffuse branch's rows: one per ray at its hit point, or with
     // `HeadsShape::diffuse_blend` one per sample the ray's colour blends, weighted as the
-    // kernel weighs them (`MarchHit::normalised_blend`). `rows[k]`: ray k's first row and
-    // count; `row_w`: each row's weight.
+    // kernel weighs them (`MarchHit::normalised_blend`). Each row: its ray and weight.
     let blend = model.shape.diffuse_blend;
     let mut points: Vec<[f32; 3]> = Vec::with_capacity(n * if blend { BLEND_SAMPLES } else { 1 });
-    let mut row_w: Vec<f32> = Vec::with_capacity(points.capacity());
-    let mut rows: Vec<(usize, usize)> = Vec::with_capacity(n);
-    for r in rays {
+    let mut row_of: Vec<(usize, f32)> = Vec::with_capacity(points.capacity());
+    for (k, r) in rays.iter().enumerate() {
         let start = points.len();
         if blend {
-            for (t, w) in r.hit.normalised_blend() {
-                if w > 0.0 {
-                    points.push(model.grid_input(r.origin + r.dir * t));
-                    row_w.push(w);
-                }
+            for (t, w) in r.hit.normalised_blend().into_iter().filter(|b| b.1 > 0.0) {
+                points.push(model.grid_input(r.origin + r.dir * t));
+                row_of.push((k, w));
             }
         }
         if points.len() == start {
             points.push(model.grid_input(r.origin + r.dir * r.hit.t));
-            row_w.push(1.0);
+            row_of.push((k, 1.0));
         }
-        rows.push((start, points.len() - start));
     }
-    let m = points.len();
-    let mut enc = vec![0.0; m * e_dim];
+    let mut enc = vec![0.0; points.len() * e_dim];
     model.grid.encode_batch(&points, &mut enc)?;
     let out_rows = model.diffuse.forward(&enc, &mut workspace.diffuse)?.to_vec();
     let mut out_d = vec![0.0f32; n * DIFFUSE_OUT];
-    for (k, &(s, c)) in rows.iter().enumerate() {
-        for q in s..s + c {
-            for j in 0..DIFFUSE_OUT {
-                out_d[k * DIFFUSE_OUT + j] += row_w[q] * out_rows[q * DIFFUSE_OUT + j];
-            }
+    for (&(k, w), row) in row_of.iter().zip(out_rows.chunks_exact(DIFFUSE_OUT)) {
+        for (v, &r) in out_d[k * DIFFUSE_OUT..(k + 1) * DIFFUSE_OUT].iter_mut().zip(row) {
+            *v += w * r;
         }
     }
     let mut s_input = vec![0.0; n * s_in];
@@ -346,15 +338,11 @@ pub fn heads_forward_backward(
     for (k, c) in corners.iter().enumerate() {
         model.psh.backward(c, &d_s_input[k * s_in..k * s_in + f_dim], &mut grads.psh);
     }
-    let mut d_rows = vec![0.0f32; m * DIFFUSE_OUT];
-    for (k, &(s, c)) in rows.iter().enumerate() {
-        for q in s..s + c {
-            for j in 0..DIFFUSE_OUT {
-                d_rows[q * DIFFUSE_OUT + j] = row_w[q] * d_out_d[k * DIFFUSE_OUT + j];
-            }
-        }
-    }
-    let mut d_enc = vec![0.0; m * e_dim];
+    let d_rows: Vec<f32> = row_of
+        .iter()
+        .flat_map(|&(k, w)| d_out_d[k * DIFFUSE_OUT..(k + 1) * DIFFUSE_OUT].iter().map(move |&d| w * d))
+        .collect();
+    let mut d_enc = vec![0.0; points.len() * e_dim];
     model.diffuse.backward(&enc, &mut workspace.diffuse, &d_rows, &mut grads.diffuse, Some(&mut d_enc))?;
     model.grid.backward_batch_parallel(&points, &d_enc, &mut grads.grid)?;
     Ok(losses)
