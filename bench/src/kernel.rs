@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use nephele_kernels::inolf::cubes::MarchHit;
+use nephele_kernels::inolf::cubes::{BLEND_SAMPLES, DensityCubes, MarchHit};
 use nephele_kernels::inolf::encoding::CellCache;
 use nephele_kernels::inolf::kernel::{HIT_OPACITY, InolfKernel, RAY_NEAR};
 use nephele_kernels::kernel::PixelResults;
@@ -71,7 +71,7 @@ fn largest_difference(a: &[PixelResults], b: &[PixelResults]) -> f32 {
 }
 
 /// The march alone over every pixel of every camera: ms per frame and the summed work.
-fn march_only(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]) -> (f64, MarchWork) {
+fn march_only(density: &DensityCubes, cameras: &[nephele_geometry::camera::Camera]) -> (f64, MarchWork) {
     let start = Instant::now();
     let mut work = MarchWork::default();
     for camera in cameras {
@@ -80,7 +80,7 @@ fn march_only(kernel: &InolfKernel, cameras: &[nephele_geometry::camera::Camera]
             .into_par_iter()
             .map(|p| {
                 let ray = camera.pixel_center_ray(p % w, p / w);
-                MarchWork::of(&kernel.density().march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY))
+                MarchWork::of(&density.march(ray.origin, ray.direction, RAY_NEAR, f32::INFINITY))
             })
             .reduce(MarchWork::default, MarchWork::add);
         work = work.add(frame);
@@ -218,11 +218,16 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
                 Some(kernel)
             }
         };
+        // The march with the blend samples kept (for heads that blend their diffuse colour)
+        // if the asset's heads do not, and without them if they do: what keeping them costs.
+        let mut toggled = fast.density().clone();
+        toggled.set_keep_blend(!toggled.keeps_blend());
         let cameras = orbit(&fast, args.size, args.views, args.distance)?;
         let classes = classify_rays(&fast, &cameras);
         let kernels = 3 + usize::from(strided.is_some());
         let bar = progress.bar((args.rounds * kernels * cameras.len()) as u64, "rendering", "frames");
         let (mut fast_ms, mut scalar_ms, mut march_ms, mut strided_ms, mut unhinted_ms) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        let mut toggled_ms = 0.0;
         let (mut hits, mut work) = (0.0, MarchWork::default());
         let mut by_class = [(0.0, MarchWork::default()); 3];
         let (mut fast_frames, mut scalar_frames, mut strided_frames, mut unhinted_frames) =
@@ -235,8 +240,9 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             (scalar_ms, scalar_frames) = (scalar_ms + share * t, out);
             let (t, _, out) = run(&unhinted, &cameras, &bar)?;
             (unhinted_ms, unhinted_frames) = (unhinted_ms + share * t, out);
-            let (t, counted) = march_only(&fast, &cameras);
+            let (t, counted) = march_only(fast.density(), &cameras);
             (march_ms, work) = (march_ms + share * t, counted);
+            toggled_ms += share * march_only(&toggled, &cameras).0;
             for (sum, (t, counted)) in by_class.iter_mut().zip(march_by_class(&fast, &cameras, &classes)) {
                 *sum = (sum.0 + share * t, counted);
             }
@@ -275,11 +281,17 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
         }
         println!("{:<40} {:>10} {:>14} {:>10}", "row", "ms/frame", "rays/s", "share");
         let strided_label = format!("whole kernel, march stride {stride}");
+        let toggled_label = if toggled.keeps_blend() {
+            "density march keeping blend samples"
+        } else {
+            "density march without blend samples"
+        };
         let mut rows = vec![
             ("whole kernel, AVX2+FMA where present", fast_ms),
             ("whole kernel, scalar (--simd off)", scalar_ms),
             ("whole kernel, no prefetch hints", unhinted_ms),
             ("density march alone", march_ms),
+            (toggled_label, toggled_ms),
             ("heads of the hit rays (the difference)", fast_ms - march_ms),
         ];
         if strided.is_some() {
@@ -290,7 +302,7 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
         }
         if let Some(kernel) = &strided {
             // Counted once: the work is the same every round (its time is not used).
-            let strided_work = march_only(kernel, &cameras).1;
+            let strided_work = march_only(kernel.density(), &cameras).1;
             let per_ray = |v: u64| v as f64 / strided_work.rays.max(1) as f64;
             println!(
                 "march stride {}: {:.2} samples and {:.2} corner decodes per ray; {:.2}x the speed of every voxel in this run; colour and opacity {:.2} dB PSNR against every voxel's",
@@ -301,6 +313,13 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
                 psnr_between(&strided_frames, &fast_frames)
             );
         }
+        let (with_blend, without_blend) =
+            if toggled.keeps_blend() { (toggled_ms, march_ms) } else { (march_ms, toggled_ms) };
+        println!(
+            "keeping the {BLEND_SAMPLES} blend samples (heads that blend their diffuse colour; this asset's heads {}): the march {:.3}x its time without them in this run",
+            if fast.shape().diffuse_blend { "do" } else { "do not" },
+            with_blend / without_blend.max(1e-12)
+        );
         println!(
             "scalar over AVX2+FMA in this run: {:.2}x; largest difference of their results {:.2e}",
             scalar_ms / fast_ms.max(1e-12),

@@ -284,7 +284,10 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
                 }
                 let alpha = 1.0 - exp(-sigma * span);
                 let w = transmittance * alpha;
-                keep_for_blend(&hit, t, w);
+                // Kept only for heads that blend (`DensityCubes::set_keep_blend`).
+                if params.c_blend == 1u {
+                    keep_for_blend(&hit, t, w);
+                }
                 if w > max_weight {
                     max_weight = w;
                     hit.t = t;

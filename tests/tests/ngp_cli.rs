@@ -282,4 +282,12 @@ fn bake_then_bench_inolf_prints_the_ablation_rows() {
         !skipped.contains("distance curve") && skipped.contains("i-NOLF base (density network, diffuse MLP, PSH 32^3)"),
         "{skipped}"
     );
+
+    // `bench kernel` times the march without the blend samples these heads keep (they blend
+    // their diffuse colour by default) and says what keeping them costs.
+    let out = nephele_ok(&["bench", "kernel", "--asset", &first, "--size", "32x24", "--views", "2", "--rounds", "1"]);
+    for row in ["whole kernel, AVX2+FMA where present", "density march alone", "density march without blend samples"] {
+        assert!(out.lines().any(|l| l.starts_with(row)), "no row '{row}' in:\n{out}");
+    }
+    assert!(out.contains("keeping the 4 blend samples (heads that blend their diffuse colour; this asset's heads do)"), "{out}");
 }

@@ -299,6 +299,8 @@ pub struct DensityCubes {
     stride: f32,
     /// Which sample stands for a ray's hit point ([`DensityCubes::set_hit_rule`]).
     hit_rule: HitRule,
+    /// Whether the march keeps [`MarchHit::blend`] ([`DensityCubes::set_keep_blend`]).
+    keep_blend: bool,
 }
 
 /// The largest [`DensityCubes::set_march_stride`].
@@ -559,7 +561,15 @@ impl DensityCubes {
         let lut = decode_table(cubes.sample_step());
         let occupancy = VoxelOccupancy::of(&cubes);
         let proximity = proximity_of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, proximity, stride: 1.0, hit_rule: HitRule::LargestWeight })
+        Ok(DensityCubes {
+            cubes,
+            lut,
+            occupancy,
+            proximity,
+            stride: 1.0,
+            hit_rule: HitRule::LargestWeight,
+            keep_blend: true,
+        })
     }
 
     /// Chooses which sample is a ray's hit point ([`HitRule`]; the largest weight unless asked).
@@ -586,6 +596,19 @@ impl DensityCubes {
         }
         self.stride = stride as f32;
         Ok(())
+    }
+
+    /// Whether the march keeps the samples of largest weight in [`MarchHit::blend`] (on
+    /// unless turned off; left all `(0, 0)` when off). Only heads that blend their diffuse
+    /// colour (`HeadsShape::diffuse_blend`) read them, and keeping them costs a few compares
+    /// per sample with matter, so a kernel serving other heads turns it off.
+    pub fn set_keep_blend(&mut self, keep: bool) {
+        self.keep_blend = keep;
+    }
+
+    /// Whether the march keeps [`MarchHit::blend`] ([`Self::set_keep_blend`]).
+    pub fn keeps_blend(&self) -> bool {
+        self.keep_blend
     }
 
     /// Voxels between the march's samples (1 unless [`Self::set_march_stride`] said otherwise).
@@ -734,7 +757,15 @@ impl DensityCubes {
         let cubes = SparseCubes { min: bounds.min, cell, dims, cube_res: o.cube_res, channels: 1, index, data };
         let occupancy = VoxelOccupancy::of(&cubes);
         let proximity = proximity_of(&cubes);
-        Ok(DensityCubes { cubes, lut, occupancy, proximity, stride: 1.0, hit_rule: HitRule::LargestWeight })
+        Ok(DensityCubes {
+            cubes,
+            lut,
+            occupancy,
+            proximity,
+            stride: 1.0,
+            hit_rule: HitRule::LargestWeight,
+            keep_blend: true,
+        })
     }
 
     /// Interpolated density (`sigma`) at `p`; 0 outside the cubes.
@@ -854,6 +885,7 @@ impl DensityCubes {
         // and where it was crossed.
         let median_level = self.hit_rule.median_transmittance();
         let mut median_t = f32::INFINITY;
+        let keep_blend = self.keep_blend;
         let mut t_cur = t0;
         // Samples sit at t0 + (k + 1/2) step, whatever cell they fall in.
         let mut k = 0u64;
@@ -940,7 +972,9 @@ impl DensityCubes {
                     }
                     let alpha = opacity_of_depth(sigma * span);
                     let w = transmittance * alpha;
-                    hit.keep_for_blend(t, w);
+                    if keep_blend {
+                        hit.keep_for_blend(t, w);
+                    }
                     if w > hit.max_weight {
                         hit.max_weight = w;
                         hit.t = t;
@@ -1599,6 +1633,21 @@ mod tests {
             check_against_reference(box_cubes(), o, d, near)?;
             check_against_reference(sparse_cubes(), o, d, near)?;
             check_against_reference(strided_sphere_cubes(), o, d, near)?;
+        }
+
+        /// Without the blend the march is the same but for it.
+        #[test]
+        fn a_march_without_the_blend_differs_only_by_it(o in origin(), d in direction(), near in 0.0f32..0.2) {
+            static UNBLENDED: std::sync::OnceLock<DensityCubes> = std::sync::OnceLock::new();
+            let unblended = UNBLENDED.get_or_init(|| {
+                let mut c = sphere_cubes().clone();
+                c.set_keep_blend(false);
+                c
+            });
+            prop_assert!(sphere_cubes().keeps_blend() && !unblended.keeps_blend());
+            let full = sphere_cubes().march(o, d, near, f32::INFINITY);
+            let plain = unblended.march(o, d, near, f32::INFINITY);
+            prop_assert_eq!(plain, MarchHit { blend: [(0.0, 0.0); BLEND_SAMPLES], ..full });
         }
 
         #[test]

@@ -108,6 +108,7 @@ impl InolfKernel {
         let mut density = asset.density;
         density.set_march_stride(heads.meta.march_stride).map_err(|e| ModelError::Shape(e.to_string()))?;
         density.set_hit_rule(heads.meta.hit_rule).map_err(|e| ModelError::Shape(e.to_string()))?;
+        density.set_keep_blend(heads.meta.shape.diffuse_blend);
         Ok(InolfKernel {
             density,
             hit_field: None,
@@ -128,7 +129,12 @@ impl InolfKernel {
     }
 
     /// From a model in memory (tests, and rendering right after training).
-    pub fn from_model(model: &InolfModel, density: DensityCubes, diffuse_cubes: Option<SparseCubes>) -> InolfKernel {
+    pub fn from_model(
+        model: &InolfModel,
+        mut density: DensityCubes,
+        diffuse_cubes: Option<SparseCubes>,
+    ) -> InolfKernel {
+        density.set_keep_blend(model.shape.diffuse_blend);
         let source = if diffuse_cubes.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
         InolfKernel {
             density,
@@ -252,6 +258,7 @@ impl InolfKernel {
     /// other reading is for comparisons).
     pub fn set_diffuse_blend(&mut self, blend: bool) {
         self.shape.diffuse_blend = blend;
+        self.density.set_keep_blend(blend);
     }
 
     /// Multiply-adds of the specular MLP per hitting ray.
