@@ -289,5 +289,8 @@ fn bake_then_bench_inolf_prints_the_ablation_rows() {
     for row in ["whole kernel, AVX2+FMA where present", "density march alone", "density march without blend samples"] {
         assert!(out.lines().any(|l| l.starts_with(row)), "no row '{row}' in:\n{out}");
     }
-    assert!(out.contains("keeping the 4 blend samples (heads that blend their diffuse colour; this asset's heads do)"), "{out}");
+    assert!(
+        out.contains("keeping the 4 blend samples (heads that blend their diffuse colour; this asset's heads do)"),
+        "{out}"
+    );
 }
