@@ -678,7 +678,6 @@ impl DensityCubes {
         let (nx, ny, nz) = (dims[0] as usize, dims[1] as usize, dims[2] as usize);
         let cells = nx * ny * nz;
         let step = cell / (o.cube_res - 1) as f32;
-        let lut = decode_table(step);
         let cell_min =
             |c: usize| bounds.min + cell * Vec3::new((c % nx) as f32, ((c / nx) % ny) as f32, (c / (nx * ny)) as f32);
 
@@ -754,17 +753,15 @@ impl DensityCubes {
                 data.extend_from_slice(&q);
             }
         }
-        let cubes = SparseCubes { min: bounds.min, cell, dims, cube_res: o.cube_res, channels: 1, index, data };
-        let occupancy = VoxelOccupancy::of(&cubes);
-        let proximity = proximity_of(&cubes);
-        Ok(DensityCubes {
-            cubes,
-            lut,
-            occupancy,
-            proximity,
-            stride: 1.0,
-            hit_rule: HitRule::LargestWeight,
-            keep_blend: true,
+        // One channel, the same decode table (`step` is the cubes' sample step).
+        DensityCubes::from_cubes(SparseCubes {
+            min: bounds.min,
+            cell,
+            dims,
+            cube_res: o.cube_res,
+            channels: 1,
+            index,
+            data,
         })
     }
 
