@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use nephele_kernels::inolf::cubes::{BLEND_SAMPLES, DensityCubes, MarchHit};
+use nephele_kernels::inolf::cubes::{DensityCubes, MarchHit};
 use nephele_kernels::inolf::encoding::CellCache;
 use nephele_kernels::inolf::kernel::{HIT_OPACITY, InolfKernel, RAY_NEAR};
 use nephele_kernels::kernel::PixelResults;
@@ -221,7 +221,8 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
         // The march with the blend samples kept (for heads that blend their diffuse colour)
         // if the asset's heads do not, and without them if they do: what keeping them costs.
         let mut toggled = fast.density().clone();
-        toggled.set_keep_blend(!toggled.keeps_blend());
+        let kept = fast.density().blend_samples();
+        toggled.set_blend_samples(if kept > 0 { 0 } else { fast.shape().blend_samples.max(1) });
         let cameras = orbit(&fast, args.size, args.views, args.distance)?;
         let classes = classify_rays(&fast, &cameras);
         let kernels = 3 + usize::from(strided.is_some());
@@ -281,7 +282,7 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
         }
         println!("{:<40} {:>10} {:>14} {:>10}", "row", "ms/frame", "rays/s", "share");
         let strided_label = format!("whole kernel, march stride {stride}");
-        let toggled_label = if toggled.keeps_blend() {
+        let toggled_label = if toggled.blend_samples() > 0 {
             "density march keeping blend samples"
         } else {
             "density march without blend samples"
@@ -314,9 +315,10 @@ pub fn run_kernel(args: KernelArgs, progress: &dyn Progress) -> Result<()> {
             );
         }
         let (with_blend, without_blend) =
-            if toggled.keeps_blend() { (toggled_ms, march_ms) } else { (march_ms, toggled_ms) };
+            if toggled.blend_samples() > 0 { (toggled_ms, march_ms) } else { (march_ms, toggled_ms) };
         println!(
-            "keeping the {BLEND_SAMPLES} blend samples (heads that blend their diffuse colour; this asset's heads {}): the march {:.3}x its time without them in this run",
+            "keeping the {} blend samples (heads that blend their diffuse colour; this asset's heads {}): the march {:.3}x its time without them in this run",
+            kept.max(toggled.blend_samples()),
             if fast.shape().diffuse_blend { "do" } else { "do not" },
             with_blend / without_blend.max(1e-12)
         );

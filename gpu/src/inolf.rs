@@ -7,7 +7,7 @@ use std::sync::Arc;
 use crate::context::{GpuContext, GpuError};
 use crate::dispatch::{Words, pipeline, render, upload, warm_up};
 use nephele_geometry::camera::Camera;
-use nephele_kernels::inolf::cubes::{DensityCubes, MIN_TRANSMITTANCE, SparseCubes};
+use nephele_kernels::inolf::cubes::{DensityCubes, MAX_BLEND_SAMPLES, MIN_TRANSMITTANCE, SparseCubes};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::kernel::{DiffuseSource, HIT_OPACITY, HitSource, InolfKernel, RAY_NEAR};
 use nephele_kernels::inolf::model::SPECULAR_OUT;
@@ -72,7 +72,7 @@ fn shader_source(mlp: &Mlp, psh_dim: u32, sh_degree: u32) -> String {
     let c = mlp.config();
     format!(
         "const S_IN: u32 = {}u;\nconst S_HIDDEN: u32 = {}u;\nconst S_LAYERS: u32 = {}u;\nconst S_OUT_ACT: u32 = {}u;\n\
-         const S_PARAMS: u32 = {}u;\nconst PSH_DIM: u32 = {}u;\nconst SH_COUNT: u32 = {}u;\n{}",
+         const S_PARAMS: u32 = {}u;\nconst PSH_DIM: u32 = {}u;\nconst SH_COUNT: u32 = {}u;\nconst MAX_BLEND_SAMPLES: u32 = {}u;\n{}",
         c.input,
         c.hidden.max(1),
         c.hidden_layers,
@@ -80,6 +80,7 @@ fn shader_source(mlp: &Mlp, psh_dim: u32, sh_degree: u32) -> String {
         mlp.num_params(),
         psh_dim,
         sh_coefficient_count(sh_degree),
+        MAX_BLEND_SAMPLES,
         include_str!("inolf.wgsl")
     )
 }
@@ -137,7 +138,7 @@ impl GpuInolfKernel {
         a.u32s([2 * voxel_words as u32, d_index, d_data, d_voxels, d_proximity, d_lut]);
         a.vec4([diffuse.min().x, diffuse.min().y, diffuse.min().z, diffuse.cell()]);
         a.uvec4([diffuse.dims()[0], diffuse.dims()[1], diffuse.dims()[2], diffuse.cube_res()]);
-        a.u32s([diffuse.channels(), c_index, c_data, u32::from(kernel.shape().diffuse_blend)]);
+        a.u32s([diffuse.channels(), c_index, c_data, density.blend_samples()]);
         a.vec4([psh.origin.x, psh.origin.y, psh.origin.z, psh.voxel]);
         a.u32s([
             psh.table.domain(),

@@ -7,7 +7,7 @@
 // The host prepends `common.wgsl` (camera, rays, SH) and the sizes of the asset's specular
 // MLP as constants:
 //   S_IN, S_HIDDEN, S_LAYERS (hidden layers), S_OUT_ACT (activation code), S_PARAMS,
-//   PSH_DIM, SH_COUNT.
+//   PSH_DIM, SH_COUNT; and MAX_BLEND_SAMPLES (`cubes::MAX_BLEND_SAMPLES`).
 //
 // Tables arrive as arrays of u32 (bytes packed four to a word, floats as bit patterns),
 // in four read-only buffers (density, diffuse, PSH, specular weights) so that each stays
@@ -38,7 +38,7 @@ struct Params {
     c_channels: u32,
     c_index_offset: u32,
     c_data_offset: u32,
-    c_blend: u32,        // 1: the diffuse colour blended over the march's samples of largest weight (`HeadsShape::diffuse_blend`)
+    c_blend: u32,        // the march's samples of largest weight that the diffuse colour blends (`DensityCubes::blend_samples`); 0: the hit point's
 
     // PSH: lattice origin and voxel, domain u, table side m, offset side r.
     p_origin: vec4<f32>, // xyz origin, w voxel
@@ -125,14 +125,14 @@ struct March {
     opacity: f32,
     t: f32,
     front_t: f32, // `MarchHit::front_t`: the sample of largest weight, the depth reported
-    blend_t: vec4<f32>, // `MarchHit::blend`: the four samples of largest weight, distances
-    blend_w: vec4<f32>, // and weights
+    blend_t: array<f32, MAX_BLEND_SAMPLES>, // `MarchHit::blend`: the `c_blend` samples of largest weight, distances
+    blend_w: array<f32, MAX_BLEND_SAMPLES>, // and weights (0 past them)
 };
 
-// `MarchHit::keep_for_blend`: (t, w) replaces the first of the smallest kept weights.
+// `MarchHit::keep_for_blend`: (t, w) replaces the first of the smallest of the `c_blend` kept weights.
 fn keep_for_blend(hit: ptr<function, March>, t: f32, w: f32) {
     var smallest = 0u;
-    for (var j = 1u; j < 4u; j++) {
+    for (var j = 1u; j < params.c_blend; j++) {
         if (*hit).blend_w[j] < (*hit).blend_w[smallest] {
             smallest = j;
         }
@@ -148,7 +148,7 @@ fn keep_for_blend(hit: ptr<function, March>, t: f32, w: f32) {
 // sample step times the march stride); returns the coarse opacity and the distance
 // of the sample of largest blending weight.
 fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
-    var hit = March(0.0, 0.0, 0.0, vec4<f32>(0.0), vec4<f32>(0.0));
+    var hit = March(0.0, 0.0, 0.0, array<f32, MAX_BLEND_SAMPLES>(), array<f32, MAX_BLEND_SAMPLES>());
     // `marchable_direction` (nephele-geometry): components under 1e-20 count as 0. Camera
     // rays are unit length, so its length check never refuses one here.
     let dir = select(dir_in, vec3<f32>(0.0), abs(dir_in) < vec3<f32>(1e-20));
@@ -284,8 +284,8 @@ fn march(origin: vec3<f32>, dir_in: vec3<f32>, t_near: f32) -> March {
                 }
                 let alpha = 1.0 - exp(-sigma * span);
                 let w = transmittance * alpha;
-                // Kept only for heads that blend (`DensityCubes::set_keep_blend`).
-                if params.c_blend == 1u {
+                // Kept only for heads that blend (`DensityCubes::set_blend_samples`).
+                if params.c_blend > 0u {
                     keep_for_blend(&hit, t, w);
                 }
                 if w > max_weight {
@@ -511,7 +511,8 @@ fn main(
     let dir = ray.dir;
     let origin = ray.origin;
 
-    let m = march(origin, dir, params.ray_near);
+    // A var: its blend arrays are indexed at run time.
+    var m = march(origin, dir, params.ray_near);
     if !(m.opacity >= params.hit_opacity) {
         write_miss(i, 0.0);
         return;
@@ -521,9 +522,12 @@ fn main(
     // Diffuse colour and tint: at the hit point, or blended over the samples of largest
     // weight (`MarchHit::normalised_blend`).
     var dif = array<f32, 6>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-    let blend_total = m.blend_w.x + m.blend_w.y + m.blend_w.z + m.blend_w.w;
-    if params.c_blend == 1u && blend_total > 0.0 {
-        for (var j = 0u; j < 4u; j++) {
+    var blend_total = 0.0;
+    for (var j = 0u; j < params.c_blend; j++) {
+        blend_total += m.blend_w[j];
+    }
+    if params.c_blend > 0u && blend_total > 0.0 {
+        for (var j = 0u; j < params.c_blend; j++) {
             let w = m.blend_w[j] * (1.0 / blend_total);
             if w > 0.0 {
                 let read = diffuse_at(origin + dir * m.blend_t[j]);

@@ -17,7 +17,7 @@ use proptest::prelude::*;
 use crate::{Agreement, DeviceChoice, GpuAccelerator, GpuContext, GpuError, GpuInolfKernel};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::assets::{LoadOptions, load_by_magic};
-use nephele_kernels::inolf::cubes::HitRule;
+use nephele_kernels::inolf::cubes::{HitRule, MAX_BLEND_SAMPLES};
 use nephele_kernels::inolf::kernel::{DiffuseSource, InolfKernel};
 use nephele_kernels::inolf::model::InolfModel;
 use nephele_kernels::inolf::synthetic::{SyntheticObject, synthetic_object};
@@ -109,22 +109,32 @@ fn strided_marches_agree_with_the_cpu_kernel() {
 }
 
 /// With the diffuse colour blended over the march's samples of largest weight
-/// (`HeadsShape::diffuse_blend`) the twin reads the same samples: they agree as closely, and
-/// the colours differ from the hit point's.
+/// (`HeadsShape::diffuse_blend`) the twin reads the same samples: they agree as closely, at
+/// every count of blended samples (8, and the 4 of older assets), and the colours differ
+/// from the hit point's and between the counts.
 #[test]
 fn blended_diffuse_agrees_with_the_cpu_kernel() {
     let f = fixture();
     let camera = Camera::look_at(33, 25, 0.9, Vec3::new(2.5, -1.5, 1.0), Vec3::ZERO, Vec3::Z).expect("camera");
     let (at_hit, _) = f.gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
-    let mut cpu = f.cpu.clone();
-    cpu.set_diffuse_blend(true);
-    let gpu = GpuInolfKernel::new(context(), &cpu).expect("gpu kernel");
-    whole_frames_agree(&cpu, &gpu);
-    let (blended, _) = gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
-    let changed = (0..blended.len())
-        .filter(|&i| blended.color[i].iter().zip(&at_hit.color[i]).any(|(a, b)| (a - b).abs() > 1e-3))
-        .count();
-    assert!(changed > 20, "only {changed} colours moved");
+    let moved = |a: &PixelResults, b: &PixelResults| {
+        (0..a.len()).filter(|&i| a.color[i].iter().zip(&b.color[i]).any(|(x, y)| (x - y).abs() > 1e-3)).count()
+    };
+    let mut frames = Vec::new();
+    for samples in [MAX_BLEND_SAMPLES as u32, 4] {
+        let mut cpu = f.cpu.clone();
+        cpu.set_diffuse_blend(true);
+        cpu.set_blend_samples(samples);
+        assert_eq!(cpu.density().blend_samples(), samples);
+        let gpu = GpuInolfKernel::new(context(), &cpu).expect("gpu kernel");
+        whole_frames_agree(&cpu, &gpu);
+        let (blended, _) = gpu.render_pixels(&camera, &all_pixels(&camera)).expect("gpu");
+        let changed = moved(&blended, &at_hit);
+        assert!(changed > 20, "{samples} samples: only {changed} colours moved");
+        frames.push(blended);
+    }
+    let between = moved(&frames[0], &frames[1]);
+    assert!(between > 5, "8 and 4 samples: only {between} colours differ");
 }
 
 /// With the see-through hit rule (a layer behind the largest weight) the twin takes the same

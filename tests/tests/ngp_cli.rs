@@ -290,7 +290,7 @@ fn bake_then_bench_inolf_prints_the_ablation_rows() {
         assert!(out.lines().any(|l| l.starts_with(row)), "no row '{row}' in:\n{out}");
     }
     assert!(
-        out.contains("keeping the 4 blend samples (heads that blend their diffuse colour; this asset's heads do)"),
+        out.contains("keeping the 8 blend samples (heads that blend their diffuse colour; this asset's heads do)"),
         "{out}"
     );
 }

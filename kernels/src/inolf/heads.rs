@@ -88,6 +88,10 @@ pub fn load_heads(asset: &Asset) -> Result<LoadedHeads, ModelError> {
         return Err(bad(format!("march stride {} (1..={})", meta.march_stride, super::cubes::MAX_MARCH_STRIDE)));
     }
     meta.hit_rule.validate().map_err(|e| bad(e.to_string()))?;
+    let blend_samples = meta.shape.blend_samples as usize;
+    if meta.shape.diffuse_blend && !(1..=super::cubes::MAX_BLEND_SAMPLES).contains(&blend_samples) {
+        return Err(bad(format!("{blend_samples} blend samples (1..={})", super::cubes::MAX_BLEND_SAMPLES)));
+    }
     let [lo, hi] = meta.grid_bounds.map(Vec3::from);
     if !(lo.is_finite() && hi.is_finite() && (hi - lo).min_element() > 0.0) {
         return Err(bad("grid bounds".into()));

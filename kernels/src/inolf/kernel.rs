@@ -17,7 +17,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::asset::Asset;
-use super::cubes::{BLEND_SAMPLES, DensityCubes, SparseCubes};
+use super::cubes::{DensityCubes, MAX_BLEND_SAMPLES, SparseCubes};
 use super::encoding::{CellCache, PshEncoding};
 use super::heads::{decode_diffuse, load_heads};
 use super::model::{DIFFUSE_OUT, HeadsShape, InolfModel, ModelError, SPECULAR_OUT, combine, specular_activation};
@@ -108,7 +108,7 @@ impl InolfKernel {
         let mut density = asset.density;
         density.set_march_stride(heads.meta.march_stride).map_err(|e| ModelError::Shape(e.to_string()))?;
         density.set_hit_rule(heads.meta.hit_rule).map_err(|e| ModelError::Shape(e.to_string()))?;
-        density.set_keep_blend(heads.meta.shape.diffuse_blend);
+        density.set_blend_samples(heads.meta.shape.kept_blend_samples());
         Ok(InolfKernel {
             density,
             hit_field: None,
@@ -134,7 +134,7 @@ impl InolfKernel {
         mut density: DensityCubes,
         diffuse_cubes: Option<SparseCubes>,
     ) -> InolfKernel {
-        density.set_keep_blend(model.shape.diffuse_blend);
+        density.set_blend_samples(model.shape.kept_blend_samples());
         let source = if diffuse_cubes.is_some() { DiffuseSource::Cubes } else { DiffuseSource::Network };
         InolfKernel {
             density,
@@ -258,7 +258,15 @@ impl InolfKernel {
     /// other reading is for comparisons).
     pub fn set_diffuse_blend(&mut self, blend: bool) {
         self.shape.diffuse_blend = blend;
-        self.density.set_keep_blend(blend);
+        self.density.set_blend_samples(self.shape.kept_blend_samples());
+    }
+
+    /// How many samples a blended diffuse colour mixes (`HeadsShape::blend_samples`: what the
+    /// heads were trained with; others are for comparisons; at most
+    /// [`MAX_BLEND_SAMPLES`]).
+    pub fn set_blend_samples(&mut self, samples: u32) {
+        self.shape.blend_samples = samples.min(MAX_BLEND_SAMPLES as u32);
+        self.density.set_blend_samples(self.shape.kept_blend_samples());
     }
 
     /// Multiply-adds of the specular MLP per hitting ray.
@@ -288,7 +296,8 @@ impl InolfKernel {
         let mut hits: Vec<(usize, Vec3, Vec3, f32)> = Vec::with_capacity(pixels.len());
         // Per hit, the points and weights its diffuse colour blends (`HeadsShape::diffuse_blend`).
         let blend = self.shape.diffuse_blend;
-        let mut blends: Vec<[(Vec3, f32); BLEND_SAMPLES]> = Vec::with_capacity(if blend { pixels.len() } else { 0 });
+        let mut blends: Vec<[(Vec3, f32); MAX_BLEND_SAMPLES]> =
+            Vec::with_capacity(if blend { pixels.len() } else { 0 });
         // Per hit, the view depth reported: of the sample of largest weight, which a hit
         // rule may have left for a layer behind (`MarchHit::front_t`).
         let mut front_depths: Vec<f32> = Vec::with_capacity(pixels.len());
@@ -296,7 +305,7 @@ impl InolfKernel {
         let mut network_samples = 0u64;
         for (k, &p) in pixels.iter().enumerate() {
             let ray = camera.pixel_center_ray(p % width, p / width);
-            let mut blend_points = [(Vec3::ZERO, 0.0f32); BLEND_SAMPLES];
+            let mut blend_points = [(Vec3::ZERO, 0.0f32); MAX_BLEND_SAMPLES];
             let (opacity, t, front_t) = match (&self.hit_field, &mut field_scratch) {
                 (Some(field), Some(scratch)) => {
                     let r = field.density_hit(ray.origin, ray.direction, RAY_NEAR, scratch);

@@ -58,6 +58,17 @@ pub struct HeadsShape {
     /// held-out views +0.6 dB, BENCHMARKS.md 2026-12-07f).
     #[serde(default)]
     pub diffuse_blend: bool,
+    /// How many of the march's samples of largest weight a blended diffuse colour mixes
+    /// (1..=[`super::cubes::MAX_BLEND_SAMPLES`]; read only with `diffuse_blend`). Assets
+    /// written before this field blended 4; 8 since 2026-12-08 (the lego's gap to its field
+    /// 0.35 -> 0.09 dB, BENCHMARKS.md).
+    #[serde(default = "blend_samples_before_they_were_recorded")]
+    pub blend_samples: u32,
+}
+
+/// `HeadsShape::blend_samples` of assets written before it was recorded.
+fn blend_samples_before_they_were_recorded() -> u32 {
+    4
 }
 
 impl Default for HeadsShape {
@@ -76,11 +87,18 @@ impl Default for HeadsShape {
             specular_hidden: 32,
             specular_layers: 2,
             diffuse_blend: true,
+            blend_samples: super::cubes::MAX_BLEND_SAMPLES as u32,
         }
     }
 }
 
 impl HeadsShape {
+    /// The samples the density march keeps for these heads
+    /// (`DensityCubes::set_blend_samples`): `blend_samples` where they blend, else none.
+    pub fn kept_blend_samples(&self) -> u32 {
+        if self.diffuse_blend { self.blend_samples } else { 0 }
+    }
+
     pub fn grid(&self) -> HashGridConfig {
         HashGridConfig {
             levels: self.grid_levels,
@@ -371,5 +389,19 @@ mod tests {
             LossSpace::Srgb,
         );
         assert!(perfect.loss < 1e-10, "{perfect:?}");
+    }
+
+    /// Assets from before `blend_samples` was recorded blended 4 samples (and read as such);
+    /// new shapes record theirs, and the march keeps none for heads that do not blend.
+    #[test]
+    fn the_blend_count_of_older_assets_is_four() {
+        let mut json = serde_json::to_value(HeadsShape::default()).expect("serialises");
+        let new: HeadsShape = serde_json::from_value(json.clone()).expect("reads back");
+        assert_eq!(new.blend_samples as usize, super::super::cubes::MAX_BLEND_SAMPLES);
+        assert_eq!(new.kept_blend_samples(), new.blend_samples);
+        json.as_object_mut().expect("an object").remove("blend_samples");
+        let old: HeadsShape = serde_json::from_value(json).expect("reads without the count");
+        assert_eq!(old.blend_samples, 4);
+        assert_eq!(HeadsShape { diffuse_blend: false, ..old }.kept_blend_samples(), 0);
     }
 }

@@ -99,6 +99,7 @@ pub fn synthetic_object(scale: f32) -> Result<SyntheticObject, Box<dyn std::erro
         specular_hidden: 16,
         specular_layers: 2,
         diffuse_blend: false,
+        blend_samples: super::cubes::MAX_BLEND_SAMPLES as u32,
     };
     let mut model = InolfModel::new(shape, bounds, psh, 7)?;
     // Grid features of order one, so that the diffuse network's output varies in space.

@@ -13,7 +13,7 @@ use std::time::Instant;
 use nephele_geometry::Bounds;
 use nephele_geometry::camera::{Camera, CameraError};
 use nephele_kernels::inolf::asset::Asset;
-use nephele_kernels::inolf::cubes::{CubeError, CubeOptions, DensityCubes, HitRule};
+use nephele_kernels::inolf::cubes::{CubeError, CubeOptions, DensityCubes, HitRule, MAX_BLEND_SAMPLES};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::model::{HeadsShape, InolfModel, LossSpace, ModelError};
 use nephele_kernels::inolf::psh::{PshError, PshOptions};
@@ -79,6 +79,9 @@ pub struct BakeRecipe {
     /// Blend the diffuse colour over the march's samples of largest weight instead of reading
     /// it at the hit point ([`HeadsShape::diffuse_blend`]).
     pub diffuse_blend: bool,
+    /// How many of the march's samples of largest weight the blend mixes
+    /// ([`HeadsShape::blend_samples`], 1..=[`MAX_BLEND_SAMPLES`]).
+    pub blend_samples: u32,
     /// Which sample of the march is a ray's hit point; `None`: chosen from the share of
     /// training rays that see a second layer ([`choose_hit_rule`]).
     pub hit_rule: Option<HitRule>,
@@ -115,6 +118,7 @@ impl Default for BakeRecipe {
             grid_decay: 0.0,
             head_loss: LossSpace::default(),
             diffuse_blend: true,
+            blend_samples: HeadsShape::default().blend_samples,
             hit_rule: None,
             seed: 1,
         }
@@ -163,6 +167,8 @@ pub enum BakeError {
     Pixels(#[from] CorruptPixels),
     #[error("{name} = {value}: must be finite, at least 0 and below 10")]
     Decay { name: &'static str, value: f32 },
+    #[error("{0} blend samples: the march keeps 1 to {MAX_BLEND_SAMPLES}")]
+    BlendSamples(u32),
 }
 
 /// What a bake made.
@@ -194,9 +200,13 @@ pub fn bake(
         }
     }
     // The heads' shape is checked before the minutes of the radiance field, not after.
+    if !(1..=MAX_BLEND_SAMPLES as u32).contains(&recipe.blend_samples) {
+        return Err(BakeError::BlendSamples(recipe.blend_samples));
+    }
     let shape = HeadsShape {
         grid_log2_table: recipe.head_table_log2,
         diffuse_blend: recipe.diffuse_blend,
+        blend_samples: recipe.blend_samples,
         ..HeadsShape::default()
     };
     shape.grid().validate().map_err(ModelError::from)?;

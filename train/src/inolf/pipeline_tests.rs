@@ -16,7 +16,7 @@ use super::bake::{bake_diffuse_cubes, to_asset};
 use super::train::{TrainOptions, TrainingView, collect_hit_points, train};
 use nephele_geometry::camera::Camera;
 use nephele_kernels::inolf::asset::Asset;
-use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes, HitRule};
+use nephele_kernels::inolf::cubes::{CubeOptions, DensityCubes, HitRule, MAX_BLEND_SAMPLES};
 use nephele_kernels::inolf::encoding::PshEncoding;
 use nephele_kernels::inolf::kernel::{DiffuseSource, HitSource, InolfKernel};
 use nephele_kernels::inolf::model::{HeadsShape, InolfModel};
@@ -86,6 +86,7 @@ fn small_shape() -> HeadsShape {
         specular_hidden: 16,
         specular_layers: 1,
         diffuse_blend: true,
+        blend_samples: MAX_BLEND_SAMPLES as u32,
     }
 }
 
@@ -203,6 +204,21 @@ fn asset_without_diffuse_network_renders_from_cubes_only() {
     hostile.meta = hostile.meta.replace("\"largest_weight\"", "{\"layer_behind\":{\"opacity\":1.5,\"gap\":16.0}}");
     let err = InolfKernel::from_asset(hostile).expect_err("opacity 1.5");
     assert!(err.to_string().contains("layer opacity 1.5"), "{err}");
+    // So does the count of blended samples: assets older than the field blended 4; counts
+    // the march cannot keep are refused.
+    assert_eq!(kernel.density().blend_samples() as usize, MAX_BLEND_SAMPLES);
+    let recorded = format!("\"blend_samples\":{MAX_BLEND_SAMPLES}");
+    assert!(asset.meta.contains(&recorded), "{}", asset.meta);
+    let mut older = asset.clone();
+    older.meta = older.meta.replace(&format!(",{recorded}"), "");
+    assert!(!older.meta.contains("blend_samples"), "{}", older.meta);
+    assert_eq!(InolfKernel::from_asset(older).expect("kernel").density().blend_samples(), 4);
+    for count in [0, MAX_BLEND_SAMPLES + 1] {
+        let mut hostile = asset.clone();
+        hostile.meta = hostile.meta.replace(&recorded, &format!("\"blend_samples\":{count}"));
+        let err = InolfKernel::from_asset(hostile).expect_err("a count out of range");
+        assert!(err.to_string().contains(&format!("{count} blend samples")), "{err}");
+    }
     // No diffuse part at all is an error, not a broken kernel.
     let mut bare = to_asset(&t.model, t.cubes.clone(), None, false, serde_json::Value::Null).expect("asset");
     bare.tensors.retain(|x| x.name == "specular.mlp");

@@ -14,7 +14,7 @@ use crate::dataset::Dataset;
 use crate::targets::{PixelCheck, TargetSpace, is_dropped, premultiplied_targets};
 use nephele_geometry::SplitMix64;
 use nephele_geometry::camera::{Camera, CameraError, Ray};
-use nephele_kernels::inolf::cubes::{BLEND_SAMPLES, DensityCubes, HitRule, MarchHit};
+use nephele_kernels::inolf::cubes::{DensityCubes, HitRule, MAX_BLEND_SAMPLES, MarchHit};
 use nephele_kernels::inolf::encoding::Corners;
 use nephele_kernels::inolf::kernel::{HIT_OPACITY, RAY_NEAR};
 use nephele_kernels::inolf::model::{
@@ -274,7 +274,7 @@ pub fn heads_forward_backward(
     // `HeadsShape::diffuse_blend` one per sample the ray's colour blends, weighted as the
     // kernel weighs them (`MarchHit::normalised_blend`). Each row: its ray and weight.
     let blend = model.shape.diffuse_blend;
-    let mut points: Vec<[f32; 3]> = Vec::with_capacity(n * if blend { BLEND_SAMPLES } else { 1 });
+    let mut points: Vec<[f32; 3]> = Vec::with_capacity(n * if blend { MAX_BLEND_SAMPLES } else { 1 });
     let mut row_of: Vec<(usize, f32)> = Vec::with_capacity(points.capacity());
     for (k, r) in rays.iter().enumerate() {
         let start = points.len();
@@ -359,6 +359,17 @@ pub fn train(
     if views.is_empty() || options.batch == 0 {
         return Err(ModelError::Shape("no views or an empty batch".into()));
     }
+    // The march keeps as many blend samples as these heads mix (as the kernel's will).
+    let kept = model.shape.kept_blend_samples();
+    let matched;
+    let cubes = if cubes.blend_samples() == kept {
+        cubes
+    } else {
+        let mut c = cubes.clone();
+        c.set_blend_samples(kept);
+        matched = c;
+        &matched
+    };
     let mut rng = SplitMix64::new(options.seed);
     let mut map = ErrorMap::new(views, options.tile);
     let adam = |lr: f32, weight_decay: f32, decoupled_decay: f32, len: usize| {
