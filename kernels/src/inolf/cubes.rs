@@ -607,8 +607,9 @@ impl DensityCubes {
 
     /// How many samples of largest weight the march keeps in the first entries of
     /// [`MarchHit::blend`] (the rest left `(0, 0)`): 0 to [`MAX_BLEND_SAMPLES`] (a larger
-    /// count keeps that many; `load_heads` refuses such assets), all of them unless set. Only heads that blend their diffuse colour (`HeadsShape::diffuse_blend`)
-    /// read them, as many as they were trained with (`HeadsShape::blend_samples`), and
+    /// count keeps that many; `load_heads` refuses such assets), all of them unless set.
+    /// Only heads that blend their diffuse colour (`HeadsShape::diffuse_blend`) read them,
+    /// as many as they were trained with (`HeadsShape::blend_samples`), and
     /// keeping them costs a few compares per sample with matter, so a kernel serving other
     /// heads keeps none.
     pub fn set_blend_samples(&mut self, samples: u32) {
